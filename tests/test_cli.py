@@ -1,0 +1,59 @@
+import json
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from torchgi.cli import main
+from torchgi.io import write_exr
+
+
+def test_console_script_help():
+    exe = shutil.which("torchgi")
+    assert exe, "the torchgi console script is not installed"
+    out = subprocess.run([exe, "--help"], capture_output=True, text=True, check=True).stdout
+    for word in ("info", "metrics", "demo"):
+        assert word in out
+
+
+def test_info_json(capsys):
+    assert main(["info", "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["torch"] == torch.__version__
+    assert info["extras"]["exr"]["OpenEXR"] is not None
+
+
+def test_metrics_command(tmp_path, capsys):
+    pytest.importorskip("OpenEXR")
+    g = torch.Generator().manual_seed(0)
+    ref = torch.rand(3, 16, 16, generator=g)
+    img = ref + 0.1 * torch.rand(3, 16, 16, generator=g)
+    write_exr(tmp_path / "ref.exr", {"": ref})
+    write_exr(tmp_path / "img.exr", {"color": img})
+    assert main(["metrics", str(tmp_path / "ref.exr"), str(tmp_path / "img.exr"), "--json"]) == 0
+    table = json.loads(capsys.readouterr().out)
+    d = (img.double() - ref.double()).numpy()
+    np.testing.assert_allclose(table["mse"], (d**2).mean(), rtol=1e-5)
+    assert set(table) == {"mse", "relmse", "psnr_db", "ssim", "flip"}
+
+
+def test_metrics_command_errors(tmp_path, capsys):
+    pytest.importorskip("OpenEXR")
+    write_exr(tmp_path / "ref.exr", {"albedo": torch.rand(3, 4, 4)})
+    assert main(["metrics", str(tmp_path / "ref.exr"), str(tmp_path / "ref.exr")]) == 2
+    assert "missing required layer(s) color" in capsys.readouterr().err
+
+
+def test_demo_runs_end_to_end(tmp_path):
+    pytest.importorskip("mitsuba")
+    pytest.importorskip("OpenEXR")
+    out = subprocess.run(
+        [sys.executable, "-m", "torchgi.cli", "demo", "--out", str(tmp_path), "--size", "24", "--ref-spp", "16"],
+        capture_output=True, text=True, check=True,
+    ).stdout
+    assert "noisy" in out
+    assert (tmp_path / "demo.png").read_bytes()[:4] == b"\x89PNG"
+    assert (tmp_path / "noisy.exr").is_file() and (tmp_path / "reference.exr").is_file()

@@ -1,0 +1,87 @@
+import pytest
+import torch
+
+from torchgi.core import (
+    ConfigError,
+    DeviceError,
+    DTypeError,
+    ExtraNotInstalledError,
+    NonFiniteError,
+    OptionError,
+    RangeError,
+    Registry,
+    ShapeError,
+    check_finite,
+    check_option,
+    check_range,
+    check_same_device,
+    check_shape,
+    require,
+)
+
+
+def test_check_shape_binds_and_reuses_sizes():
+    sizes = check_shape(torch.zeros(2, 3, 4, 5), "B C H W", "color")
+    assert sizes == {"B": 2, "C": 3, "H": 4, "W": 5}
+    check_shape(torch.zeros(2, 1, 4, 5), "B 1 H W", "depth", sizes)
+    with pytest.raises(ShapeError, match=r"normal: dimension H is 6 but other inputs have H=4"):
+        check_shape(torch.zeros(2, 3, 6, 5), "B 3 H W", "normal", sizes)
+
+
+@pytest.mark.parametrize(
+    "shape, spec, pattern",
+    [((3, 4, 5), "B C H W", r"x: expected shape \(B, C, H, W\), got \(3, 4, 5\)"),
+     ((1, 2, 4, 4), "B 3 H W", r"x: expected shape \(B, 3, H, W\), got \(1, 2, 4, 4\)")],
+)
+def test_check_shape_errors(shape, spec, pattern):
+    with pytest.raises(ShapeError, match=pattern):
+        check_shape(torch.zeros(shape), spec, "x")
+
+
+def test_check_shape_rejects_non_tensor():
+    with pytest.raises(DTypeError, match="color: expected a torch.Tensor, got list"):
+        check_shape([1, 2], "B", "color")
+
+
+def test_check_same_device_names_both():
+    a = torch.zeros(1)
+    b = torch.zeros(1, device="meta")
+    with pytest.raises(DeviceError, match="normal is on meta but color is on cpu"):
+        check_same_device({"color": a, "normal": b})
+
+
+def test_check_finite_counts():
+    x = torch.tensor([1.0, float("nan"), float("inf"), -float("inf"), float("nan")])
+    with pytest.raises(NonFiniteError, match="color: expected finite values, found 2 NaN and 2 "):
+        check_finite(x, "color")
+    check_finite(torch.arange(3), "ints")  # integers are always finite
+
+
+def test_check_range_and_option():
+    with pytest.raises(RangeError, match=r"albedo: expected values <= 1.0, found max 1.5"):
+        check_range(torch.tensor([0.0, 1.5]), "albedo", 0.0, 1.0)
+    with pytest.raises(OptionError, match=r"reduction: expected one of 'mean', 'none'; got 'sum'"):
+        check_option("sum", "reduction", ("mean", "none"))
+
+
+def test_require_names_extra():
+    with pytest.raises(ExtraNotInstalledError, match=r"pip install 'torchgi\[render\]'"):
+        require("definitely_not_a_module_xyz", "render")
+
+
+def test_registry_build_and_unknown():
+    reg = Registry("filter")
+
+    @reg.register("affine")
+    def affine(scale: float = 1.0, shift: float = 0.0):
+        return lambda x: x * scale + shift
+
+    assert reg.build({"type": "affine", "scale": 2.0}, shift=1.0)(3.0) == 7.0
+    with pytest.raises(ConfigError, match=r"unknown filter type 'nope'; known: affine"):
+        reg.build({"type": "nope"})
+    with pytest.raises(ConfigError, match="'affine'.*unexpected keyword"):
+        reg.build({"type": "affine", "sigma": 1})
+    with pytest.raises(ConfigError, match="'type' key"):
+        reg.build({"scale": 1})
+    with pytest.raises(ValueError, match="already registered"):
+        reg.register("affine")(affine)

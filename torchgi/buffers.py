@@ -1,0 +1,312 @@
+"""GBuffer: the one type every torchgi stage passes on.
+
+All fields are ``(B, C, H, W)`` tensors on one device. Radiance and guides share one
+floating dtype; ``spp`` is an integer count and ``hit`` a boolean mask.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from collections.abc import Iterator, Sequence
+from typing import Any
+
+import numpy as np
+import torch
+
+from torchgi.core.check import check_finite, check_same_device, check_shape, check_tensor
+from torchgi.core.errors import DTypeError, LayerError, ShapeError
+
+__all__ = ["GBuffer"]
+
+# field -> channel count (None: 1 or 3). Order is the order of ``GBuffer.fields``.
+_CHANNELS: dict[str, int | None] = {
+    "color": 3,
+    "direct": 3,
+    "indirect": 3,
+    "emission": 3,
+    "albedo": 3,
+    "normal": 3,
+    "position": 3,
+    "depth": 1,
+    "variance": None,
+    "spp": 1,
+    "hit": 1,
+}
+_FLOAT_FIELDS = tuple(k for k in _CHANNELS if k not in ("spp", "hit"))
+
+
+@dataclasses.dataclass(eq=False)
+class GBuffer:
+    """Radiance, noise-free guides and statistics of a batch of rendered images.
+
+    Fields (all optional, at least one present; every present one is ``(B, C, H, W)``):
+        color: ``(B,3,H,W)`` HDR radiance in [0, inf); ``emission + direct + indirect``
+            (filled from those three when not given).
+        direct, indirect, emission: ``(B,3,H,W)`` radiance split by light path.
+        albedo: ``(B,3,H,W)`` first-hit reflectance in [0, 1]; 0 on background.
+        normal: ``(B,3,H,W)`` world-space unit normal in [-1, 1]; 0 on background.
+        position: ``(B,3,H,W)`` world-space first-hit position, scene units.
+        depth: ``(B,1,H,W)`` distance along the camera ray, scene units; finite everywhere.
+        variance: ``(B,1|3,H,W)`` per-pixel variance of the colour estimate (of the mean).
+        spp: ``(B,1,H,W)`` integer samples per pixel.
+        hit: ``(B,1,H,W)`` bool, True where the centre ray hit geometry.
+
+    Construction checks shapes, one device, one floating dtype for the radiance/guide
+    fields and finiteness of the guides; nothing is moved or converted.
+
+    Example:
+        >>> gb = GBuffer(color=torch.rand(2, 3, 8, 8), normal=torch.zeros(2, 3, 8, 8))
+        >>> gb.shape, gb.crop(0, 0, 4, 4).shape
+        ((2, 8, 8), (2, 4, 4))
+    """
+
+    color: torch.Tensor | None = None
+    direct: torch.Tensor | None = None
+    indirect: torch.Tensor | None = None
+    emission: torch.Tensor | None = None
+    albedo: torch.Tensor | None = None
+    normal: torch.Tensor | None = None
+    position: torch.Tensor | None = None
+    depth: torch.Tensor | None = None
+    variance: torch.Tensor | None = None
+    spp: torch.Tensor | None = None
+    hit: torch.Tensor | None = None
+
+    # -- validation ------------------------------------------------------------------------
+    def __post_init__(self) -> None:
+        if self.color is None and all(getattr(self, k) is not None for k in ("emission", "direct", "indirect")):
+            self.color = self.emission + self.direct + self.indirect
+        present = dict(self.items())
+        if not present:
+            raise ShapeError("GBuffer: expected at least one field, got none")
+        sizes: dict[str, int] = {}
+        dtype = None
+        for name, t in present.items():
+            check_tensor(t, name)
+            channels = _CHANNELS[name]
+            if channels is None:
+                check_shape(t, "B C H W", name, sizes)
+                if t.shape[1] not in (1, 3):
+                    raise ShapeError(f"{name}: expected 1 or 3 channels, got shape {tuple(t.shape)}")
+            else:
+                check_shape(t, f"B {channels} H W", name, sizes)
+            if name in _FLOAT_FIELDS:
+                if not t.is_floating_point():
+                    raise DTypeError(f"{name}: expected a floating-point tensor, got {t.dtype}")
+                if dtype is None:
+                    dtype = (name, t.dtype)
+                elif t.dtype != dtype[1]:
+                    raise DTypeError(f"{name} is {t.dtype} but {dtype[0]} is {dtype[1]}: use one dtype")
+        check_same_device(present)
+        if self.spp is not None and (self.spp.is_floating_point() or self.spp.dtype == torch.bool):
+            raise DTypeError(f"spp: expected an integer tensor, got {self.spp.dtype}")
+        if self.hit is not None and self.hit.dtype != torch.bool:
+            raise DTypeError(f"hit: expected a bool tensor, got {self.hit.dtype}")
+        for name in ("albedo", "normal", "position", "depth"):
+            if (t := getattr(self, name)) is not None:
+                check_finite(t, name)
+
+    # -- views -----------------------------------------------------------------------------
+    @staticmethod
+    def fields() -> tuple[str, ...]:
+        """All field names, in a fixed order."""
+        return tuple(_CHANNELS)
+
+    def items(self) -> Iterator[tuple[str, torch.Tensor]]:
+        """``(name, tensor)`` for every present field."""
+        for name in _CHANNELS:
+            t = getattr(self, name)
+            if t is not None:
+                yield name, t
+
+    def _first(self) -> torch.Tensor:
+        return next(t for _, t in self.items())
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        """``(B, H, W)``."""
+        t = self._first()
+        return (t.shape[0], t.shape[2], t.shape[3])
+
+    @property
+    def device(self) -> torch.device:
+        return self._first().device
+
+    @property
+    def dtype(self) -> torch.dtype | None:
+        """The floating dtype of the radiance and guide fields (None if only spp/hit)."""
+        return next((t.dtype for n, t in self.items() if n in _FLOAT_FIELDS), None)
+
+    def replace(self, **changes: torch.Tensor | None) -> GBuffer:
+        """A new GBuffer with some fields replaced (validated again)."""
+        return dataclasses.replace(self, **changes)
+
+    def _map(self, fn: Any) -> GBuffer:
+        return GBuffer(**{name: fn(name, t) for name, t in self.items()})
+
+    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> GBuffer:
+        """Move every field to ``device``; cast the floating fields (not spp/hit) to ``dtype``.
+
+        Example:
+            >>> GBuffer(color=torch.rand(1, 3, 2, 2), hit=torch.ones(1, 1, 2, 2, dtype=torch.bool)
+            ...         ).to(dtype=torch.float64).hit.dtype
+            torch.bool
+        """
+        if dtype is not None and not dtype.is_floating_point:
+            raise DTypeError(f"dtype: expected a floating dtype, got {dtype}")
+        return self._map(
+            lambda n, t: t.to(device=device, dtype=dtype if n in _FLOAT_FIELDS else None)
+        )
+
+    def crop(self, top: int, left: int, height: int, width: int) -> GBuffer:
+        """The window ``[top:top+height, left:left+width]`` of every field (a view).
+
+        Example:
+            >>> GBuffer(color=torch.rand(1, 3, 8, 8)).crop(2, 2, 3, 4).shape
+            (1, 3, 4)
+        """
+        _, H, W = self.shape
+        if not (0 <= top and 0 <= left and height > 0 and width > 0 and top + height <= H and left + width <= W):
+            raise ShapeError(
+                f"crop: window top={top} left={left} height={height} width={width} "
+                f"does not fit in an image of {H}x{W}"
+            )
+        return self._map(lambda n, t: t[:, :, top : top + height, left : left + width])
+
+    def __getitem__(self, index: int | slice) -> GBuffer:
+        """Batch slicing that keeps the batch dimension: ``gb[1]`` has B = 1."""
+        if isinstance(index, int):
+            B = self.shape[0]
+            if not -B <= index < B:
+                raise IndexError(f"index {index} out of range for batch of {B}")
+            index = slice(index % B, index % B + 1)
+        if not isinstance(index, slice):
+            raise TypeError(f"index: expected int or slice, got {type(index).__name__}")
+        return self._map(lambda n, t: t[index])
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    @staticmethod
+    def cat(buffers: Sequence[GBuffer]) -> GBuffer:
+        """Concatenate along the batch; every buffer must hold the same fields.
+
+        Example:
+            >>> a = GBuffer(color=torch.rand(1, 3, 2, 2))
+            >>> GBuffer.cat([a, a]).shape
+            (2, 2, 2)
+        """
+        if not buffers:
+            raise ShapeError("buffers: expected at least one GBuffer")
+        names = [n for n, _ in buffers[0].items()]
+        for i, b in enumerate(buffers[1:], 1):
+            other = [n for n, _ in b.items()]
+            if other != names:
+                raise LayerError(f"buffers[{i}] has fields {other}, buffers[0] has {names}")
+        return GBuffer(**{n: torch.cat([getattr(b, n) for b in buffers]) for n in names})
+
+    # -- numpy -----------------------------------------------------------------------------
+    def numpy(self, name: str, index: int = 0) -> np.ndarray:
+        """Field ``name`` of image ``index`` as an ``(H, W, C)`` numpy array (a copy on CPU).
+
+        Example:
+            >>> GBuffer(color=torch.rand(1, 3, 4, 5)).numpy("color").shape
+            (4, 5, 3)
+        """
+        t = getattr(self, name, None) if name in _CHANNELS else None
+        if t is None:
+            raise LayerError(f"name: {name!r} is not present; present: {[n for n, _ in self.items()]}")
+        return t[index].detach().permute(1, 2, 0).cpu().numpy()
+
+    @classmethod
+    def from_numpy(cls, **arrays: np.ndarray) -> GBuffer:
+        """Build from ``(H, W, C)`` or ``(B, H, W, C)`` arrays (copied; dtype kept).
+
+        Example:
+            >>> GBuffer.from_numpy(color=np.zeros((4, 5, 3), np.float32)).shape
+            (1, 4, 5)
+        """
+        fields = {}
+        for name, arr in arrays.items():
+            if name not in _CHANNELS:
+                raise LayerError(f"{name}: not a GBuffer field; fields: {', '.join(_CHANNELS)}")
+            arr = np.asarray(arr)
+            if arr.ndim == 3:
+                arr = arr[None]
+            if arr.ndim != 4:
+                raise ShapeError(f"{name}: expected (H, W, C) or (B, H, W, C), got {arr.shape}")
+            fields[name] = torch.from_numpy(np.ascontiguousarray(arr.transpose(0, 3, 1, 2)))
+        return cls(**fields)
+
+    # -- EXR -------------------------------------------------------------------------------
+    def to_exr(self, path: str | os.PathLike, *, index: int | None = None, overwrite: bool = False) -> list[str]:
+        """Write every field to a multi-layer EXR named by torchgi's layer names.
+
+        A batch of one goes to ``path``; a larger batch writes one file per image with
+        ``_0000``, ``_0001``... before the suffix (or only image ``index`` to ``path``).
+        float16/float32 are stored as they are (other float dtypes raise: convert first),
+        spp and hit as UINT. Nothing is overwritten unless ``overwrite=True``.
+
+        Returns:
+            The paths written.
+        """
+        from torchgi.io.exr import write_exr
+
+        B = self.shape[0]
+        if index is not None:
+            return [str(write_exr(path, self._layers(index), overwrite=overwrite))]
+        if B == 1:
+            return [str(write_exr(path, self._layers(0), overwrite=overwrite))]
+        root, ext = os.path.splitext(os.fspath(path))
+        return [str(write_exr(f"{root}_{i:04d}{ext}", self._layers(i), overwrite=overwrite)) for i in range(B)]
+
+    def _layers(self, index: int) -> dict[str, torch.Tensor]:
+        return {n: t[index] for n, t in self.items()}
+
+    @classmethod
+    def from_exr(
+        cls, path: str | os.PathLike, *, required: Sequence[str] = ("color",), sanitize: bool = False
+    ) -> GBuffer:
+        """Read a GBuffer (B = 1) from an EXR of torchgi, Blender/Cycles, Mitsuba 3 or Arnold.
+
+        Layer names are mapped with :func:`torchgi.io.find_aovs`. UINT spp comes back as
+        int64, hit as bool. Half and float layers are not mixed: if the file holds both, the
+        error says so (convert the file, or read layers with :func:`torchgi.io.read_exr`).
+
+        Args:
+            sanitize: replace NaN/Inf in the colour fields by 0 (with a warning giving the
+                count) instead of raising.
+
+        Example:
+            >>> import tempfile, os
+            >>> p = os.path.join(tempfile.mkdtemp(), "g.exr")
+            >>> _ = GBuffer(color=torch.rand(1, 3, 4, 4)).to_exr(p)
+            >>> GBuffer.from_exr(p).shape
+            (1, 4, 4)
+        """
+        from torchgi.io.exr import read_aovs
+
+        aovs = read_aovs(path, required=required)
+        fields: dict[str, torch.Tensor] = {}
+        for name, t in aovs.items():
+            if name == "hit":
+                t = t != 0
+            elif name == "spp":
+                t = t.to(torch.int64) if not t.is_floating_point() else t.round().to(torch.int64)
+            elif not sanitize and name in ("color", "direct", "indirect", "emission", "variance"):
+                check_finite(t, f"{path}: layer {name}")
+            elif sanitize and t.is_floating_point():
+                bad = ~torch.isfinite(t)
+                if bool(bad.any()):
+                    import warnings
+
+                    warnings.warn(f"{path}: {name}: replaced {int(bad.sum())} non-finite values by 0", stacklevel=2)
+                    t = torch.where(bad, torch.zeros((), dtype=t.dtype), t)
+            fields[name] = t[None]
+        return cls(**fields)
+
+    def __repr__(self) -> str:
+        parts = ", ".join(f"{n}={tuple(t.shape[1:2])}" for n, t in self.items())
+        B, H, W = self.shape
+        return f"GBuffer(B={B}, H={H}, W={W}, dtype={self.dtype}, device={self.device}, fields: {parts})"

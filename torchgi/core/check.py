@@ -1,0 +1,191 @@
+"""Input validation shared by every public function.
+
+Shapes are written symbolically, as in kornia: ``check_shape(x, "B C H W")`` binds the
+letters to sizes and returns them, so several tensors can be checked against each other by
+passing the same ``sizes`` dict. Digits fix a size (``"B 3 H W"``).
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Iterable, Mapping
+from types import ModuleType
+from typing import Any
+
+import torch
+
+from torchgi.core.errors import (
+    DeviceError,
+    DTypeError,
+    ExtraNotInstalledError,
+    NonFiniteError,
+    OptionError,
+    RangeError,
+    ShapeError,
+)
+
+__all__ = [
+    "check_tensor",
+    "check_shape",
+    "check_same_device",
+    "check_floating",
+    "check_finite",
+    "check_range",
+    "check_option",
+    "require",
+]
+
+
+def check_tensor(x: Any, name: str) -> torch.Tensor:
+    """Raise ``TypeError`` unless ``x`` is a ``torch.Tensor``; return it.
+
+    Example:
+        >>> check_tensor(torch.zeros(1), "x").shape
+        torch.Size([1])
+    """
+    if not isinstance(x, torch.Tensor):
+        raise DTypeError(f"{name}: expected a torch.Tensor, got {type(x).__name__}")
+    return x
+
+
+def check_shape(
+    x: torch.Tensor, spec: str, name: str = "x", sizes: dict[str, int] | None = None
+) -> dict[str, int]:
+    """Check ``x`` against a symbolic shape such as ``"B C H W"`` or ``"B 3 H W"``.
+
+    Letters bind to sizes on first sight and must agree afterwards (also across calls
+    that share ``sizes``); digits are fixed sizes.
+
+    Args:
+        x: the tensor.
+        spec: space-separated dimension names or integers.
+        name: the argument's name, used in the error message.
+        sizes: bindings to reuse and extend; a new dict when None.
+
+    Returns:
+        The bindings, e.g. ``{"B": 2, "C": 3, "H": 64, "W": 48}``.
+
+    Raises:
+        ShapeError: wrong rank or a size that disagrees with the spec.
+
+    Example:
+        >>> s = check_shape(torch.zeros(2, 3, 4, 5), "B 3 H W", "color")
+        >>> s["H"], s["W"]
+        (4, 5)
+        >>> _ = check_shape(torch.zeros(2, 1, 4, 5), "B 1 H W", "depth", sizes=s)
+    """
+    check_tensor(x, name)
+    dims = spec.split()
+    sizes = {} if sizes is None else sizes
+    if x.dim() != len(dims):
+        raise ShapeError(
+            f"{name}: expected shape ({', '.join(dims)}), got {tuple(x.shape)} "
+            f"({x.dim()} dimensions instead of {len(dims)})"
+        )
+    for dim, size in zip(dims, x.shape):
+        if dim.isdigit():
+            if size != int(dim):
+                raise ShapeError(f"{name}: expected shape ({', '.join(dims)}), got {tuple(x.shape)}")
+        elif dim in sizes and sizes[dim] != size:
+            raise ShapeError(
+                f"{name}: dimension {dim} is {size} but other inputs have {dim}={sizes[dim]} "
+                f"(shape {tuple(x.shape)}, expected ({', '.join(dims)}))"
+            )
+        else:
+            sizes[dim] = size
+    return sizes
+
+
+def check_same_device(tensors: Mapping[str, torch.Tensor | None]) -> torch.device | None:
+    """Raise :class:`DeviceError` unless every non-None tensor is on one device.
+
+    Nothing is ever moved: the caller decides where data lives.
+
+    Example:
+        >>> check_same_device({"a": torch.zeros(1), "b": torch.ones(1), "c": None})
+        device(type='cpu')
+    """
+    device = None
+    first = None
+    for key, t in tensors.items():
+        if t is None:
+            continue
+        if device is None:
+            device, first = t.device, key
+        elif t.device != device:
+            raise DeviceError(
+                f"{key} is on {t.device} but {first} is on {device}: "
+                "move them to one device first (torchgi never moves data on its own)"
+            )
+    return device
+
+
+def check_floating(x: torch.Tensor, name: str) -> None:
+    """Raise :class:`DTypeError` unless ``x`` has a floating dtype.
+
+    Example:
+        >>> check_floating(torch.zeros(1, dtype=torch.float16), "color")
+    """
+    if not x.is_floating_point():
+        raise DTypeError(f"{name}: expected a floating-point tensor, got dtype {x.dtype}")
+
+
+def check_finite(x: torch.Tensor, name: str) -> None:
+    """Raise :class:`NonFiniteError` if ``x`` holds NaN or +-Inf, with counts.
+
+    Example:
+        >>> check_finite(torch.tensor([0.0, 1e6]), "color")
+    """
+    if not x.is_floating_point():
+        return
+    finite = torch.isfinite(x)
+    if bool(finite.all()):
+        return
+    n_nan = int(torch.isnan(x).sum())
+    n_inf = int((~finite).sum()) - n_nan
+    raise NonFiniteError(
+        f"{name}: expected finite values, found {n_nan} NaN and {n_inf} +-Inf "
+        f"of {x.numel()} elements (pass sanitize=True where offered to replace them)"
+    )
+
+
+def check_range(
+    x: torch.Tensor, name: str, low: float | None = None, high: float | None = None
+) -> None:
+    """Raise :class:`RangeError` if any element of ``x`` lies outside ``[low, high]``.
+
+    Example:
+        >>> check_range(torch.tensor([0.0, 0.5]), "albedo", 0.0, 1.0)
+    """
+    if x.numel() == 0:
+        return
+    if low is not None and bool((x < low).any()):
+        raise RangeError(f"{name}: expected values >= {low}, found min {float(x.min()):g}")
+    if high is not None and bool((x > high).any()):
+        raise RangeError(f"{name}: expected values <= {high}, found max {float(x.max()):g}")
+
+
+def check_option(value: Any, name: str, options: Iterable[Any]) -> None:
+    """Raise :class:`OptionError` unless ``value`` is one of ``options`` (listed).
+
+    Example:
+        >>> check_option("mean", "reduction", ("mean", "none"))
+    """
+    options = tuple(options)
+    if value not in options:
+        raise OptionError(f"{name}: expected one of {', '.join(map(repr, options))}; got {value!r}")
+
+
+def require(module: str, extra: str) -> ModuleType:
+    """Import an optional dependency or raise an error naming the extra to install.
+
+    Example:
+        >>> require("numpy", "core").__name__
+        'numpy'
+    """
+    try:
+        return importlib.import_module(module)
+    except ImportError as exc:
+        raise ExtraNotInstalledError(
+            f"{module} is needed here but is not installed: pip install 'torchgi[{extra}]' ({exc})"
+        ) from exc

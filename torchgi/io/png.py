@@ -1,0 +1,65 @@
+"""A dependency-free 8-bit PNG writer for previews (contact sheets, density maps)."""
+
+from __future__ import annotations
+
+import os
+import struct
+import zlib
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from torchgi.core.check import check_finite, check_shape
+
+__all__ = ["write_png", "to_srgb8"]
+
+
+def to_srgb8(image: torch.Tensor, *, exposure: float = 1.0) -> np.ndarray:
+    """Linear ``(C, H, W)`` radiance (C = 1 or 3) to an ``(H, W, C)`` uint8 sRGB array.
+
+    Values are scaled by ``exposure``, clipped to [0, 1] (display only) and sRGB-encoded.
+
+    Example:
+        >>> to_srgb8(torch.ones(3, 2, 2))[0, 0].tolist()
+        [255, 255, 255]
+    """
+    check_shape(image, "C H W", "image")
+    check_finite(image, "image")
+    x = (image.detach().float().cpu() * exposure).clamp(0, 1)
+    srgb = torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.pow(1 / 2.4) - 0.055)
+    return (srgb * 255 + 0.5).to(torch.uint8).permute(1, 2, 0).numpy()
+
+
+def write_png(path: str | os.PathLike, pixels: np.ndarray, *, overwrite: bool = False) -> Path:
+    """Write an ``(H, W)`` or ``(H, W, 3)`` uint8 array as a PNG file.
+
+    Example:
+        >>> import tempfile, os
+        >>> p = write_png(os.path.join(tempfile.mkdtemp(), "a.png"), np.zeros((2, 3, 3), np.uint8))
+        >>> p.read_bytes()[:4]
+        b'\\x89PNG'
+    """
+    path = Path(path)
+    if path.exists() and not overwrite:
+        raise FileExistsError(f"path: {path} exists; pass overwrite=True to replace it")
+    if pixels.dtype != np.uint8 or pixels.ndim not in (2, 3) or (pixels.ndim == 3 and pixels.shape[2] != 3):
+        raise ValueError(f"pixels: expected uint8 (H, W) or (H, W, 3), got {pixels.dtype} {pixels.shape}")
+    h, w = pixels.shape[:2]
+    colour_type = 0 if pixels.ndim == 2 else 2
+    rows = np.ascontiguousarray(pixels).reshape(h, -1)
+    raw = b"".join(b"\x00" + row.tobytes() for row in rows)
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    png = (
+        b"\x89PNG\r\n\x1a\n"
+        + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, colour_type, 0, 0, 0))
+        + chunk(b"IDAT", zlib.compress(raw, 6))
+        + chunk(b"IEND", b"")
+    )
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_bytes(png)
+    os.replace(tmp, path)
+    return path
