@@ -8,6 +8,7 @@ from torchgi.core.check import (
     check_same_device,
     check_shape,
     check_tensor,
+    is_tracing,
     require,
 )
 from torchgi.core.errors import (
@@ -33,6 +34,7 @@ __all__ = [
     "check_same_device",
     "check_shape",
     "check_tensor",
+    "is_tracing",
     "require",
     "Registry",
     "TorchGIError",

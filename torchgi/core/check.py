@@ -25,6 +25,7 @@ from torchgi.core.errors import (
 )
 
 __all__ = [
+    "is_tracing",
     "check_tensor",
     "check_shape",
     "check_same_device",
@@ -34,6 +35,20 @@ __all__ = [
     "check_option",
     "require",
 ]
+
+
+def is_tracing() -> bool:
+    """True while torch.jit tracing, torch.compile or torch.export / ONNX export records code.
+
+    Value checks (NaN/Inf, ranges) read tensor data, which a traced graph cannot branch on:
+    they are skipped while tracing; shape, dtype and device checks still run.
+
+    Example:
+        >>> is_tracing()
+        False
+    """
+    exporting = getattr(torch.compiler, "is_exporting", lambda: False)
+    return bool(torch.jit.is_tracing() or torch.compiler.is_compiling() or exporting())
 
 
 def check_tensor(x: Any, name: str) -> torch.Tensor:
@@ -136,7 +151,12 @@ def check_finite(x: torch.Tensor, name: str) -> None:
     Example:
         >>> check_finite(torch.tensor([0.0, 1e6]), "color")
     """
-    if not x.is_floating_point():
+    if not x.is_floating_point() or x.numel() == 0 or is_tracing():
+        return
+    # One reduction decides the common case: a sum is finite iff every term is finite, unless
+    # it overflows (|sum| > 3e38 in float32); only a non-finite sum leads to the exact count.
+    total = x.sum(dtype=torch.float32) if x.dtype in (torch.float16, torch.bfloat16) else x.sum()
+    if bool(torch.isfinite(total)):
         return
     finite = torch.isfinite(x)
     if bool(finite.all()):
@@ -157,7 +177,7 @@ def check_range(
     Example:
         >>> check_range(torch.tensor([0.0, 0.5]), "albedo", 0.0, 1.0)
     """
-    if x.numel() == 0:
+    if x.numel() == 0 or is_tracing():
         return
     if low is not None and bool((x < low).any()):
         raise RangeError(f"{name}: expected values >= {low}, found min {float(x.min()):g}")

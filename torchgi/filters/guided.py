@@ -1,0 +1,407 @@
+"""Guided image filter (He et al. 2010) with multi-channel guides, as used for indirect light
+by Bauszat et al. 2011: per window ``w_k`` of radius ``r``
+
+    a_k = (Σ_k + diag(ε))^-1 cov_k(I, p),   b_k = mean_k(p) - a_kᵀ mean_k(I)
+    q_i = mean_{k∋i}(a_k)ᵀ I_i + mean_{k∋i}(b_k)
+
+with every mean a count-normalised box filter (:mod:`torchgi.filters.box`), so cost does not
+depend on ``r``. The per-pixel ``C x C`` solve is a closed-form LDLᵀ written with
+elementwise ops (ONNX-exportable, half-safe), not ``torch.linalg.solve``.
+
+Numerics: guide and source are centred by their per-image means before any sum (the filter
+is invariant to constant offsets), variances are clamped at 0, and ε is raised per pixel to
+the rounding level of the variance so flat guides and ``eps=0`` stay finite and exact.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import torch
+from torch import nn
+
+from torchgi.buffers import GBuffer
+from torchgi.core.check import (
+    check_finite,
+    check_floating,
+    check_range,
+    check_same_device,
+    check_shape,
+    is_tracing,
+)
+from torchgi.core.errors import DTypeError, RangeError, ShapeError
+from torchgi.filters.box import PlaneBoxer, _box_cumsum, compute_dtype, use_fast_path
+
+__all__ = ["guided", "Guided", "guide_from_gbuffer"]
+
+
+def _pairs(n: int) -> list[tuple[int, int]]:
+    """Lower-triangle index pairs ``(i, j), j <= i`` of an ``n x n`` symmetric matrix."""
+    return [(i, j) for i in range(n) for j in range(i + 1)]
+
+
+def _check_eps(eps: float | torch.Tensor, B: int, n: int, like: torch.Tensor) -> torch.Tensor:
+    """ε as a ``(B, n, 1, 1)`` tensor of the compute dtype on ``like``'s device."""
+    if isinstance(eps, torch.Tensor):
+        check_same_device({"eps": eps, "guide": like})
+        check_floating(eps, "eps")
+        if eps.shape not in ((), (n,), (B, n)):
+            raise ShapeError(f"eps: expected a float, shape ({n},) or ({B}, {n}); got {tuple(eps.shape)}")
+        check_finite(eps, "eps")
+        check_range(eps, "eps", 0.0)
+        e = eps.to(like.dtype)
+    else:
+        if not isinstance(eps, (int, float)) or isinstance(eps, bool) or not eps >= 0 or eps == float("inf"):
+            raise RangeError(f"eps: expected a finite float >= 0, got {eps!r}")
+        e = torch.full((), float(eps), dtype=like.dtype, device=like.device)
+    return e.expand(B, n).reshape(B, n, 1, 1)
+
+
+def _solve(
+    mI: list[torch.Tensor], mp: torch.Tensor, mII: dict[tuple[int, int], torch.Tensor],
+    mIp: list[torch.Tensor], eps: torch.Tensor,
+) -> tuple[list[torch.Tensor], torch.Tensor]:
+    """Per-pixel ``a = (Σ + diag(ε))^-1 cov`` and ``b = mean(p) - aᵀ mean(I)``.
+
+    ``mI[i]`` is ``(B,1,H,W)``, ``mp`` ``(B,Cs,H,W)``, ``mII[(i,j)]`` ``(B,1,H,W)`` for j <= i,
+    ``mIp[i]`` ``(B,Cs,H,W)``; ``eps`` is ``(B,n,1,1)``. Returns ``a`` as a list over guide
+    channels of ``(B,Cs,H,W)`` and ``b (B,Cs,H,W)``. LDLᵀ (``E = L·D``), no square roots, no
+    branches, elementwise ops only.
+
+    ``Σ_ii = E[I_i²] - E[I_i]²`` carries a rounding error of a few ``finfo.eps · E[I_i²]``;
+    each ε_i is raised to ``16 · finfo.eps · E[I_i²]`` per pixel (plus the smallest normal
+    number) and pivots are clamped there, so flat guides and ``eps = 0`` give finite, exact
+    box means instead of amplified rounding noise.
+    """
+    n = len(mI)
+    unit = 16 * torch.finfo(mp.dtype).eps
+    tiny = torch.finfo(mp.dtype).tiny
+    A: dict[tuple[int, int], torch.Tensor] = {}
+    eps_eff: list[torch.Tensor] = []
+    for i, j in _pairs(n):
+        s = torch.addcmul(mII[(i, j)], mI[i], mI[j], value=-1)
+        if i == j:
+            eps_eff.append(torch.maximum(eps[:, i : i + 1], mII[(i, i)] * unit + tiny))
+            s = s.clamp_min(0) + eps_eff[i]
+        A[(i, j)] = s
+    L: dict[tuple[int, int], torch.Tensor] = {}
+    E: dict[tuple[int, int], torch.Tensor] = {}
+    D: list[torch.Tensor] = []
+    for j in range(n):
+        d = A[(j, j)]
+        for k in range(j):
+            d = torch.addcmul(d, L[(j, k)], E[(j, k)], value=-1)
+        D.append(torch.maximum(d, eps_eff[j]))
+        for i in range(j + 1, n):
+            v = A[(i, j)]
+            for k in range(j):
+                v = torch.addcmul(v, L[(i, k)], E[(j, k)], value=-1)
+            E[(i, j)] = v
+            L[(i, j)] = v / D[j]
+    y: list[torch.Tensor] = []
+    for i in range(n):
+        v = torch.addcmul(mIp[i], mI[i], mp, value=-1)  # cov(I_i, p)
+        for k in range(i):
+            v = torch.addcmul(v, L[(i, k)], y[k], value=-1)
+        y.append(v)
+    a: list[torch.Tensor] = [mp] * n
+    for i in reversed(range(n)):
+        v = y[i] / D[i]
+        for k in range(i + 1, n):
+            v = torch.addcmul(v, L[(k, i)], a[k], value=-1)
+        a[i] = v
+    b = mp
+    for i in range(n):
+        b = torch.addcmul(b, a[i], mI[i], value=-1)
+    return a, b
+
+
+def _product_specs(n: int, Cs: int) -> list[tuple[str, int, str, int]]:
+    """The planes whose box means the solve needs, in a fixed order:
+    ``I_i``, ``p_c``, ``I_i I_j (j <= i)``, ``I_i p_c`` as (tensor, index, tensor, index);
+    an empty second name means the plane itself."""
+    return (
+        [("I", i, "", 0) for i in range(n)]
+        + [("p", c, "", 0) for c in range(Cs)]
+        + [("I", i, "I", j) for i, j in _pairs(n)]
+        + [("I", i, "p", c) for i in range(n) for c in range(Cs)]
+    )
+
+
+def _unpack(planes: list[torch.Tensor], n: int, Cs: int):
+    """Split box means ordered as :func:`_product_specs` (``(B,1,H,W)`` each) into the
+    ``mI, mp, mII, mIp`` arguments of :func:`_solve`."""
+    pairs = _pairs(n)
+    mI = planes[:n]
+    mp = torch.cat(planes[n : n + Cs], 1)
+    off = n + Cs
+    mII = dict(zip(pairs, planes[off : off + len(pairs)]))
+    off += len(pairs)
+    mIp = [torch.cat(planes[off + i * Cs : off + (i + 1) * Cs], 1) for i in range(n)]
+    return mI, mp, mII, mIp
+
+
+def _guided_reference(I: torch.Tensor, p: torch.Tensor, r: int, eps: torch.Tensor) -> torch.Tensor:
+    """Differentiable, traceable path: cumsum box filters over stacked planes."""
+    n, Cs = I.shape[1], p.shape[1]
+    tensors = {"I": I, "p": p}
+    planes = [
+        tensors[a][:, i : i + 1] * (tensors[b][:, j : j + 1] if b else 1) if b else tensors[a][:, i : i + 1]
+        for a, i, b, j in _product_specs(n, Cs)
+    ]
+    m = _box_cumsum(torch.cat(planes, 1), r)
+    a, b = _solve(*_unpack(list(m.split(1, 1)), n, Cs), eps)
+    coeffs = _box_cumsum(torch.cat(a + [b], 1), r)
+    out = coeffs[:, n * Cs :]
+    for i in range(n):
+        out = out + coeffs[:, i * Cs : (i + 1) * Cs] * I[:, i : i + 1]
+    return out
+
+
+_STRIP = 64  # rows per strip of the per-pixel solve: temporaries stay in L2
+
+
+class _Workspace:
+    """Buffers of the CPU path for one (guide channels, source channels, H, W, r, dtype).
+
+    glibc returns large freed blocks to the OS, so fresh buffers are page-faulted in on every
+    call (measured: ~40 % of the run time at 1024x768). :class:`Guided` keeps one workspace
+    between calls; the functional form builds a new one each time.
+    """
+
+    def __init__(self, n: int, Cs: int, H: int, W: int, r: int, dtype: torch.dtype) -> None:
+        self.key = (n, Cs, H, W, r, dtype)
+        self.boxer = PlaneBoxer(H, W, r, dtype)
+        self.I = torch.empty(n, H, W, dtype=dtype)  # centred guide of one image
+        self.p = torch.empty(Cs, H, W, dtype=dtype)  # centred source of one image
+        self.mI = torch.empty(n, H, W, dtype=dtype)
+        self.mp = torch.empty(Cs, H, W, dtype=dtype)
+        self.mII = torch.empty(len(_pairs(n)), H, W, dtype=dtype)
+        self.mIp = torch.empty(n, Cs, H, W, dtype=dtype)
+        self.coeffs = torch.empty(n + 1, Cs, H, W, dtype=dtype)  # a_0 .. a_{n-1}, b
+
+    @classmethod
+    def get(cls, holder: dict | None, n: int, Cs: int, H: int, W: int, r: int, dtype: torch.dtype) -> _Workspace:
+        key = (n, Cs, H, W, r, dtype)
+        if holder is not None and holder.get("ws") is not None and holder["ws"].key == key:
+            return holder["ws"]
+        ws = cls(*key)
+        if holder is not None:
+            holder["ws"] = ws
+        return ws
+
+
+def _guided_fast(
+    g: torch.Tensor, p: torch.Tensor, mean_g: torch.Tensor, mean_p: torch.Tensor, r: int,
+    eps: torch.Tensor, holder: dict | None = None,
+) -> torch.Tensor:
+    """CPU eager path: box means one plane at a time (cache-resident, reused buffers), the
+    solve in row strips so its temporaries stay small; strips of the grouped buffers are views.
+    Centring (by ``mean_g``, ``mean_p``) happens here, into the workspace."""
+    B, n, H, W = g.shape
+    Cs = p.shape[1]
+    ws = _Workspace.get(holder, n, Cs, H, W, r, g.dtype)
+    boxer, pairs = ws.boxer, _pairs(n)
+    out = torch.empty(B, Cs, H, W, dtype=g.dtype)
+    for bi in range(B):
+        Ib = torch.sub(g[bi], mean_g[bi], out=ws.I)
+        pb = torch.sub(p[bi], mean_p[bi], out=ws.p)
+        for i in range(n):
+            boxer(Ib[i], ws.mI[i])
+        for c in range(Cs):
+            boxer(pb[c], ws.mp[c])
+        for k, (i, j) in enumerate(pairs):
+            boxer(torch.mul(Ib[i], Ib[j], out=ws.mII[k]), ws.mII[k])
+        for i in range(n):
+            for c in range(Cs):
+                boxer(torch.mul(Ib[i], pb[c], out=ws.mIp[i, c]), ws.mIp[i, c])
+        e = eps[bi : bi + 1]
+        for y in range(0, H, _STRIP):
+            rows = slice(y, y + _STRIP)
+            a_s, b_s = _solve(
+                [ws.mI[i : i + 1, rows][None] for i in range(n)], ws.mp[:, rows][None],
+                {pr: ws.mII[k : k + 1, rows][None] for k, pr in enumerate(pairs)},
+                [ws.mIp[i, :, rows][None] for i in range(n)], e,
+            )
+            for k, t in enumerate(a_s + [b_s]):
+                ws.coeffs[k, :, rows] = t[0]
+        planes = ws.coeffs.view(-1, H, W)
+        for c in range(planes.shape[0]):
+            boxer(planes[c], planes[c])
+        acc = torch.add(ws.coeffs[n], mean_p[bi], out=out[bi])
+        for i in range(n):
+            acc.addcmul_(ws.coeffs[i], Ib[i : i + 1])
+    return out
+
+
+def _check_radius(radius: int) -> None:
+    if not isinstance(radius, int) or isinstance(radius, bool) or radius < 0:
+        raise ValueError(f"radius: expected an int >= 0, got {radius!r}")
+
+
+def _sanitize(x: torch.Tensor, name: str, sanitize: bool) -> torch.Tensor:
+    if not sanitize:
+        check_finite(x, name)
+        return x
+    bad = ~torch.isfinite(x)
+    if is_tracing():
+        return torch.where(bad, torch.zeros((), dtype=x.dtype, device=x.device), x)
+    if bool(bad.any()):
+        warnings.warn(f"{name}: replaced {int(bad.sum())} non-finite values by 0 (sanitize=True)", stacklevel=3)
+        x = torch.where(bad, torch.zeros((), dtype=x.dtype, device=x.device), x)
+    return x
+
+
+def _guided(
+    src: torch.Tensor, guide: torch.Tensor, radius: int, eps: float | torch.Tensor, sanitize: bool,
+    _holder: dict | None,
+) -> torch.Tensor:
+    """:func:`guided`; ``_holder`` keeps the CPU workspace between calls (see :class:`Guided`)."""
+    sizes = check_shape(src, "B C H W", "src")
+    check_shape(guide, "B G H W", "guide", {"B": sizes["B"], "H": sizes["H"], "W": sizes["W"]})
+    check_same_device({"src": src, "guide": guide})
+    check_floating(src, "src")
+    check_floating(guide, "guide")
+    if guide.dtype != src.dtype:
+        raise DTypeError(f"guide is {guide.dtype} but src is {src.dtype}: pass one dtype")
+    n = guide.shape[1]
+    if not 1 <= n <= 4:
+        raise ShapeError(f"guide: expected 1 to 4 channels, got {n} (shape {tuple(guide.shape)})")
+    _check_radius(radius)
+    src = _sanitize(src, "src", sanitize)
+    guide = _sanitize(guide, "guide", sanitize)
+    ct = compute_dtype(src.dtype)
+    B, Cs, H, W = src.shape
+    if src.numel() == 0:
+        return src.clone()
+    g, p = guide.to(ct), src.to(ct)
+    mean_g, mean_p = g.mean(dim=(2, 3), keepdim=True), p.mean(dim=(2, 3), keepdim=True)
+    e = _check_eps(eps, B, n, g)
+    if use_fast_path(src, guide, e):
+        out = _guided_fast(g, p, mean_g, mean_p, radius, e, _holder)
+    else:
+        out = _guided_reference(g - mean_g, p - mean_p, radius, e) + mean_p
+    return out.to(src.dtype)
+
+
+def guided(
+    src: torch.Tensor,
+    guide: torch.Tensor,
+    *,
+    radius: int = 24,
+    eps: float | torch.Tensor = 0.01,
+    sanitize: bool = False,
+) -> torch.Tensor:
+    """Guided image filter of ``src`` with a 1-4 channel ``guide``; cost independent of ``radius``.
+
+    Args:
+        src: ``(B, C, H, W)`` image to filter (e.g. demodulated indirect light, HDR, any range).
+        guide: ``(B, G, H, W)``, ``1 <= G <= 4``, same dtype and device as ``src`` — e.g. the
+            normal (xyz mapped to [0, 1]) and depth (divided by the scene extent), see
+            :func:`guide_from_gbuffer`. Values in guide units; any offset is fine.
+        radius: window radius ``r >= 0`` in pixels (window ``(2r+1)²``, shrinking at borders).
+        eps: regulariser in guide units squared: a float, ``(G,)`` per guide channel or
+            ``(B, G)``; ``>= 0``. Per pixel it is raised to at least ``16 · finfo.eps ·
+            E[I²]`` (the rounding level of the variance), so ``eps=0`` and flat guides stay
+            finite.
+        sanitize: replace NaN/Inf in the inputs by 0 (with a warning) instead of raising.
+
+    Returns:
+        ``(B, C, H, W)`` filtered image, dtype and device of ``src``. float16/bfloat16 inputs
+        are computed in float32 and cast back. Differentiable (with respect to ``src``,
+        ``guide`` and a tensor ``eps``).
+
+    Example:
+        >>> src = torch.rand(1, 3, 32, 32)
+        >>> guide = torch.rand(1, 4, 32, 32)
+        >>> guided(src, guide, radius=4, eps=0.01).shape
+        torch.Size([1, 3, 32, 32])
+        >>> from torchgi.filters import box
+        >>> flat = torch.full((1, 1, 8, 8), 0.5)   # constant guide: a = 0, q = box(box(src))
+        >>> torch.allclose(guided(src[..., :8, :8], flat, radius=1, eps=0.0),
+        ...                box(box(src[..., :8, :8], 1), 1), atol=1e-6)
+        True
+    """
+    return _guided(src, guide, radius, eps, sanitize, None)
+
+
+def guide_from_gbuffer(
+    gb: GBuffer, *, depth_scale: float | None = None, drop_constant: bool = True
+) -> torch.Tensor:
+    """The paper's guide from a GBuffer: normal xyz mapped to [0, 1] and depth / extent.
+
+    Args:
+        gb: needs ``normal``; ``depth`` is appended when present.
+        depth_scale: the fixed scene-extent constant depth is divided by (scene units); by
+            default the largest depth among hit pixels of the batch (all pixels without ``hit``).
+        drop_constant: drop channels that are constant over the whole batch (DESIGN §4): they
+            carry no edges and only cost work in the solve.
+
+    Returns:
+        ``(B, G, H, W)`` guide, ``1 <= G <= 4``, dtype/device of the GBuffer. If every channel
+        is constant one channel is kept (the filter then is a box mean).
+
+    Example:
+        >>> gb = GBuffer(normal=torch.zeros(1, 3, 4, 4), depth=torch.rand(1, 1, 4, 4) + 1)
+        >>> guide_from_gbuffer(gb).shape   # constant normal channels are dropped
+        torch.Size([1, 1, 4, 4])
+    """
+    if gb.normal is None:
+        raise ShapeError("gb: the guide needs gb.normal (and uses gb.depth when present)")
+    channels = [(gb.normal + 1) * 0.5]
+    if gb.depth is not None:
+        if depth_scale is None:
+            valid = gb.depth if gb.hit is None else gb.depth[gb.hit]
+            depth_scale = float(valid.max()) if valid.numel() else 1.0
+            depth_scale = depth_scale if depth_scale > 0 else 1.0
+        elif not depth_scale > 0:
+            raise RangeError(f"depth_scale: expected > 0, got {depth_scale}")
+        channels.append(gb.depth / depth_scale)
+    guide = torch.cat(channels, 1)
+    if drop_constant:
+        flat = guide.flatten(2)
+        varying = (flat.amax(dim=(0, 2)) > flat.amin(dim=(0, 2))).nonzero().flatten()
+        keep = varying if varying.numel() else torch.zeros(1, dtype=torch.long, device=guide.device)
+        guide = guide.index_select(1, keep)
+    return guide
+
+
+class Guided(nn.Module):
+    """Module form of :func:`guided`; ``eps`` is a buffer (or a learnable Parameter).
+
+    On the CPU the module keeps its scratch buffers between calls of the same size (about
+    ``(G² / 2 + 2 G C + 2 C + 2 G)`` planes of ``H x W``; 140 MB at 1024x768 with G = 4,
+    C = 3), which saves the page faults of fresh buffers; ``release()`` frees them.
+
+    Args:
+        radius: window radius in pixels.
+        eps: float or ``(G,)`` tensor, guide units squared.
+        learnable: make ``eps`` an ``nn.Parameter``.
+
+    Example:
+        >>> f = Guided(radius=8, eps=torch.tensor([0.01, 0.01, 0.01, 0.03]))
+        >>> f(torch.rand(1, 3, 16, 16), torch.rand(1, 4, 16, 16)).shape
+        torch.Size([1, 3, 16, 16])
+    """
+
+    def __init__(self, radius: int = 24, eps: float | torch.Tensor = 0.01, learnable: bool = False) -> None:
+        super().__init__()
+        _check_radius(radius)
+        self.radius = radius
+        self._workspace: dict = {}
+        value = torch.as_tensor(eps, dtype=torch.float32).clone()
+        if learnable:
+            self.eps = nn.Parameter(value)
+        else:
+            self.register_buffer("eps", value)
+
+    def forward(self, src: torch.Tensor, guide: torch.Tensor) -> torch.Tensor:
+        eps = self.eps if self.eps.dim() else self.eps.expand(guide.shape[1])
+        return _guided(src, guide, self.radius, eps.to(dtype=src.dtype), False, self._workspace)
+
+    def release(self) -> None:
+        """Free the CPU scratch buffers kept between calls."""
+        self._workspace.clear()
+
+    def extra_repr(self) -> str:
+        return f"radius={self.radius}, eps={self.eps.tolist()}"
