@@ -1,0 +1,101 @@
+"""ONNX export with dynamic batch/height/width, and an onnxruntime wrapper (the ``onnx`` extra)."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from torchgi.core.check import check_shape, require
+
+__all__ = ["export_onnx", "OrtSession"]
+
+
+def export_onnx(
+    module: nn.Module,
+    example_inputs: Sequence[torch.Tensor],
+    path: str | os.PathLike,
+    *,
+    input_names: Sequence[str],
+    output_names: Sequence[str] = ("out",),
+    opset: int = 18,
+    overwrite: bool = False,
+) -> Path:
+    """Export ``module`` to ONNX with dynamic B, H, W on every ``(B, C, H, W)`` input.
+
+    Args:
+        module: a torchgi Module (e.g. :class:`torchgi.filters.Guided`), put in eval mode.
+        example_inputs: ``(B, C, H, W)`` tensors of the call signature, in order, with B, H
+            and W all different (equal example sizes can be tied together by the exporter).
+        path: destination ``.onnx`` file; written atomically, never overwritten unless asked.
+        input_names, output_names: graph names; ``input_names`` match ``example_inputs``.
+        opset: ONNX opset (>= 17).
+
+    Returns:
+        The path written.
+
+    Example:
+        >>> from torchgi.filters import Box
+        >>> p = export_onnx(Box(2), [torch.rand(1, 3, 8, 9)],
+        ...                 os.path.join(tempfile.mkdtemp(), "box.onnx"), input_names=["x"])
+        >>> OrtSession(p)(x=torch.ones(2, 3, 5, 7)).shape
+        torch.Size([2, 3, 5, 7])
+    """
+    require("onnx", "onnx")
+    require("onnxscript", "onnx")
+    if opset < 17:
+        raise ValueError(f"opset: expected >= 17, got {opset}")
+    if len(input_names) != len(example_inputs):
+        raise ValueError(f"input_names: {len(input_names)} names for {len(example_inputs)} inputs")
+    path = Path(path)
+    if path.exists() and not overwrite:
+        raise FileExistsError(f"path: {path} exists; pass overwrite=True to replace it")
+    B, H, W = (torch.export.Dim(d, min=1) for d in "BHW")
+    dynamic = {}
+    sizes: dict[str, int] = {}
+    for name, x in zip(input_names, example_inputs):
+        check_shape(x, "B C H W", name, sizes)
+        dynamic[name] = {0: B, 2: H, 3: W}
+    if len({sizes["B"], sizes["H"], sizes["W"]}) < 3:
+        # The exporter can tie dimensions whose example sizes coincide into one symbol.
+        raise ValueError(
+            f"example_inputs: use distinct sizes for B, H and W (got B={sizes['B']}, H={sizes['H']}, "
+            f"W={sizes['W']}) so none of them is tied to another in the exported graph"
+        )
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        torch.onnx.export(
+            module.eval(), tuple(example_inputs), tmp, input_names=list(input_names),
+            output_names=list(output_names), dynamic_shapes=dynamic, opset_version=opset, dynamo=True,
+            verbose=False,
+        )
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return path
+
+
+class OrtSession:
+    """An onnxruntime session called with named torch tensors; returns the first output.
+
+    Inputs are handed to onnxruntime as numpy (CPU); the output comes back as a CPU tensor.
+    """
+
+    def __init__(self, path: str | os.PathLike, providers: Sequence[str] | None = None) -> None:
+        ort = require("onnxruntime", "onnx")
+        self.session = ort.InferenceSession(str(path), providers=list(providers or ["CPUExecutionProvider"]))
+        self.input_names = [i.name for i in self.session.get_inputs()]
+
+    def __call__(self, **inputs: torch.Tensor) -> torch.Tensor:
+        missing = set(self.input_names) - set(inputs)
+        if missing:
+            raise ValueError(f"missing inputs {sorted(missing)}; the graph takes {self.input_names}")
+        feed = {k: np.ascontiguousarray(inputs[k].detach().cpu().numpy()) for k in self.input_names}
+        return torch.from_numpy(self.session.run(None, feed)[0])
