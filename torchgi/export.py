@@ -59,7 +59,8 @@ def export_onnx(
     dynamic = {}
     sizes: dict[str, int] = {}
     for name, x in zip(input_names, example_inputs):
-        check_shape(x, "B C H W", name, sizes)
+        shape = check_shape(x, "B C H W", name)
+        check_shape(x, f"B {shape['C']} H W", name, sizes)
         dynamic[name] = {0: B, 2: H, 3: W}
     if len({sizes["B"], sizes["H"], sizes["W"]}) < 3:
         # The exporter can tie dimensions whose example sizes coincide into one symbol.
