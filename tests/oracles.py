@@ -31,3 +31,21 @@ def guided_oracle(p: torch.Tensor, I: torch.Tensor, r: int, eps) -> torch.Tensor
     b = mp - (a * mI[:, :, None]).sum(1)
     ma = box_oracle(a.reshape(B, n * C, H, W), r).reshape(B, n, C, H, W)
     return (ma * I[:, :, None]).sum(1) + box_oracle(b, r)
+
+
+def scene(B, H, W, n, seed=0, noise=0.5):
+    """Piecewise-smooth guides with hard edges (discs over a sloped plane) and a noisy
+    source that follows them — a stand-in for normal/depth guides and indirect light."""
+    g = torch.Generator().manual_seed(seed)
+    y, x = torch.meshgrid(torch.linspace(0, 1, H), torch.linspace(0, 1, W), indexing="ij")
+    guides, clean = [], []
+    for _ in range(B):
+        layer = torch.stack([0.3 + 0.2 * x, 0.5 + 0.1 * y, 0.8 - 0.3 * x * y, 0.2 + 0.6 * y])
+        for _ in range(6):
+            cx, cy, rad = torch.rand(3, generator=g)
+            inside = (x - cx) ** 2 + (y - cy) ** 2 < (0.1 + 0.2 * rad) ** 2
+            layer = torch.where(inside, torch.rand(4, 1, 1, generator=g), layer)
+        guides.append(layer[:n])
+        clean.append(torch.stack([layer[0] * 2, layer[1 % n] + 0.5, layer[-1] * 3]))
+    I, p = torch.stack(guides), torch.stack(clean)
+    return p + noise * torch.randn(p.shape, generator=g), I

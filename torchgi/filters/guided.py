@@ -59,14 +59,14 @@ def _check_eps(eps: float | torch.Tensor, B: int, n: int, like: torch.Tensor) ->
 
 def _solve(
     mI: list[torch.Tensor], mp: torch.Tensor, mII: dict[tuple[int, int], torch.Tensor],
-    mIp: list[torch.Tensor], eps: torch.Tensor,
+    mIp: list[torch.Tensor], eps: torch.Tensor, out: list[torch.Tensor] | None = None,
 ) -> tuple[list[torch.Tensor], torch.Tensor]:
     """Per-pixel ``a = (Σ + diag(ε))^-1 cov`` and ``b = mean(p) - aᵀ mean(I)``.
 
     ``mI[i]`` is ``(B,1,H,W)``, ``mp`` ``(B,Cs,H,W)``, ``mII[(i,j)]`` ``(B,1,H,W)`` for j <= i,
     ``mIp[i]`` ``(B,Cs,H,W)``; ``eps`` is ``(B,n,1,1)``. Returns ``a`` as a list over guide
-    channels of ``(B,Cs,H,W)`` and ``b (B,Cs,H,W)``. LDLᵀ (``E = L·D``), no square roots, no
-    branches, elementwise ops only.
+    channels of ``(B,Cs,H,W)`` and ``b (B,Cs,H,W)``, written into ``out`` (``n + 1`` tensors)
+    when given. LDLᵀ (``E = L·D``), no square roots, no branches, elementwise ops only.
 
     ``Σ_ii = E[I_i²] - E[I_i]²`` carries a rounding error of a few ``finfo.eps · E[I_i²]``;
     each ε_i is raised to ``16 · finfo.eps · E[I_i²]`` per pixel (plus the smallest normal
@@ -75,13 +75,14 @@ def _solve(
     """
     n = len(mI)
     unit = 16 * torch.finfo(mp.dtype).eps
-    tiny = torch.finfo(mp.dtype).tiny
+    eps = eps.clamp_min(torch.finfo(mp.dtype).tiny)
+    outs: list[dict] = [{} if out is None else {"out": o} for o in (out or [None] * (n + 1))]
     A: dict[tuple[int, int], torch.Tensor] = {}
     eps_eff: list[torch.Tensor] = []
     for i, j in _pairs(n):
         s = torch.addcmul(mII[(i, j)], mI[i], mI[j], value=-1)
         if i == j:
-            eps_eff.append(torch.maximum(eps[:, i : i + 1], mII[(i, i)] * unit + tiny))
+            eps_eff.append(torch.maximum(mII[(i, i)] * unit, eps[:, i : i + 1]))
             s = s.clamp_min(0) + eps_eff[i]
         A[(i, j)] = s
     L: dict[tuple[int, int], torch.Tensor] = {}
@@ -106,13 +107,14 @@ def _solve(
         y.append(v)
     a: list[torch.Tensor] = [mp] * n
     for i in reversed(range(n)):
-        v = y[i] / D[i]
+        last = i + 1 == n
+        v = torch.div(y[i], D[i], **(outs[i] if last else {}))
         for k in range(i + 1, n):
-            v = torch.addcmul(v, L[(k, i)], a[k], value=-1)
+            v = torch.addcmul(v, L[(k, i)], a[k], value=-1, **(outs[i] if k + 1 == n else {}))
         a[i] = v
     b = mp
     for i in range(n):
-        b = torch.addcmul(b, a[i], mI[i], value=-1)
+        b = torch.addcmul(b, a[i], mI[i], value=-1, **(outs[n] if i + 1 == n else {}))
     return a, b
 
 
@@ -218,13 +220,12 @@ def _guided_fast(
         e = eps[bi : bi + 1]
         for y in range(0, H, _STRIP):
             rows = slice(y, y + _STRIP)
-            a_s, b_s = _solve(
+            _solve(
                 [ws.mI[i : i + 1, rows][None] for i in range(n)], ws.mp[:, rows][None],
                 {pr: ws.mII[k : k + 1, rows][None] for k, pr in enumerate(pairs)},
                 [ws.mIp[i, :, rows][None] for i in range(n)], e,
+                out=[ws.coeffs[k, :, rows][None] for k in range(n + 1)],
             )
-            for k, t in enumerate(a_s + [b_s]):
-                ws.coeffs[k, :, rows] = t[0]
         planes = ws.coeffs.view(-1, H, W)
         for c in range(planes.shape[0]):
             boxer(planes[c], planes[c])

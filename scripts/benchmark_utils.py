@@ -1,0 +1,68 @@
+"""Shared benchmark plumbing: timing with torch.utils.benchmark, metadata, CSV/JSON/Markdown."""
+
+from __future__ import annotations
+
+import csv
+import json
+import platform
+import subprocess
+from collections.abc import Callable
+from pathlib import Path
+
+import torch
+import torch.utils.benchmark as tb
+
+# Named sizes used across benchmarks: (H, W).
+SIZES = {"512²": (512, 512), "1024x768": (768, 1024), "720p": (720, 1280), "1080p": (1080, 1920), "4K": (2160, 3840)}
+
+
+def metadata(threads: int) -> dict:
+    """Commit, versions and device, written beside every result."""
+    try:
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                                check=True).stdout.strip()
+        dirty = bool(subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True,
+                                    text=True).stdout.strip())
+    except (OSError, subprocess.CalledProcessError):
+        commit, dirty = "unknown", False
+    import torchgi
+
+    return {
+        "commit": commit + ("+dirty" if dirty else ""),
+        "torchgi": torchgi.__version__,
+        "torch": torch.__version__,
+        "python": platform.python_version(),
+        "cpu": platform.processor() or platform.machine(),
+        "threads": threads,
+        "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
+    }
+
+
+def time_ms(fn: Callable[[], object], *, min_run_time: float = 1.0, device: str = "cpu") -> dict:
+    """Median and IQR in ms of ``fn()`` (blocked_autorange; CUDA synchronised by the Timer)."""
+    fn()  # warm up (allocations, first-call work)
+    m = tb.Timer(stmt="fn()", globals={"fn": fn}, num_threads=torch.get_num_threads()).blocked_autorange(
+        min_run_time=min_run_time)
+    return {"median_ms": m.median * 1e3, "iqr_ms": m.iqr * 1e3, "runs": len(m.times)}
+
+
+def write_results(rows: list[dict], meta: dict, out: Path, stem: str) -> None:
+    """``stem.csv`` (rows), ``stem.json`` (metadata + rows)."""
+    out.mkdir(parents=True, exist_ok=True)
+    keys = list(dict.fromkeys(k for r in rows for k in r))
+    with open(out / f"{stem}.csv", "w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=keys)
+        writer.writeheader()
+        writer.writerows(rows)
+    (out / f"{stem}.json").write_text(json.dumps({"metadata": meta, "rows": rows}, indent=2))
+
+
+def markdown_table(rows: list[dict], columns: list[str]) -> str:
+    def fmt(v: object) -> str:
+        if isinstance(v, float):
+            return f"{v:.3g}" if abs(v) < 1e4 else f"{v:.0f}"
+        return "" if v is None else str(v)
+
+    lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
+    lines += ["| " + " | ".join(fmt(r.get(c)) for c in columns) + " |" for r in rows]
+    return "\n".join(lines)
