@@ -51,7 +51,8 @@ def render_gbuffer(scene: dict, *, spp: int, bounces: int = 1, seed: int = 0) ->
         seed: Mitsuba's sampler seed.
 
     Returns:
-        GBuffer with ``color (1,3,H,W)``, ``albedo``, ``normal``, ``position``, ``depth
+        GBuffer with ``color (1,3,H,W)``, ``emission`` (light seen directly, from a second
+        render with ``max_depth = 1``), ``albedo``, ``normal``, ``position``, ``depth
         (1,1,H,W)``, ``hit (1,1,H,W)`` and ``spp``. Guides are Mitsuba's AOVs, which average
         over the pixel's samples (not a single centre ray).
 
@@ -80,9 +81,14 @@ def render_gbuffer(scene: dict, *, spp: int, bounces: int = 1, seed: int = 0) ->
     }
     color, albedo, normal = parts["<root>"], parts["albedo"], parts["nn"]
     position, depth = parts["pp"], parts["dd"]
+    # Emission seen directly by the camera: Mitsuba's path tracer with max_depth = 1.
+    scene["integrator"] = {"type": "path", "max_depth": 1}
+    img = mi.render(mi.load_dict(scene), spp=spp, seed=seed)
+    emission = torch.from_numpy(np.array(img, dtype=np.float32)[..., :3].copy()).permute(2, 0, 1)[None].contiguous()
     hit = depth > 0
     return GBuffer(
         color=color,
+        emission=emission,
         albedo=albedo,
         normal=normal,
         position=position,
