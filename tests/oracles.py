@@ -49,3 +49,106 @@ def scene(B, H, W, n, seed=0, noise=0.5):
         clean.append(torch.stack([layer[0] * 2, layer[1 % n] + 0.5, layer[-1] * 3]))
     I, p = torch.stack(guides), torch.stack(clean)
     return p + noise * torch.randn(p.shape, generator=g), I
+
+
+_B3 = (1 / 16, 1 / 4, 3 / 8, 1 / 4, 1 / 16)
+
+
+def atrous_oracle(color, normal=None, position=None, *, iterations, sigma_color=None, sigma_normal=0.1,
+                  sigma_position=0.1, variance=None, color_weight=True, subsample=1, energy=False):
+    """DESIGN §3.1 pixel by pixel in float64 numpy (one image ``(C, H, W)``), literally:
+    taps outside the image are skipped, σ_rt,i = 2^-i σ_rt, no centring or fusing."""
+    import math
+
+    import numpy as np
+
+    def arr(t):
+        return None if t is None else (t.detach().cpu().double().numpy() if torch.is_tensor(t) else np.asarray(t, float))
+
+    c = arr(color).copy()
+    n, x = arr(normal), arr(position)
+    var = None if variance is None else np.broadcast_to(arr(variance), c.shape).copy()
+    C, H, W = c.shape
+    valid = np.ones((H, W), bool)
+    fill = 0
+    if subsample > 1:
+        valid = (np.arange(H)[:, None] % subsample == 0) & (np.arange(W)[None, :] % subsample == 0)
+        c = c * valid
+        fill = int(math.log2(subsample))
+    if var is None:
+        sc = max(c.max(), np.finfo(np.float32).tiny) if sigma_color is None else sigma_color
+    else:
+        sc = 4.0 if sigma_color is None else sigma_color
+    total_in = c.sum(axis=(1, 2))
+    for i in range(iterations):
+        s = 2**i
+        use_c = color_weight and i >= fill
+        if var is not None:
+            pad = np.pad(var, ((0, 0), (1, 1), (1, 1)), mode="edge")
+            k = np.array([0.25, 0.5, 0.25])
+            blur = sum(k[a] * k[b] * pad[:, a : a + H, b : b + W] for a in range(3) for b in range(3)).sum(0)
+        out = c.copy()
+        var_out = None if var is None else var.copy()
+        new_valid = np.zeros((H, W), bool)
+        for py in range(H):
+            for px in range(W):
+                num = np.zeros(C)
+                den = 0.0
+                vnum = np.zeros(C)
+                for ky in range(5):
+                    for kx in range(5):
+                        qy, qx = py + (ky - 2) * s, px + (kx - 2) * s
+                        if not (0 <= qy < H and 0 <= qx < W) or not valid[qy, qx]:
+                            continue
+                        d = 0.0
+                        if use_c:
+                            dc = float(((c[:, py, px] - c[:, qy, qx]) ** 2).sum())
+                            d += dc / (sc * sc * blur[py, px] + 1e-12) if var is not None else dc / (sc * 2.0**-i)
+                        if n is not None and sigma_normal is not None:
+                            d += float(((n[:, py, px] - n[:, qy, qx]) ** 2).sum()) / (s * s * sigma_normal)
+                        if x is not None and sigma_position is not None:
+                            d += float(((x[:, py, px] - x[:, qy, qx]) ** 2).sum()) / sigma_position
+                        w = _B3[ky] * _B3[kx] * math.exp(-d)
+                        num += w * c[:, qy, qx]
+                        den += w
+                        if var is not None:
+                            vnum += w * w * var[:, qy, qx]
+                if den > 0:
+                    out[:, py, px] = num / den
+                    if var is not None:
+                        var_out[:, py, px] = vnum / den**2
+                    new_valid[py, px] = True
+        c, var = out, var_out
+        if subsample > 1:
+            valid = new_valid
+    if energy:
+        total_out = c.sum(axis=(1, 2))
+        c = c * np.where(total_out != 0, total_in / np.where(total_out != 0, total_out, 1), 1)[:, None, None]
+    return c
+
+
+def bilateral_oracle(color, guides, *, radius, sigma_space, sigma_color, sigma_guides):
+    """Joint bilateral pixel by pixel in float64 numpy (one image ``(C, H, W)``)."""
+    import math
+
+    import numpy as np
+
+    c = color.detach().double().numpy()
+    gs = [g.detach().double().numpy() for g in guides]
+    C, H, W = c.shape
+    out = np.empty_like(c)
+    for py in range(H):
+        for px in range(W):
+            num, den = np.zeros(C), 0.0
+            for qy in range(max(py - radius, 0), min(py + radius, H - 1) + 1):
+                for qx in range(max(px - radius, 0), min(px + radius, W - 1) + 1):
+                    e = ((qy - py) ** 2 + (qx - px) ** 2) / (2 * sigma_space**2)
+                    if sigma_color is not None:
+                        e += ((c[:, py, px] - c[:, qy, qx]) ** 2).sum() / (2 * sigma_color**2)
+                    for g, s in zip(gs, sigma_guides):
+                        e += ((g[:, py, px] - g[:, qy, qx]) ** 2).sum() / (2 * s**2)
+                    w = math.exp(-e)
+                    num += w * c[:, qy, qx]
+                    den += w
+            out[:, py, px] = num / den
+    return out

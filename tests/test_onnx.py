@@ -41,3 +41,19 @@ def test_export_never_overwrites(tmp_path):
     assert (tmp_path / "x.onnx").read_bytes() == b"keep"
     with pytest.raises(ValueError, match="distinct sizes for B, H and W"):
         export_onnx(Box(1), [torch.rand(1, 1, 4, 4)], tmp_path / "y.onnx", input_names=["x"])
+
+
+def test_atrous_parity(tmp_path):
+    from torchgi.filters import ATrous
+
+    m = ATrous(iterations=2, sigma_color=0.5, sigma_normal=0.2, sigma_position=0.3)
+    ex = [torch.rand(2, 3, 20, 28), torch.rand(2, 3, 20, 28), torch.rand(2, 3, 20, 28)]
+    # unoptimised graph: the optimiser takes most of the export time of the unrolled levels
+    path = export_onnx(m, ex, tmp_path / "a.onnx", input_names=["color", "normal", "position"], optimize=False)
+    session = OrtSession(path)
+    g = torch.Generator().manual_seed(1)
+    for B, H, W in [(1, 33, 47), (3, 16, 9)]:
+        c = torch.rand(B, 3, H, W, generator=g) * 4
+        n = torch.nn.functional.normalize(torch.randn(B, 3, H, W, generator=g), dim=1)
+        x = torch.rand(B, 3, H, W, generator=g) + 100.0
+        assert rel(session(color=c, normal=n, position=x), m(c, n, x)) < 1e-4, (B, H, W)

@@ -24,6 +24,7 @@ def export_onnx(
     input_names: Sequence[str],
     output_names: Sequence[str] = ("out",),
     opset: int = 18,
+    optimize: bool = True,
     overwrite: bool = False,
 ) -> Path:
     """Export ``module`` to ONNX with dynamic B, H, W on every ``(B, C, H, W)`` input.
@@ -35,6 +36,8 @@ def export_onnx(
         path: destination ``.onnx`` file; written atomically, never overwritten unless asked.
         input_names, output_names: graph names; ``input_names`` match ``example_inputs``.
         opset: ONNX opset (>= 17).
+        optimize: run the ONNX graph optimizer (cleaner graph; on large unrolled filters like
+            5-level À-Trous it is the slow part of the export).
 
     Returns:
         The path written.
@@ -74,7 +77,7 @@ def export_onnx(
         torch.onnx.export(
             module.eval(), tuple(example_inputs), tmp, input_names=list(input_names),
             output_names=list(output_names), dynamic_shapes=dynamic, opset_version=opset, dynamo=True,
-            verbose=False,
+            optimize=optimize, verbose=False,
         )
         os.replace(tmp, path)
     finally:

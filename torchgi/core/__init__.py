@@ -8,6 +8,7 @@ from torchgi.core.check import (
     check_same_device,
     check_shape,
     check_tensor,
+    finite_or_sanitized,
     is_tracing,
     require,
 )
@@ -34,6 +35,7 @@ __all__ = [
     "check_same_device",
     "check_shape",
     "check_tensor",
+    "finite_or_sanitized",
     "is_tracing",
     "require",
     "Registry",

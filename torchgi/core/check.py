@@ -8,6 +8,7 @@ passing the same ``sizes`` dict. Digits fix a size (``"B 3 H W"``).
 from __future__ import annotations
 
 import importlib
+import warnings
 from collections.abc import Iterable, Mapping
 from types import ModuleType
 from typing import Any
@@ -31,6 +32,7 @@ __all__ = [
     "check_same_device",
     "check_floating",
     "check_finite",
+    "finite_or_sanitized",
     "check_range",
     "check_option",
     "require",
@@ -167,6 +169,26 @@ def check_finite(x: torch.Tensor, name: str) -> None:
         f"{name}: expected finite values, found {n_nan} NaN and {n_inf} +-Inf "
         f"of {x.numel()} elements (pass sanitize=True where offered to replace them)"
     )
+
+
+def finite_or_sanitized(x: torch.Tensor, name: str, sanitize: bool) -> torch.Tensor:
+    """``x`` if it is finite; otherwise raise, or with ``sanitize=True`` replace NaN/Inf by 0
+    and warn with the count (the caller asked for it: nothing is replaced silently).
+
+    Example:
+        >>> finite_or_sanitized(torch.tensor([1.0, 2.0]), "color", False)
+        tensor([1., 2.])
+    """
+    if not sanitize:
+        check_finite(x, name)
+        return x
+    bad = ~torch.isfinite(x)
+    if is_tracing():
+        return torch.where(bad, torch.zeros((), dtype=x.dtype, device=x.device), x)
+    if bool(bad.any()):
+        warnings.warn(f"{name}: replaced {int(bad.sum())} non-finite values by 0 (sanitize=True)", stacklevel=3)
+        x = torch.where(bad, torch.zeros((), dtype=x.dtype, device=x.device), x)
+    return x
 
 
 def check_range(

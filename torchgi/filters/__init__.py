@@ -1,6 +1,8 @@
 """Filters: pure torch, function + Module pairs, differentiable, ONNX-exportable."""
 
+from torchgi.filters.atrous import ATrous, atrous
+from torchgi.filters.bilateral import CrossBilateral, cross_bilateral
 from torchgi.filters.box import Box, box
 from torchgi.filters.guided import Guided, guide_from_gbuffer, guided
 
-__all__ = ["box", "Box", "guided", "Guided", "guide_from_gbuffer"]
+__all__ = ["atrous", "ATrous", "cross_bilateral", "CrossBilateral", "box", "Box", "guided", "Guided", "guide_from_gbuffer"]

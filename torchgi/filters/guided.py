@@ -15,8 +15,6 @@ the rounding level of the variance so flat guides and ``eps=0`` stay finite and 
 
 from __future__ import annotations
 
-import warnings
-
 import torch
 from torch import nn
 
@@ -27,7 +25,7 @@ from torchgi.core.check import (
     check_range,
     check_same_device,
     check_shape,
-    is_tracing,
+    finite_or_sanitized,
 )
 from torchgi.core.errors import DTypeError, RangeError, ShapeError
 from torchgi.filters.box import PlaneBoxer, _box_cumsum, compute_dtype, use_fast_path
@@ -240,19 +238,6 @@ def _check_radius(radius: int) -> None:
         raise ValueError(f"radius: expected an int >= 0, got {radius!r}")
 
 
-def _sanitize(x: torch.Tensor, name: str, sanitize: bool) -> torch.Tensor:
-    if not sanitize:
-        check_finite(x, name)
-        return x
-    bad = ~torch.isfinite(x)
-    if is_tracing():
-        return torch.where(bad, torch.zeros((), dtype=x.dtype, device=x.device), x)
-    if bool(bad.any()):
-        warnings.warn(f"{name}: replaced {int(bad.sum())} non-finite values by 0 (sanitize=True)", stacklevel=3)
-        x = torch.where(bad, torch.zeros((), dtype=x.dtype, device=x.device), x)
-    return x
-
-
 def _guided(
     src: torch.Tensor, guide: torch.Tensor, radius: int, eps: float | torch.Tensor, sanitize: bool,
     _holder: dict | None,
@@ -269,8 +254,8 @@ def _guided(
     if not 1 <= n <= 4:
         raise ShapeError(f"guide: expected 1 to 4 channels, got {n} (shape {tuple(guide.shape)})")
     _check_radius(radius)
-    src = _sanitize(src, "src", sanitize)
-    guide = _sanitize(guide, "guide", sanitize)
+    src = finite_or_sanitized(src, "src", sanitize)
+    guide = finite_or_sanitized(guide, "guide", sanitize)
     ct = compute_dtype(src.dtype)
     B, Cs, H, W = src.shape
     if src.numel() == 0:

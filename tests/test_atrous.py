@@ -1,0 +1,178 @@
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from torchgi.core import DTypeError, NonFiniteError, RangeError, ShapeError
+from torchgi.filters import ATrous, atrous
+
+from .oracles import atrous_oracle
+
+
+def buffers(B=1, H=13, W=17, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    color = torch.rand(B, 3, H, W, generator=g, dtype=torch.float64) * 2
+    normal = torch.nn.functional.normalize(torch.randn(B, 3, H, W, generator=g, dtype=torch.float64), dim=1)
+    normal[:, :, : H // 2] = torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)[:, None, None]  # a flat floor
+    position = torch.rand(B, 3, H, W, generator=g, dtype=torch.float64)
+    return color.float(), normal.float(), position.float()
+
+
+def rel(out, ref):
+    ref = np.asarray(ref)
+    return float(np.abs(out.double().numpy() - ref).max() / np.abs(ref).max())
+
+
+@pytest.mark.parametrize("iterations", [1, 2, 3])
+@pytest.mark.parametrize("weights", ["cnx", "c", "nx", "", "cx"])
+def test_matches_per_pixel_oracle(iterations, weights):
+    c, n, x = buffers(seed=iterations)
+    kw = dict(iterations=iterations, sigma_color=0.5, sigma_normal=0.2 if "n" in weights else None,
+              sigma_position=0.3 if "x" in weights else None)
+    out = atrous(c, n, x, color_weight="c" in weights, **kw)
+    want = atrous_oracle(c[0], n[0], x[0], color_weight="c" in weights, **kw)
+    assert rel(out[0], want) < 1e-5
+
+
+def test_default_sigma_color_is_image_maximum():
+    c, n, x = buffers(B=2, seed=4)
+    c[1] *= 7
+    out = atrous(c, n, x, iterations=2)
+    for b in range(2):
+        assert rel(out[b], atrous_oracle(c[b], n[b], x[b], iterations=2)) < 1e-5
+
+
+def test_real_rendered_buffers_five_iterations():
+    render = pytest.importorskip("torchgi.render.mitsuba")
+    pytest.importorskip("mitsuba")
+    gb = render.render_gbuffer(render.cornell_box(40), spp=1, seed=3)
+    gb = gb.crop(4, 6, 28, 30)
+    out = atrous(gb.color, gb.normal, gb.position, iterations=5, sigma_normal=0.1, sigma_position=0.1)
+    want = atrous_oracle(gb.color[0], gb.normal[0], gb.position[0], iterations=5)
+    assert rel(out[0], want) < 1e-4
+
+
+def test_variance_guided_matches_oracle():
+    c, n, x = buffers(seed=7)
+    var = torch.rand(1, 1, 13, 17, generator=torch.Generator().manual_seed(1)) * 0.2
+    out = atrous(c, n, x, iterations=3, variance=var)
+    want = atrous_oracle(c[0], n[0], x[0], iterations=3, variance=var[0])
+    assert rel(out[0], want) < 1e-5
+
+
+@pytest.mark.parametrize("subsample", [2, 4])
+def test_subsampled_inpainting_matches_oracle(subsample):
+    c, n, x = buffers(H=19, W=21, seed=subsample)
+    out = atrous(c, n, x, iterations=4, sigma_color=1.0, subsample=subsample)
+    want = atrous_oracle(c[0], n[0], x[0], iterations=4, sigma_color=1.0, subsample=subsample)
+    assert rel(out[0], want) < 1e-5
+    assert (out > 0).all()  # every hole got filled
+
+
+def test_energy_and_details():
+    c, n, x = buffers(B=2, seed=9)
+    out, details = atrous(c, n, x, iterations=3, sigma_color=0.3, return_details=True)
+    assert len(details) == 3
+    torch.testing.assert_close(c + sum(details), out, rtol=0, atol=1e-5)
+    kept = atrous(c, n, x, iterations=3, sigma_color=0.3, energy=True)
+    torch.testing.assert_close(kept.sum(dim=(2, 3)), c.sum(dim=(2, 3)), rtol=1e-5, atol=0)
+    want = atrous_oracle(c[1], n[1], x[1], iterations=3, sigma_color=0.3, energy=True)
+    assert rel(kept[1], want) < 1e-5
+
+
+def test_constant_image_stays_constant():
+    c, n, x = buffers()
+    flat = torch.full_like(c, 0.7)
+    torch.testing.assert_close(atrous(flat, n, x, iterations=5), flat, rtol=0, atol=1e-6)
+
+
+def test_all_zero_weights_fall_back_to_centre():
+    c, n, x = buffers()
+    out = atrous(c, None, x * 1e3, iterations=3, sigma_position=1e-6, color_weight=False)
+    torch.testing.assert_close(out, c)  # every neighbour's weight underflows: the centre remains
+    tiny = torch.rand(1, 3, 3, 3)
+    out = atrous(tiny, iterations=2, subsample=4)  # the only sample is (0, 0): holes take its value
+    torch.testing.assert_close(out, tiny[:, :, :1, :1].expand_as(tiny))
+
+
+def test_fireflies_and_offset_positions_stay_finite():
+    c, n, x = buffers(H=24, W=24)
+    c[0, :, 5, 5] = 1e6
+    out = atrous(c, n, x + 1e4, iterations=5, sigma_color=1.0)
+    assert torch.isfinite(out).all()
+    want = atrous_oracle(c[0], n[0], (x + 1e4)[0], iterations=5, sigma_color=1.0)
+    assert rel(out[0], want) < 1e-3
+
+
+@pytest.mark.parametrize("H, W", [(1, 1), (5, 5), (3, 8), (2, 1)])
+def test_tiny_images_smaller_than_the_dilation(H, W):
+    c, n, x = buffers(H=H, W=W)
+    out = atrous(c, n, x, iterations=5, sigma_color=0.5)
+    assert rel(out[0], atrous_oracle(c[0], n[0], x[0], iterations=5, sigma_color=0.5)) < 1e-5
+
+
+def test_noncontiguous_inputs():
+    c, n, x = buffers(B=2, H=12, W=15)
+    want = atrous(c, n, x, iterations=3)
+    got = atrous(c.transpose(2, 3), n.transpose(2, 3), x.transpose(2, 3), iterations=3)
+    torch.testing.assert_close(got, want.transpose(2, 3))
+    e = c[:1].expand(2, -1, -1, -1)
+    torch.testing.assert_close(atrous(e, n[:1].expand(2, -1, -1, -1), x[:1].expand(2, -1, -1, -1), iterations=3)[1],
+                               want[0])
+
+
+def test_dtype_kept(dtype, device):
+    c, n, x = buffers()
+    out = atrous(c.to(device, dtype), n.to(device, dtype), x.to(device, dtype), iterations=3, sigma_color=1.0)
+    assert out.dtype == dtype and out.device.type == device.type
+    tol = {torch.float16: 1e-2, torch.bfloat16: 3e-2}.get(dtype, 1e-5)
+    want = atrous_oracle(c[0].to(dtype).double(), n[0].to(dtype).double(), x[0].to(dtype).double(),
+                         iterations=3, sigma_color=1.0)
+    assert rel(out[0].cpu(), want) < tol
+
+
+def test_gradcheck():
+    c, n, x = (t[:, :, :6, :7].double().requires_grad_() for t in buffers())
+    sig = torch.tensor([0.5], dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(
+        lambda a, b, p, s: atrous(a, b, p, iterations=2, sigma_color=s), (c, n, x, sig))
+
+
+def test_bad_inputs():
+    c, n, x = buffers()
+    with pytest.raises(ShapeError, match=r"normal: expected shape \(B, 3, H, W\)"):
+        atrous(c, n[:, :2])
+    with pytest.raises(ShapeError, match="position: dimension W"):
+        atrous(c, n, x[..., :5])
+    with pytest.raises(DTypeError, match="normal is torch.float64 but color is torch.float32"):
+        atrous(c, n.double())
+    with pytest.raises(ValueError, match="iterations: expected an int >= 1"):
+        atrous(c, iterations=0)
+    with pytest.raises(ValueError, match="subsample: expected a power of two"):
+        atrous(c, subsample=3)
+    with pytest.raises(RangeError, match="sigma_normal: expected finite values > 0"):
+        atrous(c, n, sigma_normal=0.0)
+    with pytest.raises(ShapeError, match=r"sigma_color: expected a float or shape \(1,\)"):
+        atrous(c, sigma_color=torch.ones(3))
+    with pytest.raises(RangeError, match="variance: expected values >= 0"):
+        atrous(c, variance=-torch.ones(1, 1, 13, 17))
+    bad = c.clone()
+    bad[0, 1, 2, 3] = float("nan")
+    with pytest.raises(NonFiniteError, match="color: expected finite values, found 1 NaN"):
+        atrous(bad, n, x)
+    with pytest.warns(UserWarning, match="color: replaced 1 non-finite"):
+        assert torch.isfinite(atrous(bad, n, x, sanitize=True)).all()
+
+
+def test_module_and_per_batch_sigmas():
+    c, n, x = buffers(B=2, seed=11)
+    m = ATrous(iterations=2, sigma_color=0.5, sigma_normal=0.2, sigma_position=None)
+    assert "iterations=2" in repr(m) and "sigma_color" in dict(m.named_buffers())
+    torch.testing.assert_close(m(c, n, x), atrous(c, n, x, iterations=2, sigma_color=0.5, sigma_normal=0.2,
+                                                  sigma_position=None))
+    per = atrous(c, n, x, iterations=2, sigma_color=torch.tensor([0.5, 2.0]))
+    assert rel(per[1], atrous_oracle(c[1], n[1], x[1], iterations=2, sigma_color=2.0)) < 1e-5
+    learn = ATrous(iterations=2, sigma_color=0.5, learnable=True)
+    learn(c, n, x).square().sum().backward()
+    assert learn.sigma_color.grad is not None and math.isfinite(float(learn.sigma_color.grad))
