@@ -3,16 +3,28 @@ and accuracy against a float64 oracle. Writes CSV/JSON/Markdown and a PNG plot.
 
     python scripts/bench_filters.py --out out/bench            # full run (several minutes)
     python scripts/bench_filters.py --quick --out out/bench    # smoke run
+    python scripts/bench_filters.py --only atrous --out out/bench
 
-Sections (DESIGN §3.2, issue 5): guided at 1024x768 / 1080p / 4K, guide dims 1/3/4, r = 8..64,
-kornia guided_blur(separable=True) at the same window, flatness in r, accuracy with offset guides.
+Sections: guided (DESIGN §3.2, issue 5) at 1024x768 / 1080p / 4K, guide dims 1/3/4, r = 8..64,
+kornia guided_blur(separable=True) at the same window, flatness in r, accuracy with offset
+guides; À-Trous (DESIGN §3.1, issue 4) eager and fused, 512² / 1024x768 / 1080p, 1/5/10
+iterations, 0-3 weights (the shape of the paper's Table 2), the time of the bare exponentials
+side by side, the first-call (compile) cost, peak extra memory, and the brute-force
+cross-bilateral and kornia joint_bilateral_blur at the footprint of 3 levels.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
+import subprocess
 import sys
+import tempfile
+import time
 from pathlib import Path
+
+# A fresh inductor cache, so the first fused call shows the real compile cost.
+os.environ.setdefault("TORCHINDUCTOR_CACHE_DIR", tempfile.mkdtemp(prefix="torchgi-inductor-"))
 
 import torch
 
@@ -21,7 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 from benchmark_utils import SIZES, markdown_table, metadata, time_ms, write_results  # noqa: E402
 
-from torchgi.filters import Guided, guided  # noqa: E402
+from torchgi.filters import Guided, atrous, guided  # noqa: E402
 
 
 def make_inputs(H: int, W: int, n: int, seed: int = 0, offset: float = 0.0):
@@ -86,6 +98,123 @@ def accuracy(args, rows: list[dict]) -> None:
         print(row, flush=True)
 
 
+def atrous_inputs(H: int, W: int, seed: int = 0):
+    g = torch.Generator().manual_seed(seed)
+    c = torch.rand(1, 3, H, W, generator=g) * 2
+    n = torch.nn.functional.normalize(torch.randn(1, 3, H, W, generator=g), dim=1)
+    x = torch.rand(1, 3, H, W, generator=g) * 5
+    return c, n, x
+
+
+WEIGHTS = {0: dict(color_weight=False, normal=False, position=False), 1: dict(color_weight=True, normal=False,
+           position=False), 2: dict(color_weight=True, normal=True, position=False),
+           3: dict(color_weight=True, normal=True, position=True)}
+
+
+def run_atrous(c, n, x, iterations: int, weights: int, fused: bool):
+    w = WEIGHTS[weights]
+    return atrous(c, n if w["normal"] else None, x if w["position"] else None, iterations=iterations,
+                  color_weight=w["color_weight"], fused=fused)
+
+
+_PEAK_CHILD = """
+import os, sys, threading, time, torch
+sys.path.insert(0, "scripts")
+torch.set_num_threads(2)
+from bench_filters import atrous_inputs, run_atrous
+page = os.sysconf("SC_PAGE_SIZE")
+def rss():
+    with open("/proc/self/statm") as fh:
+        return int(fh.read().split()[1]) * page
+H, W, fused = {H}, {W}, {fused}
+c, n, x = atrous_inputs(H, W)
+run_atrous(c, n, x, 5, 3, fused)  # warm-up (compiles when fused)
+base, peak, stop = rss(), [0], [False]
+def poll():
+    while not stop[0]:
+        peak[0] = max(peak[0], rss())
+        time.sleep(0.0005)
+t = threading.Thread(target=poll); t.start()
+run_atrous(c, n, x, 5, 3, fused)
+stop[0] = True; t.join()
+print(peak[0] - base, c.numel() * 4)
+"""
+
+
+def peak_memory(size: str, fused: bool) -> dict:
+    """Peak resident memory of one 5-level, 3-weight call above the resident memory just
+    before it, in a fresh process whose allocator returns freed blocks to the OS at once
+    (``MALLOC_MMAP_THRESHOLD_``), so the resident size tracks live buffers; RSS is polled
+    every 0.5 ms from a thread while the call runs."""
+    H, W = SIZES[size]
+    env = dict(os.environ, MALLOC_MMAP_THRESHOLD_="131072")
+    out = subprocess.run([sys.executable, "-c", _PEAK_CHILD.format(H=H, W=W, fused=fused)], capture_output=True,
+                         text=True, check=True, env=env, cwd=Path(__file__).resolve().parents[1]).stdout.split()
+    extra, color_bytes = int(out[-2]), int(out[-1])
+    return {"peak_extra_MB": extra / 2**20, "extra_over_color": extra / color_bytes,
+            "extra_over_inputs": extra / (3 * color_bytes)}
+
+
+def bench_atrous(args, rows: list[dict]) -> None:
+    from torchgi.filters import cross_bilateral
+
+    # first-call cost of the fused path: compile at one size, then a new size and step
+    c, n, x = atrous_inputs(*SIZES["1024x768"])
+    t0 = time.perf_counter()
+    run_atrous(c, n, x, 5, 3, True)
+    first = time.perf_counter() - t0
+    c2, n2, x2 = atrous_inputs(*SIZES["512²"])
+    t0 = time.perf_counter()
+    run_atrous(c2, n2, x2, 5, 3, True)
+    new_size = time.perf_counter() - t0
+    rows.append({"filter": "atrous-first-call", "size": "1024x768", "first_call_s": first,
+                 "new_size_first_call_s": new_size})
+    print(rows[-1], flush=True)
+
+    cases = [("1024x768", 5, w) for w in (0, 1, 2, 3)] + [("1024x768", it, 3) for it in (1, 10)]
+    if not args.quick:
+        cases += [("512²", it, 3) for it in (1, 5, 10)] + [("1080p", it, 3) for it in (1, 5, 10)]
+    for size, iterations, weights in cases:
+        H, W = SIZES[size]
+        c, n, x = atrous_inputs(H, W)
+        e = torch.rand(25 * iterations * H * W // 8)
+        buf = torch.empty_like(e)
+
+        def exps():
+            for _ in range(8):
+                torch.exp(e, out=buf)
+
+        t_exp = time_ms(exps, min_run_time=args.min_time)
+        t_fused = time_ms(lambda: run_atrous(c, n, x, iterations, weights, True), min_run_time=args.min_time)
+        eager = size == "1024x768" or iterations == 5
+        t_eager = time_ms(lambda: run_atrous(c, n, x, iterations, weights, False), min_run_time=args.min_time) \
+            if eager else None
+        row = {"filter": "atrous", "size": size, "iterations": iterations, "weights": weights,
+               "exp_ms": t_exp["median_ms"], "fused_ms": t_fused["median_ms"], "fused_iqr_ms": t_fused["iqr_ms"],
+               "fused_over_exp": t_fused["median_ms"] / t_exp["median_ms"],
+               "eager_ms": t_eager["median_ms"] if t_eager else None}
+        if size == "1024x768" and iterations == 5 and weights == 3:
+            for fused in (False, True):
+                row.update({f"{k}_{'fused' if fused else 'eager'}": v for k, v in peak_memory(size, fused).items()})
+        rows.append(row)
+        print({k: (round(v, 2) if isinstance(v, float) else v) for k, v in row.items()}, flush=True)
+
+    # peers at the footprint of 3 levels: taps reach 2·(1+2+4) = 14 px, a 29x29 window
+    import kornia
+
+    c, n, x = atrous_inputs(*SIZES["512²"])
+    r = 14
+    t_a = time_ms(lambda: run_atrous(c, n, x, 3, 3, True), min_run_time=args.min_time)
+    t_b = time_ms(lambda: cross_bilateral(c, [n, x], radius=r, sigma_space=r / 2, sigma_color=0.5,
+                                          sigma_guides=[0.3, 0.3]), min_run_time=args.min_time)
+    t_k = time_ms(lambda: kornia.filters.joint_bilateral_blur(c, n, 2 * r + 1, 0.3, (r / 2, r / 2)),
+                  min_run_time=args.min_time)
+    row = {"filter": "footprint-29", "size": "512²", "atrous_3it_fused_ms": t_a["median_ms"],
+           "cross_bilateral_r14_ms": t_b["median_ms"], "kornia_joint_bilateral_k29_ms": t_k["median_ms"]}
+    rows.append(row)
+    print(row, flush=True)
+
+
 def plot(rows: list[dict], path: Path) -> None:
     import matplotlib
 
@@ -118,22 +247,39 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--min-time", type=float, default=1.0, help="seconds of timing per case")
     ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--only", choices=["guided", "atrous"], default=None)
     args = ap.parse_args()
     torch.manual_seed(0)
     torch.set_num_threads(args.threads)
     meta = metadata(args.threads)
     print(meta, flush=True)
     rows: list[dict] = []
-    bench_guided(args, rows)
-    accuracy(args, rows)
+    if args.only in (None, "guided"):
+        bench_guided(args, rows)
+        accuracy(args, rows)
+    if args.only in (None, "atrous"):
+        bench_atrous(args, rows)
     out = Path(args.out)
-    write_results(rows, meta, out, "filters")
-    speed = [r for r in rows if r.get("filter") == "guided"]
-    md = markdown_table(speed, ["size", "guide_dim", "radius", "fn_ms", "module_ms", "kornia_ms", "kornia_over_module"])
-    md += "\n\n" + markdown_table([r for r in rows if r.get("filter") == "guided-accuracy"],
-                                  ["size", "offset", "max_rel_err", "nan", "neg_var_before_clamp"])
-    (out / "filters.md").write_text(md + "\n")
-    plot(rows, out / "filters.png")
+    stem = "filters" if args.only is None else f"filters_{args.only}"
+    write_results(rows, meta, out, stem)
+    md = ""
+    if args.only in (None, "guided"):
+        speed = [r for r in rows if r.get("filter") == "guided"]
+        md += markdown_table(speed, ["size", "guide_dim", "radius", "fn_ms", "module_ms", "kornia_ms",
+                                     "kornia_over_module"])
+        md += "\n\n" + markdown_table([r for r in rows if r.get("filter") == "guided-accuracy"],
+                                      ["size", "offset", "max_rel_err", "nan", "neg_var_before_clamp"])
+        plot(rows, out / f"{stem}.png")
+    if args.only in (None, "atrous"):
+        md += "\n\n" + markdown_table([r for r in rows if r.get("filter") == "atrous"],
+                                      ["size", "iterations", "weights", "exp_ms", "fused_ms", "fused_over_exp",
+                                       "eager_ms"])
+        for kind in ("atrous-first-call", "footprint-29"):
+            sel = [r for r in rows if r.get("filter") == kind]
+            md += "\n\n" + markdown_table(sel, [k for k in sel[0] if k != "filter"])
+        mem = [r for r in rows if "peak_extra_MB_eager" in r]
+        md += "\n\n" + markdown_table(mem, [k for k in mem[0] if k.startswith(("peak", "extra"))])
+    (out / f"{stem}.md").write_text(md + "\n")
     print(md)
 
 
