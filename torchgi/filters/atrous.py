@@ -79,14 +79,17 @@ def _planes(t: torch.Tensor, split: bool) -> list[torch.Tensor]:
 
 
 def _iteration(
-    c: torch.Tensor, n: torch.Tensor | None, x: torch.Tensor | None, var: torch.Tensor | None,
-    valid: torch.Tensor | None, step: int, colour_scale: torch.Tensor | None, inv_n: torch.Tensor | None,
-    inv_x: torch.Tensor | None, split: bool = False,
+    c: torch.Tensor, feat: torch.Tensor | None, var: torch.Tensor | None, valid: torch.Tensor | None,
+    step: int, colour_scale: torch.Tensor | None, split: bool = False,
 ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
-    """One À-Trous level. ``colour_scale`` is ``1/σ_rt,i`` ``(B,1,1,1)`` or, variance-guided,
-    ``1/(σ² · blur(Var))`` ``(B,1,H,W)``; ``inv_n``, ``inv_x`` are ``1/σ`` ``(B,1,1,1)``; None
-    switches a weight off. ``valid`` ``(B,1,H,W)`` marks pixels that may act as sources (None:
-    all). Returns the filtered colour, the propagated variance and the weight sum.
+    """One À-Trous level.
+
+    ``feat`` ``(B,F,H,W)`` holds the geometry guides already divided by the square roots of
+    their σ's (normal also by the step), so ``w_n · w_x = exp(-|f(p) - f(q)|²``); None: no
+    geometry weight. ``colour_scale`` is ``1/σ_rt,i`` ``(B,1,1,1)`` or, variance-guided,
+    ``1/(σ² · blur(Var))`` ``(B,1,H,W)``; None: no colour weight. ``valid`` ``(B,1,H,W)``
+    marks pixels that may act as sources (None: all). Returns the filtered colour, the
+    propagated variance and the weight sum.
 
     With ``split`` every channel is its own plane and the level is pure pointwise arithmetic
     over shifted views, which ``torch.compile`` fuses into one loop (the ``fused=True`` path);
@@ -94,14 +97,11 @@ def _iteration(
     """
     pad = 2 * step
     pc = Padded(c, pad)
-    pn = Padded(n, pad) if inv_n is not None and n is not None else None
-    px = Padded(x, pad) if inv_x is not None and x is not None else None
+    pf = Padded(feat, pad) if feat is not None else None
     pv = Padded(torch.ones_like(c[:, :1]) if valid is None else valid.to(c.dtype), pad)  # 0 outside / on holes
     pvar = Padded(var, pad) if var is not None else None
     cc = _planes(c, split)
-    nn_ = _planes(n, split) if pn is not None else []
-    xx = _planes(x, split) if px is not None else []
-    scale_n = inv_n / (step * step) if pn is not None else None
+    ff = _planes(feat, split) if feat is not None else []
     num: list[torch.Tensor] = []
     var_num: list[torch.Tensor] = []
     den = torch.zeros_like(c[:, :1])
@@ -111,12 +111,9 @@ def _iteration(
         d = None
         if colour_scale is not None:
             d = _sqdist(cc, cq) * colour_scale
-        if pn is not None:
-            dn = _sqdist(nn_, _planes(pn.at(oy, ox), split)) * scale_n
-            d = dn if d is None else d + dn
-        if px is not None:
-            dxp = _sqdist(xx, _planes(px.at(oy, ox), split)) * inv_x
-            d = dxp if d is None else d + dxp
+        if pf is not None:
+            dg = _sqdist(ff, _planes(pf.at(oy, ox), split))
+            d = dg if d is None else d + dg
         w = pv.at(oy, ox) * h
         if d is not None:
             w = w * torch.exp(-d)
@@ -267,7 +264,11 @@ def atrous(
         if color_weight and i >= fill:
             # variance-guided: 1 / (σ² · blurred per-pixel variance summed over channels)
             scale = inv_c * (2.0**i) if var is None else inv_c / (_blur3(var).sum(1, keepdim=True) + 1e-12)
-        c_next, var, den = level(c, n, x, var, valid, step, scale, inv_n, inv_x, fused)
+        # w_n · w_x = exp(-|f(p) - f(q)|²) with f = (n / (s·√σ_n), x / √σ_x)
+        parts = ([n * (inv_n.sqrt() / step)] if inv_n is not None else []) + (
+            [x * inv_x.sqrt()] if inv_x is not None else [])
+        feat = torch.cat(parts, 1) if parts else None
+        c_next, var, den = level(c, feat, var, valid, step, scale, fused)
         if return_details:
             details.append(c_next - c)
         c = c_next
