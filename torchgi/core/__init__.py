@@ -3,6 +3,7 @@
 from torchgi.core.check import (
     check_finite,
     check_floating,
+    check_int,
     check_option,
     check_range,
     check_same_device,
@@ -30,6 +31,7 @@ from torchgi.core.registry import Registry
 __all__ = [
     "check_finite",
     "check_floating",
+    "check_int",
     "check_option",
     "check_range",
     "check_same_device",

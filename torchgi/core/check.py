@@ -35,6 +35,7 @@ __all__ = [
     "finite_or_sanitized",
     "check_range",
     "check_option",
+    "check_int",
     "require",
 ]
 
@@ -216,6 +217,16 @@ def check_option(value: Any, name: str, options: Iterable[Any]) -> None:
     options = tuple(options)
     if value not in options:
         raise OptionError(f"{name}: expected one of {', '.join(map(repr, options))}; got {value!r}")
+
+
+def check_int(value: Any, name: str, low: int = 0) -> None:
+    """Raise :class:`RangeError` (a ``ValueError``) unless ``value`` is an int ``>= low``.
+
+    Example:
+        >>> check_int(3, "radius")
+    """
+    if not isinstance(value, int) or isinstance(value, bool) or value < low:
+        raise RangeError(f"{name}: expected an int >= {low}, got {value!r}")
 
 
 def require(module: str, extra: str) -> ModuleType:

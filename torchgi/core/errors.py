@@ -1,8 +1,8 @@
 """The torchgi error family.
 
-Every error a user can trigger subclasses a builtin (``ValueError``, ``TypeError``,
-``KeyError``-free ``ValueError``, ``ImportError``) so callers catch them the usual way,
-and :class:`TorchGIError` so they can catch all of torchgi's at once.
+Every error a user can trigger subclasses a builtin (``ValueError``, ``TypeError`` or
+``ImportError``) so callers catch them the usual way, and :class:`TorchGIError` so they can
+catch all of torchgi's at once.
 """
 
 from __future__ import annotations

@@ -21,6 +21,7 @@ from torch import nn
 
 from torchgi.core.check import (
     check_floating,
+    check_int,
     check_same_device,
     check_shape,
     finite_or_sanitized,
@@ -213,8 +214,7 @@ def atrous(
             check_floating(t, name)
             if t.dtype != color.dtype:
                 raise DTypeError(f"{name} is {t.dtype} but color is {color.dtype}: pass one dtype")
-    if not isinstance(iterations, int) or isinstance(iterations, bool) or iterations < 1:
-        raise ValueError(f"iterations: expected an int >= 1, got {iterations!r}")
+    check_int(iterations, "iterations", 1)
     if not isinstance(subsample, int) or subsample < 1 or subsample & (subsample - 1):
         raise ValueError(f"subsample: expected a power of two >= 1, got {subsample!r}")
     ct = compute_dtype(color.dtype)
@@ -265,9 +265,10 @@ def atrous(
             # variance-guided: 1 / (σ² · blurred per-pixel variance summed over channels)
             scale = inv_c * (2.0**i) if var is None else inv_c / (_blur3(var).sum(1, keepdim=True) + 1e-12)
         # w_n · w_x = exp(-|f(p) - f(q)|²) with f = (n / (s·√σ_n), x / √σ_x)
-        parts = ([n * (inv_n.sqrt() / step)] if inv_n is not None else []) + (
-            [x * inv_x.sqrt()] if inv_x is not None else [])
-        feat = torch.cat(parts, 1) if parts else None
+        feat = None  # built in one expression so the scaled parts are freed at once
+        if inv_n is not None or inv_x is not None:
+            feat = torch.cat(([n * (inv_n.sqrt() / step)] if inv_n is not None else [])
+                             + ([x * inv_x.sqrt()] if inv_x is not None else []), 1)
         c_next, var, den = level(c, feat, var, valid, step, scale, fused)
         if return_details:
             details.append(c_next - c)

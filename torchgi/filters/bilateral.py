@@ -8,7 +8,7 @@ from collections.abc import Sequence
 import torch
 from torch import nn
 
-from torchgi.core.check import check_floating, check_same_device, check_shape, finite_or_sanitized
+from torchgi.core.check import check_floating, check_int, check_same_device, check_shape, finite_or_sanitized
 from torchgi.core.errors import DTypeError, RangeError
 from torchgi.filters.atrous import _planes, _sqdist
 from torchgi.filters.box import compute_dtype
@@ -62,8 +62,7 @@ def cross_bilateral(
         check_floating(t, name)
         if t.dtype != color.dtype:
             raise DTypeError(f"{name} is {t.dtype} but color is {color.dtype}: pass one dtype")
-    if not isinstance(radius, int) or isinstance(radius, bool) or radius < 0:
-        raise ValueError(f"radius: expected an int >= 0, got {radius!r}")
+    check_int(radius, "radius")
     for name, v in [("sigma_space", sigma_space), ("sigma_color", sigma_color)] + [
         (f"sigma_guides[{k}]", v) for k, v in enumerate(sigma_guides)
     ]:

@@ -23,7 +23,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from torchgi.core.check import check_finite, check_floating, check_shape, is_tracing
+from torchgi.core.check import check_finite, check_floating, check_int, check_shape, is_tracing
 
 __all__ = ["box", "Box", "PlaneBoxer"]
 
@@ -167,8 +167,7 @@ def box(x: torch.Tensor, radius: int) -> torch.Tensor:
     check_shape(x, "B C H W", "x")
     check_floating(x, "x")
     check_finite(x, "x")
-    if not isinstance(radius, int) or isinstance(radius, bool) or radius < 0:
-        raise ValueError(f"radius: expected an int >= 0, got {radius!r}")
+    check_int(radius, "radius")
     ct = compute_dtype(x.dtype)
     xc = x.to(ct)
     B, C, H, W = x.shape

@@ -22,6 +22,7 @@ from torchgi.buffers import GBuffer
 from torchgi.core.check import (
     check_finite,
     check_floating,
+    check_int,
     check_range,
     check_same_device,
     check_shape,
@@ -233,11 +234,6 @@ def _guided_fast(
     return out
 
 
-def _check_radius(radius: int) -> None:
-    if not isinstance(radius, int) or isinstance(radius, bool) or radius < 0:
-        raise ValueError(f"radius: expected an int >= 0, got {radius!r}")
-
-
 def _guided(
     src: torch.Tensor, guide: torch.Tensor, radius: int, eps: float | torch.Tensor, sanitize: bool,
     _holder: dict | None,
@@ -253,7 +249,7 @@ def _guided(
     n = guide.shape[1]
     if not 1 <= n <= 4:
         raise ShapeError(f"guide: expected 1 to 4 channels, got {n} (shape {tuple(guide.shape)})")
-    _check_radius(radius)
+    check_int(radius, "radius")
     src = finite_or_sanitized(src, "src", sanitize)
     guide = finite_or_sanitized(guide, "guide", sanitize)
     ct = compute_dtype(src.dtype)
@@ -372,7 +368,7 @@ class Guided(nn.Module):
 
     def __init__(self, radius: int = 24, eps: float | torch.Tensor = 0.01, learnable: bool = False) -> None:
         super().__init__()
-        _check_radius(radius)
+        check_int(radius, "radius")
         self.radius = radius
         self._workspace: dict = {}
         value = torch.as_tensor(eps, dtype=torch.float32).clone()
@@ -383,7 +379,7 @@ class Guided(nn.Module):
 
     def forward(self, src: torch.Tensor, guide: torch.Tensor) -> torch.Tensor:
         eps = self.eps if self.eps.dim() else self.eps.expand(guide.shape[1])
-        return _guided(src, guide, self.radius, eps.to(dtype=src.dtype), False, self._workspace)
+        return _guided(src, guide, self.radius, eps.to(dtype=compute_dtype(src.dtype)), False, self._workspace)
 
     def release(self) -> None:
         """Free the CPU scratch buffers kept between calls."""
