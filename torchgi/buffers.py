@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from torchgi.core.check import check_finite, check_same_device, check_shape, check_tensor
+from torchgi.core.check import check_finite, check_same_device, check_shape, check_tensor, finite_or_sanitized
 from torchgi.core.errors import DTypeError, LayerError, ShapeError
 
 __all__ = ["GBuffer"]
@@ -275,7 +275,7 @@ class GBuffer:
         error says so (convert the file, or read layers with :func:`torchgi.io.read_exr`).
 
         Args:
-            sanitize: replace NaN/Inf in the colour fields by 0 (with a warning giving the
+            sanitize: replace NaN/Inf in any float layer by 0 (with a warning giving the
                 count) instead of raising.
 
         Example:
@@ -294,15 +294,8 @@ class GBuffer:
                 t = t != 0
             elif name == "spp":
                 t = t.to(torch.int64) if not t.is_floating_point() else t.round().to(torch.int64)
-            elif not sanitize and name in ("color", "direct", "indirect", "emission", "variance"):
-                check_finite(t, f"{path}: layer {name}")
-            elif sanitize and t.is_floating_point():
-                bad = ~torch.isfinite(t)
-                if bool(bad.any()):
-                    import warnings
-
-                    warnings.warn(f"{path}: {name}: replaced {int(bad.sum())} non-finite values by 0", stacklevel=2)
-                    t = torch.where(bad, torch.zeros((), dtype=t.dtype), t)
+            else:
+                t = finite_or_sanitized(t, f"{path}: layer {name}", sanitize)
             fields[name] = t[None]
         return cls(**fields)
 

@@ -22,6 +22,7 @@ from torch import nn
 from torchgi.core.check import (
     check_floating,
     check_int,
+    check_range,
     check_same_device,
     check_shape,
     finite_or_sanitized,
@@ -223,8 +224,8 @@ def atrous(
     n = finite_or_sanitized(normal, "normal", sanitize).to(ct) if normal is not None else None
     x = finite_or_sanitized(position, "position", sanitize).to(ct) if position is not None else None
     var = finite_or_sanitized(variance, "variance", sanitize).to(ct) if variance is not None else None
-    if var is not None and not is_tracing() and bool((var < 0).any()):
-        raise RangeError(f"variance: expected values >= 0, found min {float(var.min()):g}")
+    if var is not None:
+        check_range(var, "variance", 0.0)
     if x is not None:
         x = x - x.mean(dim=(2, 3), keepdim=True)  # offsets cancel in differences; keep them small
     if var is not None and var.shape[1] == 1 and c.shape[1] > 1:
