@@ -15,6 +15,10 @@ PUBLIC = {
     ],
     "torchgi.io": ["read_exr", "write_exr", "read_aovs", "find_aovs", "write_png"],
     "torchgi.metrics": ["mse", "relmse", "psnr", "ssim", "flip", "tonemap"],
+    "torchgi.filters": ["atrous", "ATrous", "guided", "Guided", "box", "Box", "cross_bilateral", "CrossBilateral",
+                        "guide_from_gbuffer"],
+    "torchgi.sampling": ["importance_map", "allocate", "exclusive_scan"],
+    "torchgi.export": ["export_onnx", "OrtSession"],
     "torchgi.cli": ["main"],
 }
 

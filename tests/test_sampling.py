@@ -1,0 +1,101 @@
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from torchgi.core import NonFiniteError, RangeError
+from torchgi.sampling import allocate, exclusive_scan, importance_map
+
+
+def geometry(B=2, H=9, W=11, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    n = torch.nn.functional.normalize(torch.randn(B, 3, H, W, generator=g), dim=1)
+    n[:, :, :, : W // 2] = torch.tensor([0.0, 1.0, 0.0])[:, None, None]  # a flat floor on the left
+    x = torch.rand(B, 3, H, W, generator=g) + 50.0
+    hit = torch.rand(B, 1, H, W, generator=g) > 0.15
+    return n, x, hit
+
+
+def importance_oracle(n, x, hit, window, sn, sx):
+    n, x, hit = n.double().numpy(), x.double().numpy(), hit.numpy()
+    B, _, H, W = n.shape
+    out = np.zeros((B, 1, H, W))
+    lo, hi = -(window // 2), (window - 1) // 2
+    for b in range(B):
+        for py in range(H):
+            for px in range(W):
+                if not hit[b, 0, py, px]:
+                    continue
+                total = count = 0.0
+                for qy in range(py + lo, py + hi + 1):
+                    for qx in range(px + lo, px + hi + 1):
+                        if 0 <= qy < H and 0 <= qx < W and hit[b, 0, qy, qx]:
+                            dn = ((n[b, :, py, px] - n[b, :, qy, qx]) ** 2).sum() / sn
+                            dx = ((x[b, :, py, px] - x[b, :, qy, qx]) ** 2).sum() / sx
+                            total += math.exp(-dn - dx)
+                            count += 1
+                out[b, 0, py, px] = 1 - total / count
+    return out
+
+
+@pytest.mark.parametrize("window", [2, 3, 4, 7, 10])
+def test_importance_matches_oracle(window):
+    n, x, hit = geometry(seed=window)
+    got = importance_map(n, x, window=window, sigma_normal=0.2, sigma_position=0.5, hit=hit)
+    want = importance_oracle(n, x, hit, window, 0.2, 0.5)
+    np.testing.assert_allclose(got.double().numpy(), want, atol=2e-6)
+    assert (got[~hit] == 0).all()
+
+
+def test_allocation_invariants():
+    g = torch.Generator().manual_seed(3)
+    q = torch.rand(3, 1, 17, 23, generator=g) ** 3
+    q[1] = 0.0  # no importance at all: spread evenly
+    mask = torch.rand(3, 1, 17, 23, generator=g) > 0.2
+    budget = 4 * 17 * 23
+    counts = allocate(q, budget, min_samples=1, mask=mask)
+    assert counts.dtype == torch.int64
+    assert (counts.flatten(1).sum(1) == budget).all()  # exact, the paper leaves it short
+    assert (counts[mask] >= 1).all() and (counts[~mask] == 0).all()
+    for b in range(3):
+        m = mask[b].flatten().numpy()
+        qb = q[b].flatten().double().numpy() * m
+        spare = budget - m.sum()
+        share = qb / qb.sum() if qb.sum() > 0 else m / m.sum()
+        expected = 1 + share * spare
+        got = counts[b].flatten().numpy()
+        assert np.all(np.abs(got[m] - expected[m]) < 1)  # largest remainder: within one sample
+        if qb.sum() > 0:  # chi-square of the spare samples against the importance shares
+            e = share[m] * spare
+            chi2 = (((got[m] - 1) - e) ** 2 / np.maximum(e, 1e-9))[e > 1].sum()
+            assert chi2 < 0.05 * (e > 1).sum()
+
+
+def test_ties_are_deterministic():
+    counts = allocate(torch.ones(1, 1, 1, 5), 7, min_samples=1)
+    assert counts.flatten().tolist() == [2, 2, 1, 1, 1]  # remainders to the lowest indices
+
+
+def test_exclusive_scan():
+    counts = torch.randint(0, 5, (2, 1, 4, 6), generator=torch.Generator().manual_seed(0))
+    flat = counts.flatten(1).numpy()
+    want = np.cumsum(flat, axis=1) - flat
+    assert exclusive_scan(counts).flatten(1).numpy().tolist() == want.tolist()
+
+
+def test_bad_inputs():
+    q = torch.rand(1, 1, 4, 4)
+    with pytest.raises(RangeError, match=r"budget: 15 samples cannot give min_samples=1 to 16 pixels"):
+        allocate(q, 15)
+    with pytest.raises(RangeError, match="importance: expected values >= 0.0"):
+        allocate(q - 1, 100)
+    bad = q.clone()
+    bad[0, 0, 1, 1] = float("nan")
+    with pytest.raises(NonFiniteError, match="importance"):
+        allocate(bad, 100)
+    n, x, _ = geometry()
+    with pytest.raises(RangeError, match="window: expected an int >= 2"):
+        importance_map(n, x, window=1)
+    with pytest.raises(RangeError, match="window: expected 2..10"):
+        importance_map(n, x, window=11)

@@ -1,0 +1,7 @@
+"""Adaptive sampling (Bauszat et al. 2011): importance from the filters' geometry weights and an
+exact apportionment of a fixed sample budget."""
+
+from torchgi.sampling.allocate import allocate, exclusive_scan
+from torchgi.sampling.importance import importance_map
+
+__all__ = ["importance_map", "allocate", "exclusive_scan"]

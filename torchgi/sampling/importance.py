@@ -1,0 +1,92 @@
+"""Sampling importance from the filter's own geometry weights (Bauszat et al. 2011, DESIGN §3.3)::
+
+    W_p = Σ_{q ∈ window(p)} G_n(p,q) · G_x(p,q),   W̃_p = W_p / |window(p)|,   q_p = 1 - W̃_p
+
+with ``G_n = exp(-|n_p - n_q|² / σ_n)`` and ``G_x = exp(-|x_p - x_q|² / σ_x)``, the À-Trous
+geometry weights at step 1, read through the same shifted-view taps (:mod:`torchgi.filters.taps`).
+"""
+
+from __future__ import annotations
+
+import torch
+
+from torchgi.core.check import (
+    check_finite,
+    check_floating,
+    check_int,
+    check_same_device,
+    check_shape,
+)
+from torchgi.core.errors import DTypeError, RangeError
+from torchgi.filters.box import compute_dtype
+from torchgi.filters.taps import Padded
+
+__all__ = ["importance_map"]
+
+
+def importance_map(
+    normal: torch.Tensor,
+    position: torch.Tensor,
+    *,
+    window: int = 4,
+    sigma_normal: float = 0.1,
+    sigma_position: float = 0.1,
+    hit: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """Per-pixel sampling importance ``q_p in [0, 1]`` from normal and position discontinuities.
+
+    Args:
+        normal: ``(B, 3, H, W)`` world-space normals in [-1, 1].
+        position: ``(B, 3, H, W)`` world-space positions, scene units (any offset).
+        window: window size ``w`` in 2..10 (offsets ``-(w//2) .. (w-1)//2`` in x and y).
+        sigma_normal, sigma_position: σ_n (normal distance squared), σ_x (scene units squared).
+        hit: ``(B, 1, H, W)`` bool; background pixels get importance 0 and are no neighbours.
+
+    Returns:
+        ``(B, 1, H, W)`` importance in [0, 1], dtype of the inputs (float16/bfloat16 computed in
+        float32). ``|window(p)|`` counts the taps inside the image (and on geometry), so borders
+        are not mistaken for edges.
+
+    Example:
+        >>> n = torch.zeros(1, 3, 6, 6); n[:, 2] = 1
+        >>> float(importance_map(n, torch.zeros(1, 3, 6, 6)).max())   # flat: nothing to sample
+        0.0
+    """
+    sizes = check_shape(normal, "B 3 H W", "normal")
+    check_shape(position, "B 3 H W", "position", sizes)
+    if hit is not None:
+        check_shape(hit, "B 1 H W", "hit", sizes)
+        if hit.dtype != torch.bool:
+            raise DTypeError(f"hit: expected a bool tensor, got {hit.dtype}")
+    check_same_device({"normal": normal, "position": position, "hit": hit})
+    check_floating(normal, "normal")
+    check_floating(position, "position")
+    if position.dtype != normal.dtype:
+        raise DTypeError(f"position is {position.dtype} but normal is {normal.dtype}: pass one dtype")
+    check_int(window, "window", 2)
+    if window > 10:
+        raise RangeError(f"window: expected 2..10, got {window}")
+    for name, v in (("sigma_normal", sigma_normal), ("sigma_position", sigma_position)):
+        if not (isinstance(v, (int, float)) and 0 < v < float("inf")):
+            raise RangeError(f"{name}: expected a finite float > 0, got {v!r}")
+    check_finite(normal, "normal")
+    check_finite(position, "position")
+    ct = compute_dtype(normal.dtype)
+    n = normal.to(ct)
+    x = position.to(ct)
+    x = x - x.mean(dim=(2, 3), keepdim=True)
+    # one feature vector per pixel: G_n · G_x = exp(-|f_p - f_q|²)
+    f = torch.cat([n / sigma_normal**0.5, x / sigma_position**0.5], 1)
+    valid = torch.ones_like(n[:, :1]) if hit is None else hit.to(ct)
+    lo, hi = -(window // 2), (window - 1) // 2
+    pad = max(-lo, hi)
+    pf, pv = Padded(f, pad), Padded(valid, pad)
+    total = torch.zeros_like(valid)
+    count = torch.zeros_like(valid)
+    for oy in range(lo, hi + 1):
+        for ox in range(lo, hi + 1):
+            v = pv.at(oy, ox)
+            total = total + v * torch.exp(-(f - pf.at(oy, ox)).square().sum(1, keepdim=True))
+            count = count + v
+    q = (1 - total / count.clamp_min(1)).clamp(0, 1) * valid
+    return q.to(normal.dtype)
