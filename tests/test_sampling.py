@@ -99,3 +99,33 @@ def test_bad_inputs():
         importance_map(n, x, window=1)
     with pytest.raises(RangeError, match="window: expected 2..10"):
         importance_map(n, x, window=11)
+
+
+def test_batches_visit_every_sample_once_whatever_the_batch_size():
+    from torchgi.sampling import sample_batches
+
+    counts = allocate(torch.rand(2, 1, 6, 7, generator=torch.Generator().manual_seed(4)) ** 2, 3 * 42)
+    seen = {}
+    for bs in (1, 5, 64, 10_000):
+        pairs = [(b.image, p, s) for b in sample_batches(counts, bs) for p, s in zip(b.pixel.tolist(), b.sample.tolist())]
+        assert all(len(b.pixel) <= bs for b in sample_batches(counts, bs))
+        seen[bs] = pairs
+    assert seen[1] == seen[5] == seen[64] == seen[10_000]
+    want = [(b, p, s) for b in range(2) for p, n in enumerate(counts[b].flatten().tolist()) for s in range(n)]
+    assert seen[1] == want  # each pixel drawn exactly counts[p] times, sample indices 0..n-1
+    # chi-square of the draws against the counts (exact here: the statistic is 0)
+    draws = np.bincount([p for b, p, _ in want if b == 0], minlength=42)
+    expected = counts[0].flatten().numpy()
+    assert ((draws - expected) ** 2 / np.maximum(expected, 1)).sum() == 0
+
+
+def test_accumulate_is_a_per_pixel_sum():
+    from torchgi.sampling import accumulate
+
+    g = torch.Generator().manual_seed(5)
+    pixel = torch.sort(torch.randint(0, 9, (50,), generator=g)).values
+    values = torch.randn(50, 3, generator=g, dtype=torch.float64)
+    want = torch.zeros(9, 3, dtype=torch.float64).index_add_(0, pixel, values)
+    torch.testing.assert_close(accumulate(values, pixel, 9), want)
+    with pytest.raises(ValueError, match="ascending"):
+        accumulate(values, pixel.flip(0), 9)

@@ -2,6 +2,7 @@
 exact apportionment of a fixed sample budget."""
 
 from torchgi.sampling.allocate import allocate, exclusive_scan
+from torchgi.sampling.batches import SampleBatch, accumulate, sample_batches
 from torchgi.sampling.importance import importance_map
 
-__all__ = ["importance_map", "allocate", "exclusive_scan"]
+__all__ = ["importance_map", "allocate", "exclusive_scan", "sample_batches", "SampleBatch", "accumulate"]

@@ -69,10 +69,16 @@ def allocate(
     counts = exact.floor()
     left = (spare - counts.sum(1)).round().to(torch.int64)  # < number of eligible pixels
     frac = torch.where(eligible, exact - counts, torch.full_like(exact, -1.0))
-    order = torch.argsort(-frac, dim=1, stable=True)  # largest remainder first, ties by index
-    rank = torch.empty_like(order)
-    rank.scatter_(1, order, torch.arange(q.shape[1], device=q.device).expand_as(order))
-    counts = counts.to(torch.int64) + (rank < left[:, None]).to(torch.int64)
+    counts = counts.to(torch.int64)
+    for b in range(B):  # the `left` largest remainders, ties to the lowest pixel index
+        k = int(left[b])
+        if k <= 0:
+            continue
+        threshold = -torch.kthvalue(-frac[b], k).values  # k-th largest remainder (O(N) selection)
+        above = frac[b] > threshold
+        tied = frac[b] == threshold
+        take = above | (tied & (tied.cumsum(0) <= k - int(above.sum())))
+        counts[b] += take.to(torch.int64)
     counts = torch.where(eligible, counts + min_samples, torch.zeros_like(counts))
     return counts.view_as(importance)
 
