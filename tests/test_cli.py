@@ -54,7 +54,9 @@ def test_demo_runs_end_to_end(tmp_path):
         [sys.executable, "-m", "torchgi.cli", "demo", "--out", str(tmp_path), "--size", "24", "--ref-spp", "16"],
         capture_output=True, text=True, check=True,
     ).stdout
-    lines = {line.split()[0]: line.split()[1:] for line in out.splitlines() if line.startswith(("noisy", "guided"))}
-    assert float(lines["guided"][1]) < float(lines["noisy"][1])  # relMSE column: the filter helps
+    rows = ("noisy", "guided", "atrous")
+    lines = {line.split()[0]: line.split()[1:] for line in out.splitlines() if line.startswith(rows)}
+    assert float(lines["guided"][1]) < float(lines["noisy"][1])  # relMSE column: the filters help
+    assert float(lines["atrous"][1]) < float(lines["noisy"][1])
     assert (tmp_path / "demo.png").read_bytes()[:4] == b"\x89PNG"
     assert (tmp_path / "noisy.exr").is_file() and (tmp_path / "reference.exr").is_file()
