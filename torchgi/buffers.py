@@ -14,7 +14,14 @@ from typing import Any
 import numpy as np
 import torch
 
-from torchgi.core.check import check_finite, check_same_device, check_shape, check_tensor, finite_or_sanitized
+from torchgi.core.check import (
+    check_finite,
+    check_same_device,
+    check_same_floating,
+    check_shape,
+    check_tensor,
+    finite_or_sanitized,
+)
 from torchgi.core.errors import DTypeError, LayerError, ShapeError
 
 __all__ = ["GBuffer"]
@@ -81,7 +88,6 @@ class GBuffer:
         if not present:
             raise ShapeError("GBuffer: expected at least one field, got none")
         sizes: dict[str, int] = {}
-        dtype = None
         for name, t in present.items():
             check_tensor(t, name)
             channels = _CHANNELS[name]
@@ -91,13 +97,7 @@ class GBuffer:
                     raise ShapeError(f"{name}: expected 1 or 3 channels, got shape {tuple(t.shape)}")
             else:
                 check_shape(t, f"B {channels} H W", name, sizes)
-            if name in _FLOAT_FIELDS:
-                if not t.is_floating_point():
-                    raise DTypeError(f"{name}: expected a floating-point tensor, got {t.dtype}")
-                if dtype is None:
-                    dtype = (name, t.dtype)
-                elif t.dtype != dtype[1]:
-                    raise DTypeError(f"{name} is {t.dtype} but {dtype[0]} is {dtype[1]}: use one dtype")
+        check_same_floating({n: t for n, t in present.items() if n in _FLOAT_FIELDS})
         check_same_device(present)
         if self.spp is not None and (self.spp.is_floating_point() or self.spp.dtype == torch.bool):
             raise DTypeError(f"spp: expected an integer tensor, got {self.spp.dtype}")

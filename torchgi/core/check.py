@@ -31,6 +31,8 @@ __all__ = [
     "check_shape",
     "check_same_device",
     "check_floating",
+    "check_same_floating",
+    "check_positive",
     "check_finite",
     "finite_or_sanitized",
     "check_range",
@@ -146,6 +148,33 @@ def check_floating(x: torch.Tensor, name: str) -> None:
     """
     if not x.is_floating_point():
         raise DTypeError(f"{name}: expected a floating-point tensor, got dtype {x.dtype}")
+
+
+def check_same_floating(tensors: Mapping[str, torch.Tensor | None]) -> None:
+    """Every non-None tensor is floating and shares the first one's dtype (nothing is cast).
+
+    Example:
+        >>> check_same_floating({"color": torch.zeros(1), "normal": torch.zeros(1), "x": None})
+    """
+    first = None
+    for name, t in tensors.items():
+        if t is None:
+            continue
+        check_floating(t, name)
+        if first is None:
+            first = (name, t.dtype)
+        elif t.dtype != first[1]:
+            raise DTypeError(f"{name} is {t.dtype} but {first[0]} is {first[1]}: pass one dtype")
+
+
+def check_positive(value: Any, name: str) -> None:
+    """Raise :class:`RangeError` unless ``value`` is a finite real number ``> 0``.
+
+    Example:
+        >>> check_positive(0.1, "sigma_space")
+    """
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < float("inf"):
+        raise RangeError(f"{name}: expected a finite float > 0, got {value!r}")
 
 
 def check_finite(x: torch.Tensor, name: str) -> None:

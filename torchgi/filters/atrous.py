@@ -24,11 +24,12 @@ from torchgi.core.check import (
     check_int,
     check_range,
     check_same_device,
+    check_same_floating,
     check_shape,
     finite_or_sanitized,
     is_tracing,
 )
-from torchgi.core.errors import DTypeError, RangeError, ShapeError
+from torchgi.core.errors import RangeError, ShapeError
 from torchgi.filters.box import compute_dtype
 from torchgi.filters.taps import Padded, kernel_5x5
 
@@ -210,11 +211,7 @@ def atrous(
         if variance.shape[1] not in (1, color.shape[1]):
             raise ShapeError(f"variance: expected 1 or {color.shape[1]} channels, got {variance.shape[1]}")
     check_same_device(named)
-    for name, t in named.items():
-        if t is not None:
-            check_floating(t, name)
-            if t.dtype != color.dtype:
-                raise DTypeError(f"{name} is {t.dtype} but color is {color.dtype}: pass one dtype")
+    check_same_floating(named)
     check_int(iterations, "iterations", 1)
     if not isinstance(subsample, int) or subsample < 1 or subsample & (subsample - 1):
         raise ValueError(f"subsample: expected a power of two >= 1, got {subsample!r}")

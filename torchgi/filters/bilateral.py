@@ -8,8 +8,14 @@ from collections.abc import Sequence
 import torch
 from torch import nn
 
-from torchgi.core.check import check_floating, check_int, check_same_device, check_shape, finite_or_sanitized
-from torchgi.core.errors import DTypeError, RangeError
+from torchgi.core.check import (
+    check_int,
+    check_positive,
+    check_same_device,
+    check_same_floating,
+    check_shape,
+    finite_or_sanitized,
+)
 from torchgi.filters.atrous import _planes, _sqdist
 from torchgi.filters.box import compute_dtype
 from torchgi.filters.taps import Padded
@@ -58,16 +64,13 @@ def cross_bilateral(
     for k, g in enumerate(guides):
         check_shape(g, "B G H W", f"guides[{k}]", {"B": sizes["B"], "H": sizes["H"], "W": sizes["W"]})
     check_same_device(named)
-    for name, t in named.items():
-        check_floating(t, name)
-        if t.dtype != color.dtype:
-            raise DTypeError(f"{name} is {t.dtype} but color is {color.dtype}: pass one dtype")
+    check_same_floating(named)
     check_int(radius, "radius")
     for name, v in [("sigma_space", sigma_space), ("sigma_color", sigma_color)] + [
         (f"sigma_guides[{k}]", v) for k, v in enumerate(sigma_guides)
     ]:
-        if v is not None and not (isinstance(v, (int, float)) and 0 < v < float("inf")):
-            raise RangeError(f"{name}: expected a finite float > 0, got {v!r}")
+        if v is not None:
+            check_positive(v, name)
     ct = compute_dtype(color.dtype)
     c = finite_or_sanitized(color, "color", sanitize).to(ct)
     gs = [finite_or_sanitized(g, f"guides[{k}]", sanitize).to(ct) for k, g in enumerate(guides)]

@@ -25,10 +25,11 @@ from torchgi.core.check import (
     check_int,
     check_range,
     check_same_device,
+    check_same_floating,
     check_shape,
     finite_or_sanitized,
 )
-from torchgi.core.errors import DTypeError, RangeError, ShapeError
+from torchgi.core.errors import RangeError, ShapeError
 from torchgi.filters.box import PlaneBoxer, _box_cumsum, compute_dtype, use_fast_path
 
 __all__ = ["guided", "Guided", "guide_from_gbuffer"]
@@ -242,10 +243,7 @@ def _guided(
     sizes = check_shape(src, "B C H W", "src")
     check_shape(guide, "B G H W", "guide", {"B": sizes["B"], "H": sizes["H"], "W": sizes["W"]})
     check_same_device({"src": src, "guide": guide})
-    check_floating(src, "src")
-    check_floating(guide, "guide")
-    if guide.dtype != src.dtype:
-        raise DTypeError(f"guide is {guide.dtype} but src is {src.dtype}: pass one dtype")
+    check_same_floating({"src": src, "guide": guide})
     n = guide.shape[1]
     if not 1 <= n <= 4:
         raise ShapeError(f"guide: expected 1 to 4 channels, got {n} (shape {tuple(guide.shape)})")

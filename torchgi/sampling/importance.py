@@ -12,9 +12,10 @@ import torch
 
 from torchgi.core.check import (
     check_finite,
-    check_floating,
     check_int,
+    check_positive,
     check_same_device,
+    check_same_floating,
     check_shape,
 )
 from torchgi.core.errors import DTypeError, RangeError
@@ -59,16 +60,12 @@ def importance_map(
         if hit.dtype != torch.bool:
             raise DTypeError(f"hit: expected a bool tensor, got {hit.dtype}")
     check_same_device({"normal": normal, "position": position, "hit": hit})
-    check_floating(normal, "normal")
-    check_floating(position, "position")
-    if position.dtype != normal.dtype:
-        raise DTypeError(f"position is {position.dtype} but normal is {normal.dtype}: pass one dtype")
+    check_same_floating({"normal": normal, "position": position})
     check_int(window, "window", 2)
     if window > 10:
         raise RangeError(f"window: expected 2..10, got {window}")
-    for name, v in (("sigma_normal", sigma_normal), ("sigma_position", sigma_position)):
-        if not (isinstance(v, (int, float)) and 0 < v < float("inf")):
-            raise RangeError(f"{name}: expected a finite float > 0, got {v!r}")
+    check_positive(sigma_normal, "sigma_normal")
+    check_positive(sigma_position, "sigma_position")
     check_finite(normal, "normal")
     check_finite(position, "position")
     ct = compute_dtype(normal.dtype)
