@@ -54,3 +54,26 @@ TOL = {
 @pytest.fixture
 def tol(dtype: torch.dtype) -> tuple[float, float]:
     return TOL[dtype]
+
+
+def _find_meshes() -> str | None:
+    """The shared mesh folder: $TORCHGI_MESHES, else ``shared/data/meshes`` beside a parent."""
+    env = os.environ.get("TORCHGI_MESHES")
+    if env:
+        return env if os.path.isdir(env) else None
+    here = os.path.dirname(os.path.abspath(__file__))
+    for _ in range(4):
+        here = os.path.dirname(here)
+        candidate = os.path.join(here, "shared", "data", "meshes")
+        if os.path.isdir(candidate):
+            return candidate
+    return None
+
+
+@pytest.fixture(scope="session")
+def meshes_dir() -> str:
+    """Real meshes made by others (never copied into the project); skipped when absent."""
+    found = _find_meshes()
+    if found is None:
+        pytest.skip("the shared mesh folder is absent (set TORCHGI_MESHES)")
+    return found

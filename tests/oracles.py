@@ -152,3 +152,16 @@ def bilateral_oracle(color, guides, *, radius, sigma_space, sigma_color, sigma_g
                     den += w
             out[:, py, px] = num / den
     return out
+
+
+def z_pass_rate(a, b, threshold=3.0):
+    """Per-pixel Z-test of two sets of independent renders ``(K, C, H, W)`` (K seeds each):
+    the fraction of pixel channels whose means agree within ``threshold`` standard errors.
+    Pixels where both sets are constant (zero variance) pass when equal to 1e-5 relative."""
+    ma, mb = a.double().mean(0), b.double().mean(0)
+    va, vb = a.double().var(0) / a.shape[0], b.double().var(0) / b.shape[0]
+    var = va + vb
+    z = (ma - mb).abs() / var.sqrt().clamp(min=1e-300)
+    exact = (ma - mb).abs() <= 1e-5 * torch.maximum(ma.abs(), mb.abs()) + 1e-7
+    ok = torch.where(var > 0, z < threshold, exact)
+    return ok.double().mean().item()

@@ -15,7 +15,7 @@ def test_console_script_help():
     exe = shutil.which("torchgi")
     assert exe, "the torchgi console script is not installed"
     out = subprocess.run([exe, "--help"], capture_output=True, text=True, check=True).stdout
-    for word in ("info", "metrics", "demo"):
+    for word in ("info", "metrics", "render", "demo"):
         assert word in out
 
 
@@ -60,3 +60,21 @@ def test_demo_runs_end_to_end(tmp_path):
     assert float(lines["atrous"][1]) < float(lines["noisy"][1])
     assert (tmp_path / "demo.png").read_bytes()[:4] == b"\x89PNG"
     assert (tmp_path / "noisy.exr").is_file() and (tmp_path / "reference.exr").is_file()
+
+
+def test_render_command_writes_a_multilayer_exr_and_never_overwrites(tmp_path, capsys):
+    pytest.importorskip("embreex")
+    pytest.importorskip("OpenEXR")
+    import torchgi
+
+    out = tmp_path / "cornell.exr"
+    args = ["render", "cornell", "--spp", "2", "--bounces", "1", "--seed", "3", "--resolution", "16", "12",
+            "--out", str(out), "--no-progress"]
+    assert main(args) == 0
+    gb = torchgi.GBuffer.from_exr(out, required=("color", "direct", "indirect", "emission", "albedo", "normal"))
+    ref = torchgi.render(torchgi.scenes.cornell(16).with_resolution(16, 12), spp=2, bounces=1, seed=3)
+    assert torch.equal(gb.color, ref.color) and torch.equal(gb.indirect, ref.indirect)
+    before = out.read_bytes()
+    assert main(args) == 2
+    assert "exists" in capsys.readouterr().err and out.read_bytes() == before
+    assert main(args + ["--overwrite"]) == 0

@@ -1,3 +1,29 @@
-"""Rendering. For now: Mitsuba 3 reference renders as GBuffers (``torchgi.render.mitsuba``)."""
+"""Rendering: a batched embree path tracer that emits GBuffer tensors.
 
-__all__: list[str] = []
+``torchgi.render`` is both this package and the render function: ``torchgi.render(scene, spp,
+bounces, seed)`` calls :func:`torchgi.render.engine.render`.
+
+Modules: ``scene`` (YAML, materials, lights), ``scenes`` (built-ins), ``camera``, ``sampler``,
+``accel`` (the embree adapter), ``materials``, ``lights``, ``film``, ``integrators/{basic,path}``,
+``engine`` (chunks, workers), ``mitsuba`` (Mitsuba 3 export and reference renders).
+"""
+
+import sys
+import types
+from typing import Any
+
+from torchgi.render import scenes
+from torchgi.render.engine import render
+from torchgi.render.scene import Camera, Material, Mesh, PointLight, Scene, Sky, load_scene
+
+__all__ = ["render", "load_scene", "scenes", "Scene", "Camera", "Material", "Mesh", "PointLight", "Sky"]
+
+
+class _CallableModule(types.ModuleType):
+    """Lets ``torchgi.render(...)`` call :func:`render` while ``torchgi.render.x`` stays a module."""
+
+    def __call__(self, *args: Any, **kwargs: Any) -> Any:
+        return render(*args, **kwargs)
+
+
+sys.modules[__name__].__class__ = _CallableModule

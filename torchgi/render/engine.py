@@ -1,0 +1,288 @@
+"""``torchgi.render``: scene + sample counts -> GBuffer, in memory-bounded chunks on all cores.
+
+The pixels are cut into tiles; each tile's samples are traced in chunks of at most
+``chunk_size`` paths and merged into its film. With ``workers > 1`` tiles go to a pool of
+processes (embreex holds the GIL while it traces, so threads would serialise), each running
+torch on one thread. Random numbers are keyed by (seed, pixel, sample, dimension) and the
+film merges fixed blocks of samples, so tiles, chunks and workers change no pixel.
+"""
+
+from __future__ import annotations
+
+import atexit
+import concurrent.futures
+import dataclasses
+import multiprocessing
+import os
+import sys
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import numpy as np
+import torch
+
+from torchgi.buffers import GBuffer
+from torchgi.core.check import check_int, check_option
+from torchgi.core.errors import DeviceError, DTypeError, RangeError, ShapeError
+from torchgi.render.accel import Accel
+from torchgi.render.film import BLOCK, Film
+from torchgi.render.integrators import basic, path
+from torchgi.render.integrators.common import Context, guides
+from torchgi.render.lights import Tables
+from torchgi.render.scene import Camera, Scene, SceneArrays, load_scene
+
+__all__ = ["render", "INTEGRATORS"]
+
+INTEGRATORS: dict[str, Callable[..., torch.Tensor]] = {"path": path.radiance, "basic": basic.radiance}
+_PARALLEL_MIN_SAMPLES = 1 << 19  # below this a pool costs more than it saves (unless asked)
+_TILES_PER_WORKER = 4
+
+
+@dataclasses.dataclass(frozen=True)
+class _Pass:
+    stream: int
+    record: str  # "all" | "direct" | "indirect"
+
+
+@dataclasses.dataclass(frozen=True)
+class _Job:
+    arrays: SceneArrays
+    camera: Camera
+    integrator: str
+    bounces: int
+    seed: int
+    render_pass: _Pass
+    first_pixel: int
+    counts: np.ndarray  # (P,) int64 samples of pixels first_pixel ... first_pixel + P - 1
+    chunk_size: int
+
+
+_CONTEXTS: dict[str, tuple[Tables, Accel]] = {}
+
+
+def _context(arrays: SceneArrays, camera: Camera, bounces: int, seed: int) -> Context:
+    """A render context; the BVH of a scene is built once per process."""
+    if arrays.key not in _CONTEXTS:
+        _CONTEXTS.clear()
+        _CONTEXTS[arrays.key] = (Tables.from_arrays(arrays), Accel(arrays.triangles))
+    tables, accel = _CONTEXTS[arrays.key]
+    return Context(tables, accel, camera, bounces, seed)
+
+
+def _chunks(block_counts: torch.Tensor, chunk_size: int) -> Iterator[tuple[int, int]]:
+    """Consecutive block ranges ``[a, b)`` holding at most ``chunk_size`` samples (>= 1 block)."""
+    ends = torch.cumsum(block_counts, 0)
+    a, total = 0, len(block_counts)
+    while a < total:
+        done = int(ends[a - 1]) if a else 0
+        b = int(torch.searchsorted(ends, done + chunk_size, right=True))
+        b = max(b, a + 1)
+        yield a, b
+        a = b
+
+
+def _run_tile(job: _Job, on_chunk: Callable[[int], None] | None = None) -> tuple[np.ndarray, ...]:
+    """Trace one tile; returns its film's ``n (P,)``, ``mean (12, P)``, ``m2 (3, P)``."""
+    ctx = _context(job.arrays, job.camera, job.bounces, job.seed)
+    radiance = INTEGRATORS[job.integrator]
+    counts = torch.from_numpy(job.counts)
+    film = Film(counts.numel(), rows=12)
+    # Blocks: each pixel's samples cut at multiples of BLOCK (see film.py).
+    nblocks = torch.div(counts + BLOCK - 1, BLOCK, rounding_mode="floor")
+    block_pixel = torch.repeat_interleave(torch.arange(counts.numel()), nblocks)
+    first_block = torch.cumsum(nblocks, 0) - nblocks
+    block_rank = torch.arange(block_pixel.numel()) - first_block[block_pixel]
+    block_start = block_rank * BLOCK
+    block_count = torch.minimum(counts[block_pixel] - block_start, torch.tensor(BLOCK))
+    for a, b in _chunks(block_count, job.chunk_size):
+        cnt = block_count[a:b]
+        offsets = torch.cumsum(cnt, 0) - cnt
+        n = int(cnt.sum())
+        within = torch.arange(n) - torch.repeat_interleave(offsets, cnt)
+        local = torch.repeat_interleave(block_pixel[a:b], cnt)
+        sample = torch.repeat_interleave(block_start[a:b], cnt) + within
+        values = radiance(
+            ctx, local + job.first_pixel, sample, stream=job.render_pass.stream, record=job.render_pass.record
+        )
+        color = values[0:3] + values[3:6] + values[6:9]
+        film.add_blocks(torch.cat([values, color]), block_pixel[a:b], cnt, slice(9, 12))
+        if on_chunk is not None:
+            on_chunk(n)
+    return film.n.numpy(), film.mean.numpy(), film.m2.numpy()
+
+
+def _tiles(counts: torch.Tensor, pieces: int) -> list[tuple[int, int]]:
+    """Split pixels ``[0, P)`` into about ``pieces`` ranges of similar sample counts."""
+    cum = torch.cumsum(counts, 0)
+    total = int(cum[-1]) if cum.numel() else 0
+    if pieces <= 1 or total == 0:
+        return [(0, counts.numel())]
+    targets = torch.linspace(0, total, pieces + 1, dtype=torch.float64)[1:-1].to(torch.int64)
+    cuts = sorted(set([0, *torch.searchsorted(cum, targets, right=True).tolist(), counts.numel()]))
+    return [(a, b) for a, b in zip(cuts[:-1], cuts[1:]) if b > a]
+
+
+_POOL: concurrent.futures.ProcessPoolExecutor | None = None
+_POOL_SIZE = 0
+
+
+def _shutdown_pool() -> None:
+    global _POOL
+    if _POOL is not None:
+        _POOL.shutdown(wait=True, cancel_futures=True)
+        _POOL = None
+
+
+atexit.register(_shutdown_pool)
+
+
+def _init_worker() -> None:
+    torch.set_num_threads(1)
+
+
+def _pool(workers: int) -> concurrent.futures.ProcessPoolExecutor:
+    """A persistent pool of ``workers`` processes (forkserver: safe next to torch's threads)."""
+    global _POOL, _POOL_SIZE
+    if _POOL is None or _POOL_SIZE != workers:
+        if _POOL is not None:
+            _POOL.shutdown()
+        ctx = multiprocessing.get_context("fork")
+        _POOL = concurrent.futures.ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker)
+        _POOL_SIZE = workers
+    return _POOL
+
+
+def _progress_bar(total: int, enabled: bool | None, desc: str) -> Any:
+    from tqdm.auto import tqdm
+
+    show = sys.stderr.isatty() if enabled is None else enabled
+    return tqdm(total=total, disable=not show, delay=1.0, unit="spp", unit_scale=True, desc=desc, leave=False)
+
+
+def _counts(spp: int | torch.Tensor, camera: Camera) -> torch.Tensor:
+    width, height = camera.resolution
+    if isinstance(spp, torch.Tensor):
+        if spp.dtype in (torch.bool,) or spp.is_floating_point() or spp.is_complex():
+            raise DTypeError(f"spp: expected an integer tensor, got {spp.dtype}")
+        if spp.device.type != "cpu":
+            raise DeviceError(f"spp: the renderer runs on the CPU; pass a CPU tensor (got {spp.device})")
+        if spp.dim() != 4 or spp.shape[1] != 1 or tuple(spp.shape[2:]) != (height, width):
+            raise ShapeError(f"spp: expected (B, 1, {height}, {width}) for this camera, got {tuple(spp.shape)}")
+        if spp.numel() and int(spp.min()) < 0:
+            raise RangeError(f"spp: expected counts >= 0, found {int(spp.min())}")
+        return spp.to(torch.int64)
+    check_int(spp, "spp", 1)
+    return torch.full((1, 1, height, width), spp, dtype=torch.int64)
+
+
+def render(
+    scene: Scene | str | os.PathLike[str],
+    spp: int | torch.Tensor = 1,
+    bounces: int = 1,
+    seed: int = 0,
+    *,
+    integrator: str = "path",
+    workers: int | None = None,
+    chunk_size: int = 1 << 15,
+    progress: bool | None = None,
+) -> GBuffer:
+    """Path-trace a scene into a :class:`~torchgi.GBuffer` (CPU, float32).
+
+    Args:
+        scene: a :class:`Scene`, a YAML path or a built-in name ("cornell", ...).
+        spp: samples per pixel, an int > 0; or a per-pixel ``(B, 1, H, W)`` int tensor >= 0
+            (adaptive sampling): then indirect light gets those samples and emission + direct
+            light one sample per pixel (DESIGN §3.3); B > 1 renders B independent images.
+        bounces: indirect bounces >= 0 (0 = direct light only; Mitsuba's ``max_depth`` is
+            ``bounces + 2``).
+        seed: in [0, 2^32); the same seed gives the same image, bit for bit.
+        integrator: "path" (fast: MIS, compaction, Russian roulette) or "basic" (readable).
+        workers: processes; None = all available cores for renders of >= 2^19 samples.
+        chunk_size: paths traced at once per worker (memory bound), >= 1024.
+        progress: a progress bar (shown after 1 s); None = only on a terminal.
+
+    Returns:
+        GBuffer with ``color = emission + direct + indirect``, ``emission``, ``direct``,
+        ``indirect`` ``(B,3,H,W)`` radiance; ``albedo``, ``normal`` (facing the camera),
+        ``position``, ``depth (B,1,H,W)`` and ``hit`` from a ray through each pixel centre
+        (0 on background); ``variance (B,3,H,W)``, the variance of the colour estimate (with a
+        per-pixel ``spp``: of the indirect estimate; 0 where fewer than 2 samples); ``spp``.
+
+    Example:
+        >>> from torchgi.render import scenes
+        >>> gb = render(scenes.cornell(resolution=16), spp=2, bounces=1)
+        >>> gb.color.shape, bool(gb.hit.any())
+        (torch.Size([1, 3, 16, 16]), True)
+    """
+    if not isinstance(scene, Scene):
+        scene = load_scene(scene)
+    check_int(bounces, "bounces", 0)
+    check_int(seed, "seed", 0)
+    if seed >= 1 << 32:
+        raise RangeError(f"seed: expected an int in [0, 2^32), got {seed}")
+    check_option(integrator, "integrator", tuple(INTEGRATORS))
+    check_int(chunk_size, "chunk_size", BLOCK)
+    if workers is not None:
+        check_int(workers, "workers", 1)
+    camera = scene.camera
+    width, height = camera.resolution
+    counts = _counts(spp, camera)
+    batch = counts.shape[0]
+    flat = counts.reshape(-1)
+    if isinstance(spp, torch.Tensor):
+        passes = [(_Pass(1, "direct"), torch.ones_like(flat))]
+        if bounces > 0:
+            passes.append((_Pass(2, "indirect"), flat))
+    else:
+        passes = [(_Pass(0, "all"), flat)]
+    arrays = scene.arrays()
+    total = sum(int(c.sum()) for _, c in passes)
+    if workers is None:
+        workers = (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
+        workers = workers if total >= _PARALLEL_MIN_SAMPLES else 1
+
+    rows = torch.zeros(12, flat.numel(), dtype=torch.float64)
+    variance = torch.zeros(3, flat.numel(), dtype=torch.float64)
+    with _progress_bar(total, progress, f"render {scene.name}") as bar:
+        for render_pass, pass_counts in passes:
+            tiles = _tiles(pass_counts, workers * _TILES_PER_WORKER if workers > 1 else 1)
+            jobs = [
+                _Job(arrays, camera, integrator, bounces, seed, render_pass, a, pass_counts[a:b].numpy(), chunk_size)
+                for a, b in tiles
+            ]
+            if workers > 1:
+                futures = [_pool(workers).submit(_run_tile, job) for job in jobs]
+                results = []
+                for job, future in zip(jobs, futures):
+                    results.append(future.result())
+                    bar.update(int(job.counts.sum()))
+            else:
+                results = [_run_tile(job, bar.update) for job in jobs]
+            for (a, b), (n, mean, m2) in zip(tiles, results):
+                n_t = torch.from_numpy(n)
+                rows[:9, a:b] += torch.from_numpy(mean[:9])
+                variance[:, a:b] = torch.where(
+                    n_t > 1, torch.from_numpy(m2) / (n_t * (n_t - 1)).clamp(min=1), 0.0
+                )
+    ctx = _context(arrays, camera, bounces, seed)
+    g = guides(ctx, torch.arange(width * height))
+
+    def image(x: torch.Tensor) -> torch.Tensor:  # (C, B*H*W) -> (B, C, H, W)
+        return x.reshape(x.shape[0], batch, height, width).permute(1, 0, 2, 3).contiguous()
+
+    def guide(x: torch.Tensor) -> torch.Tensor:  # (C, H*W), same for every image
+        return x.reshape(1, x.shape[0], height, width).expand(batch, -1, -1, -1).contiguous()
+
+    f32 = rows.to(torch.float32)
+    return GBuffer(
+        emission=image(f32[0:3]),
+        direct=image(f32[3:6]),
+        indirect=image(f32[6:9]),
+        albedo=guide(g["albedo"]),
+        normal=guide(g["normal"]),
+        position=guide(g["position"]),
+        depth=guide(g["depth"]),
+        hit=guide(g["hit"]),
+        variance=image(variance.to(torch.float32)),
+        spp=counts.clone(),
+    )

@@ -1,0 +1,104 @@
+"""What both integrators share: the render context, surface lookups, the guide pass, and the
+layout of the radiance rows and random-number dimensions."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import torch
+
+from torchgi.render.accel import Accel, offset
+from torchgi.render.camera import camera_rays
+from torchgi.render.lights import ALBEDO, ALPHA, EMISSION as EMISSION_ROWS, GLOSSY_ROW, NORMAL, Tables
+from torchgi.render.materials import dot
+from torchgi.render.scene import Camera
+
+__all__ = ["Context", "Surface", "surface", "guides", "emitted", "EMISSION", "DIRECT", "INDIRECT", "dims", "CAMERA_DIMS"]
+
+# Rows of an integrator's (9, N) output.
+EMISSION, DIRECT, INDIRECT = slice(0, 3), slice(3, 6), slice(6, 9)
+CAMERA_DIMS = [0, 1]
+_PER_VERTEX = 8
+
+
+def dims(depth: int) -> list[int]:
+    """Random-number dimensions of path vertex ``depth`` (1 = first hit): light choice, light
+    point (2), sky direction (2), BSDF (2), Russian roulette."""
+    base = 2 + _PER_VERTEX * (depth - 1)
+    return list(range(base, base + _PER_VERTEX))
+
+
+@dataclasses.dataclass
+class Context:
+    """Everything an integrator reads: the scene tables, its BVH, the camera and settings."""
+
+    tables: Tables
+    accel: Accel
+    camera: Camera
+    bounces: int
+    seed: int
+
+    @property
+    def pixels_per_image(self) -> int:
+        width, height = self.camera.resolution
+        return width * height
+
+
+@dataclasses.dataclass
+class Surface:
+    """A path vertex: position, normal flipped towards ``wi``, material data."""
+
+    position: torch.Tensor  # (3, N) on the surface
+    origin: torch.Tensor  # (3, N) pushed off along the normal, for rays that leave it
+    normal: torch.Tensor  # (3, N) facing wi
+    wi: torch.Tensor  # (3, N) towards the previous vertex
+    albedo: torch.Tensor  # (3, N)
+    alpha: torch.Tensor  # (N,)
+    glossy: torch.Tensor | None  # (N,) bool, None if the scene has no glossy material
+
+
+def surface(ctx: Context, position: torch.Tensor, direction: torch.Tensor, prim: torch.Tensor) -> Surface:
+    """Look up the vertex where rays along ``direction`` hit triangles ``prim`` (all hits)."""
+    rows = ctx.tables.tri.index_select(1, prim)
+    ng = rows[NORMAL]
+    wi = -direction
+    n = torch.where(dot(ng, wi) < 0, -ng, ng)
+    return Surface(
+        position=position,
+        origin=offset(position, n, ctx.tables.scale),
+        normal=n,
+        wi=wi,
+        albedo=rows[ALBEDO],
+        alpha=rows[ALPHA],
+        glossy=rows[GLOSSY_ROW] > 0 if ctx.tables.any_glossy else None,
+    )
+
+
+def emitted(ctx: Context, direction: torch.Tensor, prim: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Radiance ``(3, N)`` met along ``direction`` at triangles ``prim`` (-1 = miss): the
+    emission where the ray meets an emitter's front face, else 0; and the triangles'
+    ``Tables.tri`` rows (triangle 0's on misses)."""
+    hit = prim >= 0
+    rows = ctx.tables.tri.index_select(1, torch.where(hit, prim, 0))
+    front = (dot(rows[NORMAL], direction) < 0) & hit
+    return rows[EMISSION_ROWS] * front, rows
+
+
+def guides(ctx: Context, pixel: torch.Tensor) -> dict[str, torch.Tensor]:
+    """First-hit guides of rays through pixel centres ``pixel (N,)`` (index within one image).
+
+    Returns ``albedo, normal, position (3, N)``, ``depth (1, N)`` (distance along the ray, 0 on
+    a miss) and ``hit (1, N)``; the normal faces the camera, everything is 0 on a miss.
+    """
+    origin, direction = camera_rays(ctx.camera, pixel, None)
+    t, prim = ctx.accel.intersect(origin, direction)
+    hit = prim >= 0
+    t = torch.where(hit, t, 0.0)
+    s = surface(ctx, origin + direction * t, direction, prim.clamp(min=0))
+    return {
+        "albedo": s.albedo * hit,
+        "normal": s.normal * hit,
+        "position": s.position * hit,
+        "depth": t[None],
+        "hit": hit[None],
+    }
