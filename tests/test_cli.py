@@ -48,7 +48,7 @@ def test_metrics_command_errors(tmp_path, capsys):
 
 
 def test_demo_runs_end_to_end(tmp_path):
-    pytest.importorskip("mitsuba")
+    pytest.importorskip("embreex")
     pytest.importorskip("OpenEXR")
     out = subprocess.run(
         [sys.executable, "-m", "torchgi.cli", "demo", "--out", str(tmp_path), "--size", "24", "--ref-spp", "16"],

@@ -339,6 +339,17 @@ def test_no_bounce_rays_from_misses_and_no_absent_light_types(monkeypatch):
     assert count.occluded[0] <= bounce_rays
 
 
+@pytest.mark.parametrize("name, bounces", [("cornell_glossy", 1), ("sky", 0), ("sky", 2)])
+def test_skipping_unneeded_work_changes_no_pixel_beyond_noise(name, bounces):
+    scene = scenes.BUILTINS[name](24)
+    a = torch.cat([torchgi.render(scene, spp=16, bounces=bounces, seed=s).color for s in range(12)])
+    b = torch.cat([torchgi.render(scene, spp=16, bounces=bounces, seed=60 + s, skip_unneeded=False).color
+                   for s in range(12)])
+    assert z_pass_rate(a, b) >= 0.975
+    with pytest.raises(ValueError, match="last_vertex_rays"):
+        torchgi.render(scene, spp=1, skip_unneeded={"dead_rays"})
+
+
 # ------------------------------------------------------------------------------ bad input
 def write_scene(tmp_path, text, name="scene.yaml"):
     path = tmp_path / name

@@ -121,19 +121,18 @@ def _positive_int(text: str) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    """Render a Cornell box with Mitsuba 3 at low and high spp, round-trip the buffers through
+    """Path-trace the Cornell box at low and high spp, round-trip the buffers through
     multi-layer EXR, denoise with the guided filter and À-Trous and report the errors; writes
     a PNG sheet."""
     from torchgi.filters import atrous, guide_from_gbuffer, guided
     from torchgi.io import to_srgb8, write_png
-    from torchgi.render.mitsuba import cornell_box, render_gbuffer
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    scene = cornell_box(args.size)
-    noisy = render_gbuffer(scene, spp=args.spp, bounces=args.bounces, seed=1)
-    ref = render_gbuffer(scene, spp=args.ref_spp, bounces=args.bounces, seed=2)
+    scene = torchgi.scenes.cornell(args.size)
+    noisy = torchgi.render(scene, spp=args.spp, bounces=args.bounces, seed=1)
+    ref = torchgi.render(scene, spp=args.ref_spp, bounces=args.bounces, seed=2)
     t_render = time.perf_counter() - t0
     # The demo owns these file names inside its folder and rewrites them on every run.
     noisy.to_exr(out / "noisy.exr", overwrite=True)
@@ -150,7 +149,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
     denoised = torch.where(surface, filtered * noisy.albedo, shading) + noisy.emission
     t_filter = time.perf_counter() - t0
     t0 = time.perf_counter()
-    filtered = atrous(demod, noisy.normal, noisy.position, iterations=5)
+    # σ_position in scene units: a tenth of the scene's extent (the box is 559 mm deep).
+    extent = float((noisy.position.amax((0, 2, 3)) - noisy.position.amin((0, 2, 3))).max())
+    filtered = atrous(demod, noisy.normal, noisy.position, iterations=5, sigma_position=0.1 * extent)
     denoised_atrous = torch.where(surface, filtered * noisy.albedo, shading) + noisy.emission
     t_atrous = time.perf_counter() - t0
 
@@ -159,7 +160,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     sheet = torch.cat([noisy.color[0], denoised[0], denoised_atrous[0], ref.color[0], noisy.albedo[0],
                        noisy.normal[0].abs()], dim=2)
     write_png(out / "demo.png", to_srgb8(sheet), overwrite=True)
-    print(f"rendered {args.size}x{args.size} at {args.spp} and {args.ref_spp} spp in {t_render:.1f} s (Mitsuba 3); "
+    print(f"rendered {args.size}x{args.size} at {args.spp} and {args.ref_spp} spp in {t_render:.1f} s (torchgi); "
           f"guided filter (r={args.radius}, eps={args.eps}) {t_filter * 1e3:.1f} ms, "
           f"À-Trous (5 levels, 3 weights, eager) {t_atrous * 1e3:.1f} ms")
     print(f"{'method':10s} " + " ".join(f"{k:>9s}" for k in rows["noisy"]))
@@ -197,7 +198,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
     p.set_defaults(func=cmd_render)
 
-    p = sub.add_parser("demo", help="render, write/read EXR, denoise, measure (needs the exr and ref extras)")
+    p = sub.add_parser("demo", help="render, write/read EXR, denoise, measure (needs the render and exr extras)")
     p.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
     p.add_argument("--size", type=int, default=128)
     p.add_argument("--spp", type=int, default=1)

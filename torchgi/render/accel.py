@@ -49,7 +49,8 @@ class Accel:
         n = direction.shape[1]
         if n == 0:
             return torch.zeros(0), torch.zeros(0, dtype=torch.int64)
-        dists = None if tmax is None else np.ascontiguousarray(tmax.numpy(), dtype=np.float32)
+        # embreex writes the hit distances into ``dists``: hand it a copy, never the caller's tensor.
+        dists = None if tmax is None else np.array(tmax.numpy(), dtype=np.float32)
         out = self._scene.run(self._rows(origin, n), self._rows(direction, n), dists=dists, output=1)
         return torch.from_numpy(out["tfar"]), torch.from_numpy(out["primID"]).to(torch.int64)
 

@@ -15,7 +15,7 @@ import dataclasses
 import multiprocessing
 import os
 import sys
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Collection, Iterator
 from typing import Any
 
 import numpy as np
@@ -27,11 +27,11 @@ from torchgi.core.errors import DeviceError, DTypeError, RangeError, ShapeError
 from torchgi.render.accel import Accel
 from torchgi.render.film import BLOCK, Film
 from torchgi.render.integrators import basic, path
-from torchgi.render.integrators.common import Context, guides
+from torchgi.render.integrators.common import SKIPS, Context, guides
 from torchgi.render.lights import Tables
 from torchgi.render.scene import Camera, Scene, SceneArrays, load_scene
 
-__all__ = ["render", "INTEGRATORS"]
+__all__ = ["render", "INTEGRATORS", "SKIPS"]
 
 INTEGRATORS: dict[str, Callable[..., torch.Tensor]] = {"path": path.radiance, "basic": basic.radiance}
 _PARALLEL_MIN_SAMPLES = 1 << 19  # below this a pool costs more than it saves (unless asked)
@@ -52,6 +52,7 @@ class _Job:
     bounces: int
     seed: int
     render_pass: _Pass
+    skip: frozenset[str]
     first_pixel: int
     counts: np.ndarray  # (P,) int64 samples of pixels first_pixel ... first_pixel + P - 1
     chunk_size: int
@@ -60,13 +61,15 @@ class _Job:
 _CONTEXTS: dict[str, tuple[Tables, Accel]] = {}
 
 
-def _context(arrays: SceneArrays, camera: Camera, bounces: int, seed: int) -> Context:
+def _context(
+    arrays: SceneArrays, camera: Camera, bounces: int, seed: int, skip: frozenset[str] = frozenset(SKIPS)
+) -> Context:
     """A render context; the BVH of a scene is built once per process."""
     if arrays.key not in _CONTEXTS:
         _CONTEXTS.clear()
         _CONTEXTS[arrays.key] = (Tables.from_arrays(arrays), Accel(arrays.triangles))
     tables, accel = _CONTEXTS[arrays.key]
-    return Context(tables, accel, camera, bounces, seed)
+    return Context(tables, accel, camera, bounces, seed, skip)
 
 
 def _chunks(block_counts: torch.Tensor, chunk_size: int) -> Iterator[tuple[int, int]]:
@@ -83,7 +86,7 @@ def _chunks(block_counts: torch.Tensor, chunk_size: int) -> Iterator[tuple[int, 
 
 def _run_tile(job: _Job, on_chunk: Callable[[int], None] | None = None) -> tuple[np.ndarray, ...]:
     """Trace one tile; returns its film's ``n (P,)``, ``mean (12, P)``, ``m2 (3, P)``."""
-    ctx = _context(job.arrays, job.camera, job.bounces, job.seed)
+    ctx = _context(job.arrays, job.camera, job.bounces, job.seed, job.skip)
     radiance = INTEGRATORS[job.integrator]
     counts = torch.from_numpy(job.counts)
     film = Film(counts.numel(), rows=12)
@@ -185,6 +188,7 @@ def render(
     workers: int | None = None,
     chunk_size: int = 1 << 15,
     progress: bool | None = None,
+    skip_unneeded: bool | Collection[str] = True,
 ) -> GBuffer:
     """Path-trace a scene into a :class:`~torchgi.GBuffer` (CPU, float32).
 
@@ -200,6 +204,10 @@ def render(
         workers: processes; None = all available cores for renders of >= 2^19 samples.
         chunk_size: paths traced at once per worker (memory bound), >= 1024.
         progress: a progress bar (shown after 1 s); None = only on a terminal.
+        skip_unneeded: skip work the scene does not need (DESIGN §4): True = every skip,
+            False = none, or the names to keep from ``SKIPS`` ("absent_lights", "dead_paths",
+            "last_vertex_rays"). Skips change no pixel beyond noise; turning them off is for
+            benchmarks and tests.
 
     Returns:
         GBuffer with ``color = emission + direct + indirect``, ``emission``, ``direct``,
@@ -221,6 +229,12 @@ def render(
     if seed >= 1 << 32:
         raise RangeError(f"seed: expected an int in [0, 2^32), got {seed}")
     check_option(integrator, "integrator", tuple(INTEGRATORS))
+    if isinstance(skip_unneeded, bool):
+        skips = frozenset(SKIPS) if skip_unneeded else frozenset()
+    else:
+        skips = frozenset(skip_unneeded)
+        for name in skips:
+            check_option(name, "skip_unneeded", tuple(SKIPS))
     check_int(chunk_size, "chunk_size", BLOCK)
     if workers is not None:
         check_int(workers, "workers", 1)
@@ -247,7 +261,10 @@ def render(
         for render_pass, pass_counts in passes:
             tiles = _tiles(pass_counts, workers * _TILES_PER_WORKER if workers > 1 else 1)
             jobs = [
-                _Job(arrays, camera, integrator, bounces, seed, render_pass, a, pass_counts[a:b].numpy(), chunk_size)
+                _Job(
+                    arrays, camera, integrator, bounces, seed, render_pass, skips, a,
+                    pass_counts[a:b].numpy(), chunk_size,
+                )
                 for a, b in tiles
             ]
             if workers > 1:

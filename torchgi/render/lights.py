@@ -14,12 +14,14 @@ import torch
 from torchgi.render.materials import cosine_hemisphere, to_world
 from torchgi.render.scene import GLOSSY, SceneArrays
 
-__all__ = ["Tables", "sample_area_light", "sample_sky", "NORMAL", "ALBEDO", "EMISSION", "ALPHA", "GLOSSY_ROW", "LIGHT_PDF"]
+__all__ = ["Tables", "sample_area_light", "sample_sky", "NORMAL", "ALBEDO", "EMISSION", "ALPHA", "GLOSSY_ROW", "LIGHT_PDF", "EMITTER_ROWS"]
 
 
 # Rows of Tables.tri (per triangle) and Tables.light (per emissive triangle).
-NORMAL, ALBEDO, EMISSION = slice(0, 3), slice(3, 6), slice(6, 9)
-ALPHA, GLOSSY_ROW, LIGHT_PDF = 9, 10, 11
+# The rows an emitter lookup needs come first, so it can gather ``tri[:EMITTER_ROWS]`` only.
+NORMAL, EMISSION, LIGHT_PDF = slice(0, 3), slice(3, 6), 6
+EMITTER_ROWS = 7
+ALBEDO, ALPHA, GLOSSY_ROW = slice(7, 10), 10, 11
 V0, E1, E2 = slice(12, 15), slice(15, 18), slice(18, 21)
 
 
@@ -27,16 +29,16 @@ V0, E1, E2 = slice(12, 15), slice(15, 18), slice(18, 21)
 class Tables:
     """The scene as torch tables laid out for one gather per lookup.
 
-    ``tri (12, T)`` packs, per triangle, the unit face normal (rows 0-2), albedo (3-5),
-    emission (6-8), GGX alpha (9), 1.0 if glossy (10) and the area density of light sampling
-    (11, 0 off lights); ``light (21, L)`` holds those rows for the emissive triangles plus
+    ``tri (12, T)`` packs, per triangle, the unit face normal (rows 0-2), emission (3-5), the
+    area density of light sampling (6, 0 off lights), albedo (7-9), GGX alpha (10) and 1.0 if
+    glossy (11); ``light (21, L)`` holds those rows for the emissive triangles plus
     their first vertex and edges (12-20). ``table.index_select(1, idx)`` gives ``(rows, N)``.
     """
 
     tri: torch.Tensor
     any_glossy: bool
     light: torch.Tensor
-    light_cdf: torch.Tensor  # (L,) float64, last = 1
+    light_cdf: torch.Tensor  # (L,) float32, last = 1 (u < 1 - 2^-25 never passes it)
     light_tris: torch.Tensor  # (L,) triangle index of each light
     points: torch.Tensor  # (P, 3)
     intensities: torch.Tensor  # (P, 3)
@@ -56,11 +58,11 @@ class Tables:
         tri = torch.cat(
             [
                 t(a.normals).T,
-                t(a.albedo).T[:, mat],
                 t(a.emission).T[:, mat],
+                t(a.light_pdf)[None],
+                t(a.albedo).T[:, mat],
                 t(a.roughness)[mat][None],
                 glossy[mat][None],
-                t(a.light_pdf)[None],
             ]
         ).contiguous()
         light_tris = t(a.light_tris)
@@ -68,7 +70,7 @@ class Tables:
         light = torch.cat(
             [tri[:, light_tris], corners[:, 0].T, (corners[:, 1] - corners[:, 0]).T, (corners[:, 2] - corners[:, 0]).T]
         ).contiguous()
-        cdf = torch.cumsum(t(a.light_prob), 0)
+        cdf = torch.cumsum(t(a.light_prob), 0).to(torch.float32)
         if cdf.numel():
             cdf[-1] = 1.0
         return Tables(
@@ -90,7 +92,7 @@ def sample_area_light(tables: Tables, u: torch.Tensor) -> tuple[torch.Tensor, to
     Returns the point ``(3, N)`` and the chosen triangle's ``Tables.light`` rows ``(21, N)``
     (its normal, emission and area density ``LIGHT_PDF`` = probability / area).
     """
-    k = torch.searchsorted(tables.light_cdf, u[0].to(torch.float64), right=True).clamp_(max=tables.light_cdf.numel() - 1)
+    k = torch.searchsorted(tables.light_cdf, u[0], right=True).clamp_(max=tables.light_cdf.numel() - 1)
     rows = tables.light.index_select(1, k)
     su = torch.sqrt(u[1])
     b1 = su * (1.0 - u[2])

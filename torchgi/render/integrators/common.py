@@ -9,16 +9,23 @@ import torch
 
 from torchgi.render.accel import Accel, offset
 from torchgi.render.camera import camera_rays
-from torchgi.render.lights import ALBEDO, ALPHA, EMISSION as EMISSION_ROWS, GLOSSY_ROW, NORMAL, Tables
+from torchgi.render.lights import ALBEDO, ALPHA, EMISSION as EMISSION_ROWS, EMITTER_ROWS, GLOSSY_ROW, NORMAL, Tables
 from torchgi.render.materials import dot
 from torchgi.render.scene import Camera
 
-__all__ = ["Context", "Surface", "surface", "guides", "emitted", "EMISSION", "DIRECT", "INDIRECT", "dims", "CAMERA_DIMS"]
+__all__ = ["Context", "Surface", "surface", "guides", "emitted", "SKIPS", "EMISSION", "DIRECT", "INDIRECT", "dims", "CAMERA_DIMS"]
 
 # Rows of an integrator's (9, N) output.
 EMISSION, DIRECT, INDIRECT = slice(0, 3), slice(3, 6), slice(6, 9)
 CAMERA_DIMS = [0, 1]
 _PER_VERTEX = 8
+
+# Work the fast integrator leaves out when a scene does not need it (DESIGN §4):
+SKIPS = {
+    "absent_lights": "no sampling of light types the scene lacks",
+    "dead_paths": "no rays from paths that missed, died in Russian roulette or carry no throughput",
+    "last_vertex_rays": "no BSDF ray from a diffuse last vertex (so none at all at bounces=0)",
+}
 
 
 def dims(depth: int) -> list[int]:
@@ -37,6 +44,7 @@ class Context:
     camera: Camera
     bounces: int
     seed: int
+    skip: frozenset[str] = frozenset()  # which of SKIPS are on (DESIGN §4)
 
     @property
     def pixels_per_image(self) -> int:
@@ -77,9 +85,9 @@ def surface(ctx: Context, position: torch.Tensor, direction: torch.Tensor, prim:
 def emitted(ctx: Context, direction: torch.Tensor, prim: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Radiance ``(3, N)`` met along ``direction`` at triangles ``prim`` (-1 = miss): the
     emission where the ray meets an emitter's front face, else 0; and the triangles'
-    ``Tables.tri`` rows (triangle 0's on misses)."""
+    first ``EMITTER_ROWS`` rows of ``Tables.tri`` (triangle 0's on misses)."""
     hit = prim >= 0
-    rows = ctx.tables.tri.index_select(1, torch.where(hit, prim, 0))
+    rows = ctx.tables.tri[:EMITTER_ROWS].index_select(1, torch.where(hit, prim, 0))
     front = (dot(rows[NORMAL], direction) < 0) & hit
     return rows[EMISSION_ROWS] * front, rows
 

@@ -5,7 +5,8 @@ BSDF sampling by the power heuristic; every point light is sampled (no random ch
 last vertex (``depth = bounces + 1``) a diffuse surface takes its light samples with weight 1
 and traces no BSDF ray (nothing could use it); a glossy one keeps MIS. Russian roulette starts
 after the third bounce. Paths that miss or carry zero throughput are dropped, and light types
-the scene lacks are never sampled (DESIGN §4). Matches ``basic`` in expectation.
+the scene lacks are never sampled (DESIGN §4); each skip named in ``common.SKIPS`` can be
+turned off (``Context.skip``) to measure it. Matches ``basic`` in expectation.
 
 Speed notes (CPU): boolean-mask indexing and ``x[:, idx] += v`` are 5-10x slower in torch
 than ``index_select`` / ``index_add_``, so the active set is compacted once per vertex with
@@ -54,6 +55,9 @@ def radiance(
         ``(9, N)`` float32: emission, direct and indirect RGB rows.
     """
     tables = ctx.tables
+    skip_dead = "dead_paths" in ctx.skip
+    # Without the "absent_lights" skip, an absent sky is sampled anyway (at zero radiance).
+    sky = tables.sky if tables.sky is not None or "absent_lights" in ctx.skip else torch.zeros(3, 1)
     n_total = pixel.numel()
     out = torch.zeros(9, n_total)
     keys = sample_keys(ctx.seed, pixel, sample, stream)
@@ -64,14 +68,18 @@ def radiance(
         # ---- light seen directly: emitters' front faces and the sky
         if tables.has_area:
             out[EMISSION] += emitted(ctx, direction, prim)[0]
-        if tables.sky is not None:
-            out[EMISSION] += tables.sky * ~hit
+        if sky is not None:
+            out[EMISSION] += sky * ~hit
     bounces = 0 if record == "direct" else ctx.bounces
-    idx = hit.nonzero().squeeze(1)
-    keys, prim, t = keys.index_select(0, idx), prim.index_select(0, idx), t.index_select(0, idx)
-    direction = direction.index_select(1, idx)
+    if skip_dead:  # camera rays that missed go no further
+        idx = hit.nonzero().squeeze(1)
+        keys, prim, t = keys.index_select(0, idx), prim.index_select(0, idx), t.index_select(0, idx)
+        direction = direction.index_select(1, idx)
+        beta = torch.ones(3, idx.numel())
+    else:  # ... unless asked: they continue from a placeholder with zero throughput
+        idx, beta = torch.arange(n_total), torch.ones(3, n_total) * hit
+        prim, t = torch.where(hit, prim, 0), torch.where(hit, t, 1.0)
     position = origin + direction * t
-    beta = torch.ones(3, idx.numel())
     for depth in range(1, bounces + 2):
         if idx.numel() == 0:
             break
@@ -81,12 +89,14 @@ def radiance(
         s = surface(ctx, position, direction, prim)
         # MIS with BSDF sampling everywhere but at a diffuse last vertex.
         mis = None if not last else s.glossy
-        trace_on = not last or (mis is not None and (tables.has_area or tables.sky is not None))
-        need = _needed_dims(ctx, depth, trace_on, record_here)
+        if last and "last_vertex_rays" not in ctx.skip:  # MIS and a BSDF ray at every last vertex, as Mitsuba
+            mis = torch.ones(idx.numel(), dtype=torch.bool)
+        trace_on = not last or (mis is not None and (tables.has_area or sky is not None))
+        need = _needed_dims(ctx, depth, trace_on, record_here, sky is not None)
         u = dict(zip(need, uniform(keys, [dims(depth)[k] for k in need]))) if need else {}
         acc = torch.zeros(3, idx.numel())
         if record_here:
-            _next_event(ctx, acc, s, beta, u, mis, last)
+            _next_event(ctx, acc, s, beta, u, mis, last, sky)
         if not trace_on:
             out[rows].index_add_(1, idx, acc)
             break
@@ -100,7 +110,7 @@ def radiance(
             q = beta.amax(0).clamp(max=0.95)
             live &= u[7] < q
             beta = beta / torch.where(live, q, 1.0)
-        t, prim = ctx.accel.intersect(s.origin, wo, torch.where(live, math.inf, 0.0))
+        t, prim = ctx.accel.intersect(s.origin, wo, torch.where(live, math.inf, 0.0) if skip_dead else None)
         hit = (prim >= 0) & live
         if record_here:
             if tables.has_area:
@@ -109,26 +119,30 @@ def radiance(
                 t_hit = torch.where(hit, t, 0.0)  # t is +inf on misses
                 pdf_light = rows_l[LIGHT_PDF] * t_hit * t_hit / cos_l
                 acc += beta * e * _power(pdf, pdf_light)
-            if tables.sky is not None:
+            if sky is not None:
                 miss = live & (prim < 0)
                 pdf_sky = dot(s.normal, wo).clamp(min=0.0) * (1.0 / math.pi)
-                acc += beta * tables.sky * (_power(pdf, pdf_sky) * miss)
+                acc += beta * sky * (_power(pdf, pdf_sky) * miss)
         out[rows].index_add_(1, idx, acc)
         if last:
             break
-        keep = hit.nonzero().squeeze(1)
-        idx, keys, prim, t = idx.index_select(0, keep), keys.index_select(0, keep), prim.index_select(0, keep), t.index_select(0, keep)
-        beta, direction = beta.index_select(1, keep), wo.index_select(1, keep)
-        position = s.origin.index_select(1, keep) + direction * t
+        if skip_dead:  # paths that missed, died or lost all throughput go no further
+            keep = hit.nonzero().squeeze(1)
+            idx, keys, prim, t = (x.index_select(0, keep) for x in (idx, keys, prim, t))
+            beta, direction = beta.index_select(1, keep), wo.index_select(1, keep)
+            position = s.origin.index_select(1, keep) + direction * t
+        else:
+            beta, prim, t, direction = beta * hit, torch.where(hit, prim, 0), torch.where(hit, t, 1.0), wo
+            position = s.origin + direction * t
     return out
 
 
-def _needed_dims(ctx: Context, depth: int, trace_on: bool, record_here: bool) -> list[int]:
+def _needed_dims(ctx: Context, depth: int, trace_on: bool, record_here: bool, has_sky: bool) -> list[int]:
     """Which of a vertex's random dimensions (see ``common.dims``) this vertex uses."""
     need = []
     if record_here and ctx.tables.has_area:
         need += [0, 1, 2]
-    if record_here and ctx.tables.sky is not None:
+    if record_here and has_sky:
         need += [3, 4]
     if trace_on:
         need += [5, 6]
@@ -145,6 +159,7 @@ def _next_event(
     u: dict[int, torch.Tensor],
     mis: torch.Tensor | None,
     last: bool,
+    sky: torch.Tensor | None,
 ) -> None:
     """Add light sampled at vertices ``s`` to ``acc (3, N)``: emissive triangles, every point
     light, the sky. Weights: MIS (power heuristic) unless ``last``, where ``mis`` (None or a
@@ -181,9 +196,9 @@ def _next_event(
         value = beta * f_cos * tables.intensities[p].reshape(3, 1) / dist2
         tmax = torch.where(ok, dist2 * inv_dist * _SHADOW_END, 0.0)
         acc += value * ~ctx.accel.occluded(s.origin, wl, tmax)
-    if tables.sky is not None:
+    if sky is not None:
         wl, pdf_sky = sample_sky(s.normal, torch.stack([u[3], u[4]]))
         f_cos, pdf_bsdf = bsdf_eval(s.glossy, s.albedo, s.alpha, s.normal, s.wi, wl)
         ok = (pdf_sky > 0) & (f_cos.amax(0) > 0)
-        value = beta * f_cos * tables.sky * (weight(pdf_sky, pdf_bsdf) / pdf_sky.clamp(min=1e-20) * ok)
+        value = beta * f_cos * sky * (weight(pdf_sky, pdf_bsdf) / pdf_sky.clamp(min=1e-20) * ok)
         acc += value * ~ctx.accel.occluded(s.origin, wl, torch.where(ok, math.inf, 0.0))
