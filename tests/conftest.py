@@ -8,6 +8,7 @@ A requested device that is absent is skipped, never silently replaced.
 from __future__ import annotations
 
 import os
+import subprocess
 
 import pytest
 import torch
@@ -61,12 +62,20 @@ def _find_meshes() -> str | None:
     env = os.environ.get("TORCHGI_MESHES")
     if env:
         return env if os.path.isdir(env) else None
-    here = os.path.dirname(os.path.abspath(__file__))
-    for _ in range(4):
-        here = os.path.dirname(here)
-        candidate = os.path.join(here, "shared", "data", "meshes")
-        if os.path.isdir(candidate):
-            return candidate
+    roots = [os.path.dirname(os.path.abspath(__file__))]
+    try:  # a clone made from a local checkout: look beside that checkout too
+        origin = subprocess.run(["git", "config", "--get", "remote.origin.url"], capture_output=True, text=True,
+                                cwd=roots[0], timeout=10).stdout.strip()
+        if origin and os.path.isdir(origin):
+            roots.append(os.path.join(os.path.abspath(origin), "tests"))
+    except (OSError, subprocess.SubprocessError):
+        pass
+    for here in roots:
+        for _ in range(4):
+            here = os.path.dirname(here)
+            candidate = os.path.join(here, "shared", "data", "meshes")
+            if os.path.isdir(candidate):
+                return candidate
     return None
 
 

@@ -149,9 +149,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
     denoised = torch.where(surface, filtered * noisy.albedo, shading) + noisy.emission
     t_filter = time.perf_counter() - t0
     t0 = time.perf_counter()
-    # σ_position in scene units: a tenth of the scene's extent (the box is 559 mm deep).
+    # σ_position is in scene units squared: (a tenth of the scene's extent)², the box is 559 mm deep.
     extent = float((noisy.position.amax((0, 2, 3)) - noisy.position.amin((0, 2, 3))).max())
-    filtered = atrous(demod, noisy.normal, noisy.position, iterations=5, sigma_position=0.1 * extent)
+    filtered = atrous(demod, noisy.normal, noisy.position, iterations=5, sigma_position=(0.1 * extent) ** 2)
     denoised_atrous = torch.where(surface, filtered * noisy.albedo, shading) + noisy.emission
     t_atrous = time.perf_counter() - t0
 

@@ -1,0 +1,93 @@
+"""Filter and importance-map timings on one device (CUDA or CPU), beside the papers' GPU figures.
+
+    python scripts/bench_device.py --device cuda --out out/bench     # on a GPU machine
+    python scripts/bench_device.py --device cpu --quick               # smoke run
+
+Times (``torch.utils.benchmark`` medians, CUDA synchronised) the guided filter at 1024x768 with
+1/3/4-channel guides (paper: 16/71/80 ms on a GTX 285), À-Trous with 3 weights at 512² and
+1080p, 5 and 10 iterations (paper: 5.6 ms at 512²; 42.6/86.0 ms at 1080p), eager and fused,
+and importance map + allocation at 1024x768 with windows 2/4/10 (paper: 8.3/26.2/128.7 ms).
+Writes ``device_<name>.csv/json/md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from benchmark_utils import SIZES, markdown_table, metadata, time_ms, write_results  # noqa: E402
+
+from torchgi.filters import Guided, atrous  # noqa: E402
+from torchgi.sampling import allocate, importance_map  # noqa: E402
+
+PAPER = {
+    ("guided", 1): 16.0, ("guided", 3): 71.0, ("guided", 4): 80.0,
+    ("atrous", "512²", 5): 5.6, ("atrous", "1080p", 5): 42.6, ("atrous", "1080p", 10): 86.0,
+    ("importance", 2): 8.3, ("importance", 4): 26.2, ("importance", 10): 128.7,
+}
+
+
+def inputs(H: int, W: int, device: torch.device, seed: int = 0):
+    g = torch.Generator().manual_seed(seed)
+    color = torch.rand(1, 3, H, W, generator=g) * 2
+    normal = torch.nn.functional.normalize(torch.randn(1, 3, H, W, generator=g), dim=1)
+    position = torch.rand(1, 3, H, W, generator=g) * 5
+    return color.to(device), normal.to(device), position.to(device)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--out", default="out/bench")
+    ap.add_argument("--min-time", type=float, default=0.5)
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--no-fused", action="store_true", help="skip torch.compile'd À-Trous")
+    args = ap.parse_args()
+    device = torch.device(args.device)
+    rows: list[dict] = []
+
+    def timed(name: str, fn, **fields) -> None:
+        t = time_ms(fn, min_run_time=args.min_time, device=device.type)
+        row = {"what": name, **fields, "median_ms": t["median_ms"], "iqr_ms": t["iqr_ms"]}
+        rows.append(row)
+        print({k: (round(v, 3) if isinstance(v, float) else v) for k, v in row.items()}, flush=True)
+
+    H, W = SIZES["1024x768"]
+    color, normal, position = inputs(H, W, device)
+    for dim in (1, 3, 4):
+        guide = torch.cat([normal, position[:, :1]], 1)[:, :dim].contiguous()
+        module = Guided(radius=32, eps=0.01)
+        timed("guided r=32", lambda: module(color, guide), size="1024x768", param=f"dim {dim}",
+              paper_ms=PAPER["guided", dim])
+    sizes = ("512²",) if args.quick else ("512²", "1080p")
+    for size in sizes:
+        c, n, x = inputs(*SIZES[size], device)
+        for iterations in (5, 10):
+            for fused in (False,) if args.no_fused else (False, True):
+                timed(f"atrous 3 weights{' fused' if fused else ''}",
+                      lambda: atrous(c, n, x, iterations=iterations, fused=fused), size=size,
+                      param=f"{iterations} it", paper_ms=PAPER.get(("atrous", size, iterations)))
+    for window in (2, 4, 10):
+        def imp_alloc():
+            imp = importance_map(normal, position, window=window, sigma_normal=0.1, sigma_position=0.1)
+            return allocate(imp, 4 * H * W, min_samples=1)
+
+        timed("importance + allocate", imp_alloc, size="1024x768", param=f"window {window}",
+              paper_ms=PAPER["importance", window])
+    meta = metadata(torch.get_num_threads())
+    meta["device"] = torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu"
+    out = Path(args.out)
+    stem = f"device_{device.type}"
+    write_results(rows, meta, out, stem)
+    md = markdown_table(rows, ["what", "size", "param", "median_ms", "iqr_ms", "paper_ms"])
+    (out / f"{stem}.md").write_text(f"{meta['device']}, torch {meta['torch']}, commit {meta['commit']}\n\n{md}\n")
+    print(md)
+
+
+if __name__ == "__main__":
+    main()
