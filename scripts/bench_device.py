@@ -61,7 +61,7 @@ def main() -> None:
     color, normal, position = inputs(H, W, device)
     for dim in (1, 3, 4):
         guide = torch.cat([normal, position[:, :1]], 1)[:, :dim].contiguous()
-        module = Guided(radius=32, eps=0.01)
+        module = Guided(radius=32, eps=0.01).to(device)
         timed("guided r=32", lambda: module(color, guide), size="1024x768", param=f"dim {dim}",
               paper_ms=PAPER["guided", dim])
     sizes = ("512²",) if args.quick else ("512²", "1080p")
