@@ -255,8 +255,9 @@ def render(
         workers = (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
         workers = workers if total >= _PARALLEL_MIN_SAMPLES else 1
 
-    rows = torch.zeros(12, flat.numel(), dtype=torch.float64)
-    variance = torch.zeros(3, flat.numel(), dtype=torch.float64)
+    # Radiance rows 0-8 (emission, direct, indirect) and the colour variance 9-11, float32;
+    # each tile is merged as soon as it arrives, so only one tile's film is held here at a time.
+    rows = torch.zeros(12, flat.numel())
     with _progress_bar(total, progress, f"render {scene.name}") as bar:
         for render_pass, pass_counts in passes:
             tiles = _tiles(pass_counts, workers * _TILES_PER_WORKER if workers > 1 else 1)
@@ -268,21 +269,25 @@ def render(
                 for a, b in tiles
             ]
             if workers > 1:
-                futures = [_pool(workers).submit(_run_tile, job) for job in jobs]
-                results = []
-                for job, future in zip(jobs, futures):
-                    results.append(future.result())
-                    bar.update(int(job.counts.sum()))
+                futures = {_pool(workers).submit(_run_tile, job): tile for job, tile in zip(jobs, tiles)}
+                done = ((futures[f], f.result()) for f in concurrent.futures.as_completed(futures))
             else:
-                results = [_run_tile(job, bar.update) for job in jobs]
-            for (a, b), (n, mean, m2) in zip(tiles, results):
+                done = ((tile, _run_tile(job, bar.update)) for job, tile in zip(jobs, tiles))
+            for (a, b), (n, mean, m2) in done:
                 n_t = torch.from_numpy(n)
                 rows[:9, a:b] += torch.from_numpy(mean[:9])
-                variance[:, a:b] = torch.where(
-                    n_t > 1, torch.from_numpy(m2) / (n_t * (n_t - 1)).clamp(min=1), 0.0
-                )
+                rows[9:, a:b] = torch.where(n_t > 1, torch.from_numpy(m2) / (n_t * (n_t - 1)).clamp(min=1), 0.0)
+                if workers > 1:
+                    bar.update(int(pass_counts[a:b].sum()))
+    # Guides: one centre ray per pixel, in chunks (they are the same for every image of the batch).
     ctx = _context(arrays, camera, bounces, seed)
-    g = guides(ctx, torch.arange(width * height))
+    channels = {"albedo": 3, "normal": 3, "position": 3, "depth": 1, "hit": 1}
+    g = {k: torch.zeros(c, width * height, dtype=torch.bool if k == "hit" else torch.float32)
+         for k, c in channels.items()}
+    for start in range(0, width * height, chunk_size):
+        pixel = torch.arange(start, min(start + chunk_size, width * height))
+        for k, v in guides(ctx, pixel).items():
+            g[k][:, start : start + pixel.numel()] = v
 
     def image(x: torch.Tensor) -> torch.Tensor:  # (C, B*H*W) -> (B, C, H, W)
         return x.reshape(x.shape[0], batch, height, width).permute(1, 0, 2, 3).contiguous()
@@ -290,16 +295,15 @@ def render(
     def guide(x: torch.Tensor) -> torch.Tensor:  # (C, H*W), same for every image
         return x.reshape(1, x.shape[0], height, width).expand(batch, -1, -1, -1).contiguous()
 
-    f32 = rows.to(torch.float32)
     return GBuffer(
-        emission=image(f32[0:3]),
-        direct=image(f32[3:6]),
-        indirect=image(f32[6:9]),
+        emission=image(rows[0:3]),
+        direct=image(rows[3:6]),
+        indirect=image(rows[6:9]),
         albedo=guide(g["albedo"]),
         normal=guide(g["normal"]),
         position=guide(g["position"]),
         depth=guide(g["depth"]),
         hit=guide(g["hit"]),
-        variance=image(variance.to(torch.float32)),
+        variance=image(rows[9:12]),
         spp=counts.clone(),
     )
