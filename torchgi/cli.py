@@ -1,4 +1,4 @@
-"""The ``torchgi`` command line: ``info``, ``metrics``, ``render``, ``demo``."""
+"""The ``torchgi`` command line: ``info``, ``metrics``, ``render``, ``datagen``, ``demo``."""
 
 from __future__ import annotations
 
@@ -113,6 +113,19 @@ def cmd_render(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_datagen(args: argparse.Namespace) -> int:
+    """Run or resume a data-generation job."""
+    from torchgi.data import run_job
+
+    t0 = time.perf_counter()
+    summary = run_job(args.config, args.out, workers=args.workers, scheduler=args.scheduler,
+                      progress=None if args.progress else False)
+    print(f"datagen {args.config}: rendered {len(summary['rendered'])} task(s), skipped {len(summary['skipped'])} "
+          f"complete, regenerated {len(summary['regenerated'])}, in {time.perf_counter() - t0:.1f} s; "
+          f"index {'written' if summary['index_written'] else 'unchanged'}: {Path(args.out) / 'index.json'}")
+    return 0
+
+
 def _positive_int(text: str) -> int:
     value = int(text)
     if value <= 0:
@@ -198,6 +211,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
     p.set_defaults(func=cmd_render)
 
+    p = sub.add_parser("datagen", help="noisy/reference EXR shards for training (resumable; local or Dask)")
+    p.add_argument("config", help="data-generation YAML (configs/data_gen/*.yaml)")
+    p.add_argument("--out", required=True, help="output folder (a re-run resumes it)")
+    p.add_argument("--workers", type=_positive_int, default=1, help="local processes (default 1)")
+    p.add_argument("--scheduler", default=None, help="Dask scheduler address, e.g. tcp://host:8786")
+    p.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
+    p.set_defaults(func=cmd_datagen)
+
     p = sub.add_parser("demo", help="render, write/read EXR, denoise, measure (needs the render and exr extras)")
     p.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
     p.add_argument("--size", type=int, default=128)
@@ -215,7 +236,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except (TorchGIError, FileNotFoundError, FileExistsError) as exc:
+    except (TorchGIError, FileNotFoundError, FileExistsError, PermissionError) as exc:
         print(f"torchgi {args.command}: error: {exc}", file=sys.stderr)
         return 2
 
