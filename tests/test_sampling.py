@@ -129,3 +129,60 @@ def test_accumulate_is_a_per_pixel_sum():
     torch.testing.assert_close(accumulate(values, pixel, 9), want)
     with pytest.raises(ValueError, match="ascending"):
         accumulate(values, pixel.flip(0), 9)
+
+
+def test_importance_fused_matches_eager():
+    n, x, _ = geometry()
+    hit = torch.rand(n.shape[0], 1, *n.shape[2:], generator=torch.Generator().manual_seed(2)) > 0.2
+    eager = importance_map(n, x, window=3, hit=hit)
+    fused = importance_map(n, x, window=3, hit=hit, fused=True)
+    torch.testing.assert_close(fused, eager, rtol=1e-5, atol=1e-6)
+
+
+def test_renderer_traces_exactly_the_allocated_samples(monkeypatch):
+    # The renderer's sample-to-pixel map: every pixel's indirect samples are traced exactly
+    # counts[p] times with sample indices 0..counts[p]-1 (a chi-square statistic of 0).
+    pytest.importorskip("embreex")
+    import torchgi
+    from torchgi.render import engine
+
+    traced = []
+    real = engine.INTEGRATORS["path"]
+
+    def spy(ctx, pixel, sample, *, stream=0, record="all"):
+        if record == "indirect":
+            traced.append((pixel.clone(), sample.clone()))
+        return real(ctx, pixel, sample, stream=stream, record=record)
+
+    monkeypatch.setitem(engine.INTEGRATORS, "path", spy)
+    scene = torchgi.scenes.cornell(12)
+    g = torchgi.render.render_guides(scene)
+    imp = importance_map(g.normal, g.position, window=4, sigma_position=400.0, hit=g.hit)
+    counts = allocate(imp, 3 * int(g.hit.sum()), min_samples=1, mask=g.hit)
+    torchgi.render(scene, counts, bounces=1, workers=1, chunk_size=1024)
+    pixel = torch.cat([p for p, _ in traced])
+    sample = torch.cat([s for _, s in traced])
+    draws = torch.bincount(pixel, minlength=144).numpy()
+    expected = counts.flatten().numpy()
+    assert ((draws - expected) ** 2 / np.maximum(expected, 1)).sum() == 0
+    for p in range(144):
+        assert sorted(sample[pixel == p].tolist()) == list(range(int(expected[p])))
+
+
+def test_adaptive_render_spends_the_exact_budget():
+    pytest.importorskip("embreex")
+    import torchgi
+    from torchgi.sampling import adaptive_render
+
+    scene = torchgi.scenes.cornell_glossy(16)
+    for share in (0.0, 0.5):
+        gb, counts = adaptive_render(scene, rate=3.0, bounces=1, seed=1, variance_share=share)
+        hit = gb.hit
+        assert int(counts.sum()) == round(3.0 * int(hit.sum()))
+        assert int(counts[hit].min()) >= 1 and int(counts[~hit].sum()) == 0
+        assert torch.equal(gb.spp, counts)
+        assert bool(torch.isfinite(gb.indirect).all()) and float(gb.variance.min()) >= 0
+    with pytest.raises(RangeError, match="variance_share"):
+        adaptive_render(scene, rate=3.0, variance_share=1.0)
+    with pytest.raises(RangeError, match="rate"):
+        adaptive_render(scene, rate=0.0)

@@ -31,7 +31,7 @@ from torchgi.render.integrators.common import SKIPS, Context, guides
 from torchgi.render.lights import Tables
 from torchgi.render.scene import Camera, Scene, SceneArrays, load_scene
 
-__all__ = ["render", "INTEGRATORS", "SKIPS"]
+__all__ = ["render", "render_guides", "INTEGRATORS", "SKIPS"]
 
 INTEGRATORS: dict[str, Callable[..., torch.Tensor]] = {"path": path.radiance, "basic": basic.radiance}
 _PARALLEL_MIN_SAMPLES = 1 << 19  # below this a pool costs more than it saves (unless asked)
@@ -178,6 +178,34 @@ def _counts(spp: int | torch.Tensor, camera: Camera) -> torch.Tensor:
     return torch.full((1, 1, height, width), spp, dtype=torch.int64)
 
 
+def render_guides(scene: Scene | str | os.PathLike[str], *, chunk_size: int = 1 << 15) -> GBuffer:
+    """The noise-free guides alone: one ray through each pixel centre (no shading).
+
+    Returns a GBuffer (B = 1, CPU, float32) with ``albedo``, ``normal`` (facing the camera),
+    ``position``, ``depth (1,1,H,W)`` (distance along the ray) and ``hit``; 0 on background.
+    What adaptive sampling reads before it spends any sample.
+
+    Example:
+        >>> from torchgi.render import scenes
+        >>> g = render_guides(scenes.cornell(8))
+        >>> g.normal.shape, g.color is None
+        (torch.Size([1, 3, 8, 8]), True)
+    """
+    if not isinstance(scene, Scene):
+        scene = load_scene(scene)
+    check_int(chunk_size, "chunk_size", 1)
+    width, height = scene.camera.resolution
+    ctx = _context(scene.arrays(), scene.camera, 0, 0)
+    channels = {"albedo": 3, "normal": 3, "position": 3, "depth": 1, "hit": 1}
+    g = {k: torch.zeros(c, width * height, dtype=torch.bool if k == "hit" else torch.float32)
+         for k, c in channels.items()}
+    for start in range(0, width * height, chunk_size):
+        pixel = torch.arange(start, min(start + chunk_size, width * height))
+        for k, v in guides(ctx, pixel).items():
+            g[k][:, start : start + pixel.numel()] = v
+    return GBuffer(**{k: v.reshape(1, -1, height, width) for k, v in g.items()})
+
+
 def render(
     scene: Scene | str | os.PathLike[str],
     spp: int | torch.Tensor = 1,
@@ -279,31 +307,23 @@ def render(
                 rows[9:, a:b] = torch.where(n_t > 1, torch.from_numpy(m2) / (n_t * (n_t - 1)).clamp(min=1), 0.0)
                 if workers > 1:
                     bar.update(int(pass_counts[a:b].sum()))
-    # Guides: one centre ray per pixel, in chunks (they are the same for every image of the batch).
-    ctx = _context(arrays, camera, bounces, seed)
-    channels = {"albedo": 3, "normal": 3, "position": 3, "depth": 1, "hit": 1}
-    g = {k: torch.zeros(c, width * height, dtype=torch.bool if k == "hit" else torch.float32)
-         for k, c in channels.items()}
-    for start in range(0, width * height, chunk_size):
-        pixel = torch.arange(start, min(start + chunk_size, width * height))
-        for k, v in guides(ctx, pixel).items():
-            g[k][:, start : start + pixel.numel()] = v
+    g = render_guides(scene, chunk_size=chunk_size)
 
     def image(x: torch.Tensor) -> torch.Tensor:  # (C, B*H*W) -> (B, C, H, W)
         return x.reshape(x.shape[0], batch, height, width).permute(1, 0, 2, 3).contiguous()
 
-    def guide(x: torch.Tensor) -> torch.Tensor:  # (C, H*W), same for every image
-        return x.reshape(1, x.shape[0], height, width).expand(batch, -1, -1, -1).contiguous()
+    def guide(x: torch.Tensor) -> torch.Tensor:  # (1, C, H, W), the same for every image
+        return x.expand(batch, -1, -1, -1).contiguous()
 
     return GBuffer(
         emission=image(rows[0:3]),
         direct=image(rows[3:6]),
         indirect=image(rows[6:9]),
-        albedo=guide(g["albedo"]),
-        normal=guide(g["normal"]),
-        position=guide(g["position"]),
-        depth=guide(g["depth"]),
-        hit=guide(g["hit"]),
+        albedo=guide(g.albedo),
+        normal=guide(g.normal),
+        position=guide(g.position),
+        depth=guide(g.depth),
+        hit=guide(g.hit),
         variance=image(rows[9:12]),
         spp=counts.clone(),
     )

@@ -1,8 +1,12 @@
 """Adaptive sampling (Bauszat et al. 2011): importance from the filters' geometry weights and an
-exact apportionment of a fixed sample budget."""
+exact apportionment of a fixed sample budget, wired into the renderer (``adaptive_render``)."""
 
+from torchgi.sampling.adaptive import adaptive_counts, adaptive_render, pixel_footprint
 from torchgi.sampling.allocate import allocate, exclusive_scan
 from torchgi.sampling.batches import SampleBatch, accumulate, sample_batches
 from torchgi.sampling.importance import importance_map
 
-__all__ = ["importance_map", "allocate", "exclusive_scan", "sample_batches", "SampleBatch", "accumulate"]
+__all__ = [
+    "importance_map", "allocate", "exclusive_scan", "sample_batches", "SampleBatch", "accumulate",
+    "adaptive_counts", "adaptive_render", "pixel_footprint",
+]

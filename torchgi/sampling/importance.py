@@ -33,6 +33,7 @@ def importance_map(
     sigma_normal: float = 0.1,
     sigma_position: float = 0.1,
     hit: torch.Tensor | None = None,
+    fused: bool = False,
 ) -> torch.Tensor:
     """Per-pixel sampling importance ``q_p in [0, 1]`` from normal and position discontinuities.
 
@@ -42,6 +43,8 @@ def importance_map(
         window: window size ``w`` in 2..10 (offsets ``-(w//2) .. (w-1)//2`` in x and y).
         sigma_normal, sigma_position: σ_n (normal distance squared), σ_x (scene units squared).
         hit: ``(B, 1, H, W)`` bool; background pixels get importance 0 and are no neighbours.
+        fused: run the taps through ``torch.compile`` (one loop over pixels: about 10x faster
+            at 1024x768 on 2 cores; the first call compiles, about 8 s).
 
     Returns:
         ``(B, 1, H, W)`` importance in [0, 1], dtype of the inputs (float16/bfloat16 computed in
@@ -75,6 +78,12 @@ def importance_map(
     # one feature vector per pixel: G_n · G_x = exp(-|f_p - f_q|²)
     f = torch.cat([n / sigma_normal**0.5, x / sigma_position**0.5], 1)
     valid = torch.ones_like(n[:, :1]) if hit is None else hit.to(ct)
+    core = _compiled_core() if fused else _core
+    return core(f, valid, window).to(normal.dtype)
+
+
+def _core(f: torch.Tensor, valid: torch.Tensor, window: int) -> torch.Tensor:
+    """``1 - mean over the window of exp(-|f_p - f_q|²)`` over valid taps, 0 off ``valid``."""
     lo, hi = -(window // 2), (window - 1) // 2
     pad = max(-lo, hi)
     pf, pv = Padded(f, pad), Padded(valid, pad)
@@ -85,5 +94,16 @@ def importance_map(
             v = pv.at(oy, ox)
             total = total + v * torch.exp(-(f - pf.at(oy, ox)).square().sum(1, keepdim=True))
             count = count + v
-    q = (1 - total / count.clamp_min(1)).clamp(0, 1) * valid
-    return q.to(normal.dtype)
+    return (1 - total / count.clamp_min(1)).clamp(0, 1) * valid
+
+
+_fused_core = None
+
+
+def _compiled_core():
+    """``torch.compile(_core, dynamic=False)`` built on first use: one specialised loop over pixels per
+    (size, window); static shapes ran 3x faster than ``dynamic=True`` here."""
+    global _fused_core
+    if _fused_core is None:
+        _fused_core = torch.compile(_core, dynamic=False)
+    return _fused_core
