@@ -156,23 +156,26 @@ def main() -> None:
     ap.add_argument("--k", type=float, nargs="+", default=[2.0], help="σ_x = (k · footprint)², first one plotted")
     ap.add_argument("--min-time", type=float, default=1.0)
     ap.add_argument("--no-timing", action="store_true")
+    ap.add_argument("--timing-only", action="store_true", help="only the importance + allocation table")
     args = ap.parse_args()
     rows: list[dict] = []
     images: dict = {}
-    quality(args, rows, images)
+    if not args.timing_only:
+        quality(args, rows, images)
     timing_rows: list[dict] = []
     if not args.no_timing:
         timing(args, timing_rows)
     meta = metadata(torch.get_num_threads())
     out = Path(args.out)
-    write_results(rows, meta, out, "adaptive")
+    if rows:
+        write_results(rows, meta, out, "adaptive")
     write_results(timing_rows, meta, out, "adaptive_timing")
     md = markdown_table([r for r in rows if r["filter"] != "none" or r["sampling"] == "uniform"],
                         ["scene", "k", "sampling", "filter", "indirect_spp", "mse", "relmse", "mse_over_uniform"])
     if timing_rows:
         md += "\n\n" + markdown_table(timing_rows, ["size", "window", "fused", "importance_plus_allocate_ms",
                                                     "allocate_ms", "paper_ms"])
-    (out / "adaptive.md").write_text(md + "\n")
+    (out / ("adaptive_timing.md" if args.timing_only else "adaptive.md")).write_text(md + "\n")
     if images:
         plot(images, out / "adaptive.png")
     print(md)
