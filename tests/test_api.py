@@ -7,7 +7,10 @@ import pytest
 import torchgi
 
 PUBLIC = {
-    "torchgi": ["GBuffer", "__version__"],
+    "torchgi": ["GBuffer", "Denoiser", "render", "load_scene", "scenes", "__version__"],
+    "torchgi.render": ["render", "render_guides", "load_scene", "scenes", "Scene", "Camera", "Material", "Mesh",
+                       "PointLight", "Sky"],
+    "torchgi.data": ["run_job", "load_config", "ShardDataset", "FilterFeatures"],
     "torchgi.core": [
         "check_shape", "check_same_device", "check_finite", "check_floating", "check_range",
         "check_option", "require", "Registry", "TorchGIError", "ShapeError", "DeviceError",
@@ -17,7 +20,7 @@ PUBLIC = {
     "torchgi.metrics": ["mse", "relmse", "psnr", "ssim", "flip", "tonemap"],
     "torchgi.filters": ["atrous", "ATrous", "guided", "Guided", "box", "Box", "cross_bilateral", "CrossBilateral",
                         "guide_from_gbuffer"],
-    "torchgi.sampling": ["importance_map", "allocate", "exclusive_scan"],
+    "torchgi.sampling": ["importance_map", "allocate", "exclusive_scan", "adaptive_render", "adaptive_counts"],
     "torchgi.export": ["export_onnx", "OrtSession"],
     "torchgi.cli": ["main"],
 }

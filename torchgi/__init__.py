@@ -1,14 +1,15 @@
 """torchgi: fast, accurate denoising of Monte Carlo path-traced images in PyTorch.
 
-The top level stays tiny: ``GBuffer``, ``render`` (a callable package: ``torchgi.render(scene,
+The top level stays tiny: ``GBuffer``, ``Denoiser``, ``render`` (a callable package: ``torchgi.render(scene,
 spp, bounces, seed)``), ``load_scene`` and ``scenes``; everything else lives in subpackages
 (``torchgi.core``, ``torchgi.io``, ``torchgi.metrics``, ``torchgi.filters``, ``torchgi.sampling``).
 """
 
 from torchgi import render
 from torchgi.buffers import GBuffer
+from torchgi.denoise import Denoiser
 from torchgi.render import load_scene, scenes
 
 __version__ = "0.1.0"
 
-__all__ = ["GBuffer", "render", "load_scene", "scenes", "__version__"]
+__all__ = ["GBuffer", "Denoiser", "render", "load_scene", "scenes", "__version__"]

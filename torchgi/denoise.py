@@ -1,0 +1,181 @@
+"""``torchgi.Denoiser``: what users call (DESIGN §2), in Intel Open Image Denoise's vocabulary.
+
+With the renderer's split (``emission``, ``direct``, ``indirect``) it follows the papers: the
+indirect light is demodulated by albedo, filtered with the geometry-aware filter chosen by
+``method`` and remodulated; emission is added back untouched (DESIGN §4: no filtering of buffers
+that carry no noise), and direct light is filtered along with it (``filter_direct=True``, for
+area lights and skies at low spp) or kept as sampled (``False``, the papers' setting). With only ``color`` (plus an optional ``emission``)
+and guides - a Mitsuba or Blender render, say - it filters ``color - emission`` the same way
+(without ``emission``, visible light sources are filtered too and bleed into their surroundings).
+Background pixels (``hit`` False, or albedo 0 when ``hit`` is absent) are passed through.
+
+Parameters that depend on the noise level are chosen from ``spp`` by default: the guided
+filter's radius and À-Trous' iteration count grow as the samples shrink; ``quality`` scales them.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from typing import Any
+
+import torch
+
+from torchgi.buffers import GBuffer
+from torchgi.core.check import check_option
+from torchgi.core.errors import ShapeError
+from torchgi.core.registry import Registry
+
+__all__ = ["Denoiser", "DENOISERS", "METHODS", "QUALITIES"]
+
+METHODS = ("guided", "atrous", "bilateral", "none")
+QUALITIES = ("fast", "balanced", "high")
+_QUALITY_SCALE = {"fast": 0.5, "balanced": 1.0, "high": 1.5}
+_INPUTS = ("color", "albedo", "normal", "position", "depth", "emission", "direct", "indirect", "variance", "spp",
+           "hit")
+
+
+class Denoiser(torch.nn.Module):
+    """Denoise a path-traced image from its noise-free guides.
+
+    Args:
+        method: "guided" (Bauszat et al. 2011), "atrous" (Dammertz et al. 2010), "bilateral"
+            (brute-force cross-bilateral) or "none" (the noisy image, assembled).
+        quality: "fast", "balanced" or "high" (radius / iterations / window scale).
+        hdr: the colour is HDR (True) or in [0, 1] (False: the output is clamped to [0, 1]).
+        input_scale: multiplies the demodulated signal before colour-weighted filtering (À-Trous,
+            bilateral) and divides it after; None = 1 / its mean on geometry.
+        filter_direct: with a direct/indirect split, filter direct light too (True: it is noisy,
+            as with area lights and skies at low spp) or keep it as sampled (False: the papers'
+            setting, noise-free direct light).
+        **filter_params: override the automatic choices: ``radius``, ``eps`` (guided);
+            ``iterations``, ``sigma_normal``, ``sigma_position``, ``sigma_color`` (À-Trous);
+            ``radius``, ``sigma_space``, ``sigma_color`` (bilateral).
+
+    Call with a :class:`~torchgi.GBuffer` or with named ``(B, C, H, W)`` tensors: ``color``
+    (or ``direct`` + ``indirect``), ``albedo``, ``normal`` (world space, [-1, 1]), and when
+    available ``position``, ``depth``, ``emission``, ``variance``, ``spp``, ``hit``. Returns the
+    ``(B, 3, H, W)`` denoised radiance in the input dtype, on the input device.
+
+    Example:
+        >>> from torchgi.render import render, scenes
+        >>> gb = render(scenes.cornell(24), spp=1, bounces=1)
+        >>> Denoiser("guided")(gb).shape
+        torch.Size([1, 3, 24, 24])
+    """
+
+    def __init__(
+        self,
+        method: str = "guided",
+        quality: str = "balanced",
+        *,
+        hdr: bool = True,
+        input_scale: float | None = None,
+        filter_direct: bool = True,
+        **filter_params: Any,
+    ) -> None:
+        super().__init__()
+        check_option(method, "method", METHODS)
+        check_option(quality, "quality", QUALITIES)
+        known = {"guided": ("radius", "eps"), "atrous": ("iterations", "sigma_normal", "sigma_position",
+                                                          "sigma_color"),
+                 "bilateral": ("radius", "sigma_space", "sigma_color"), "none": ()}[method]
+        for key in filter_params:
+            check_option(key, f"filter parameter for method={method!r}", known)
+        if input_scale is not None and not input_scale > 0:
+            raise ValueError(f"input_scale: expected > 0 or None, got {input_scale!r}")
+        self.method, self.quality, self.hdr, self.input_scale = method, quality, hdr, input_scale
+        self.filter_direct = filter_direct
+        self.filter_params = dict(filter_params)
+
+    @classmethod
+    def from_config(cls, config: Mapping[str, Any] | str) -> Denoiser:
+        """Build from ``{type: method, quality: ..., ...}`` or a preset YAML path
+        (``configs/denoise/*.yaml``) through :data:`DENOISERS`."""
+        if isinstance(config, str):
+            import yaml
+
+            with open(config, encoding="utf-8") as fh:
+                config = yaml.safe_load(fh)
+        return DENOISERS.build(config)
+
+    def extra_repr(self) -> str:
+        params = "".join(f", {k}={v!r}" for k, v in self.filter_params.items())
+        return (f"method={self.method!r}, quality={self.quality!r}, hdr={self.hdr}, input_scale={self.input_scale}, "
+                f"filter_direct={self.filter_direct}{params}")
+
+    # ------------------------------------------------------------------------------ call
+    def forward(self, gb: GBuffer | None = None, **tensors: torch.Tensor) -> torch.Tensor:
+        if gb is not None and tensors:
+            raise ValueError("pass a GBuffer or named tensors, not both")
+        if gb is None:
+            unknown = sorted(set(tensors) - set(_INPUTS))
+            if unknown:
+                raise ValueError(f"unknown input(s) {', '.join(unknown)}; known: {', '.join(_INPUTS)}")
+            if "color" not in tensors and not ("direct" in tensors and "indirect" in tensors):
+                raise ShapeError("color: required (or direct and indirect)")
+            gb = GBuffer(**tensors)  # validates shapes, devices, dtypes
+        return self._denoise(gb)
+
+    def _denoise(self, gb: GBuffer) -> torch.Tensor:
+        if gb.color is None:
+            raise ShapeError("color: required (or direct and indirect)")
+        color = gb.color
+        if self.method == "none":
+            return color
+        zero = torch.zeros((), dtype=color.dtype, device=color.device)
+        emission = gb.emission if gb.emission is not None else torch.zeros_like(color)
+        if gb.indirect is not None and gb.direct is not None and not self.filter_direct:
+            noisy, keep = gb.indirect, gb.direct + emission  # the papers' split: direct is noise-free
+        elif gb.indirect is not None and gb.direct is not None:
+            noisy, keep = gb.indirect + gb.direct, emission
+        else:
+            noisy, keep = color - emission, emission
+        if gb.albedo is None or gb.normal is None:
+            raise ShapeError("albedo and normal: required by every method but 'none'")
+        surface = gb.hit if gb.hit is not None else gb.albedo.amax(1, keepdim=True) > 0
+        albedo = gb.albedo.clamp_min(1e-3)
+        demod = torch.where(surface, noisy / albedo, zero)
+        filtered = self._filter(demod, gb, surface)
+        out = torch.where(surface, filtered * albedo, noisy) + keep
+        return out if self.hdr else out.clamp(0, 1)
+
+    def _spp(self, gb: GBuffer) -> float:
+        if gb.spp is None:
+            return 1.0
+        return max(float(gb.spp.float().mean()), 1.0)
+
+    def _filter(self, x: torch.Tensor, gb: GBuffer, surface: torch.Tensor) -> torch.Tensor:
+        from torchgi.filters import atrous, cross_bilateral, guide_from_gbuffer, guided
+
+        p = self.filter_params
+        q = _QUALITY_SCALE[self.quality]
+        spp = self._spp(gb)
+        if self.method == "guided":
+            radius = p.get("radius", max(2, round(q * 8 / math.sqrt(spp))))
+            return guided(x, guide_from_gbuffer(gb), radius=radius, eps=p.get("eps", 1e-3))
+        scale = self.input_scale
+        if scale is None:
+            mean = float(x[surface.expand_as(x)].mean()) if bool(surface.any()) else 0.0
+            scale = 1.0 / mean if mean > 0 else 1.0
+        if self.method == "atrous":
+            iterations = p.get("iterations", max(2, min(8, round(math.log2(16 * q / math.sqrt(spp)) + 2))))
+            sigma_x = p.get("sigma_position")
+            if sigma_x is None and gb.position is not None:
+                from torchgi.sampling.adaptive import pixel_footprint
+
+                sigma_x = (4 * pixel_footprint(gb.position, surface)) ** 2
+            out = atrous(x * scale, gb.normal, gb.position, iterations=iterations,
+                         sigma_normal=p.get("sigma_normal", 0.1), sigma_position=sigma_x,
+                         sigma_color=p.get("sigma_color"))
+            return out / scale
+        radius = p.get("radius", max(2, round(q * 6 / math.sqrt(spp))))
+        guides = [gb.normal] + ([gb.depth / gb.depth.amax().clamp_min(1e-12)] if gb.depth is not None else [])
+        out = cross_bilateral(x * scale, guides, radius=radius, sigma_space=p.get("sigma_space", radius / 2),
+                              sigma_color=p.get("sigma_color", 2.0), sigma_guides=[0.2] * len(guides))
+        return out / scale
+
+
+DENOISERS: Registry[Denoiser] = Registry("denoiser")
+for _method in METHODS:
+    DENOISERS.register(_method)(lambda _m=_method, **kw: Denoiser(_m, **kw))
