@@ -1,4 +1,4 @@
-"""The ``torchgi`` command line: ``info``, ``metrics``, ``render``, ``datagen``, ``demo``."""
+"""The ``torchgi`` command line: ``info``, ``metrics``, ``render``, ``denoise``, ``datagen``, ``demo``."""
 
 from __future__ import annotations
 
@@ -113,6 +113,21 @@ def cmd_render(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_denoise(args: argparse.Namespace) -> int:
+    """Denoise the colour of a multi-layer EXR (torchgi, Blender/Cycles, Mitsuba or Arnold names)."""
+    from torchgi.denoise import Denoiser
+    from torchgi.io import write_exr
+
+    gb = torchgi.GBuffer.from_exr(args.input, required=("color", "albedo", "normal"), sanitize=args.sanitize)
+    params = {} if args.radius is None else {"radius": args.radius}
+    t0 = time.perf_counter()
+    out = Denoiser(args.method, args.quality, **params)(gb)
+    seconds = time.perf_counter() - t0
+    path = write_exr(args.out, {"color": out[0]}, overwrite=args.overwrite)
+    print(f"denoised {args.input} ({gb.shape[2]}x{gb.shape[1]}) with {args.method} in {seconds * 1e3:.1f} ms; wrote {path}")
+    return 0
+
+
 def cmd_datagen(args: argparse.Namespace) -> int:
     """Run or resume a data-generation job."""
     from torchgi.data import run_job
@@ -135,52 +150,43 @@ def _positive_int(text: str) -> int:
 
 def cmd_demo(args: argparse.Namespace) -> int:
     """Path-trace the Cornell box at low and high spp, round-trip the buffers through
-    multi-layer EXR, denoise with the guided filter and À-Trous and report the errors; writes
-    a PNG sheet."""
-    from torchgi.filters import atrous, guide_from_gbuffer, guided
+    multi-layer EXR, denoise with every method of the Denoiser and report the errors; writes
+    a PNG contact sheet."""
+    from torchgi.denoise import Denoiser
     from torchgi.io import to_srgb8, write_png
 
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    out_dir = Path(args.out)
+    out_dir.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     scene = torchgi.scenes.cornell(args.size)
     noisy = torchgi.render(scene, spp=args.spp, bounces=args.bounces, seed=1)
     ref = torchgi.render(scene, spp=args.ref_spp, bounces=args.bounces, seed=2)
     t_render = time.perf_counter() - t0
     # The demo owns these file names inside its folder and rewrites them on every run.
-    noisy.to_exr(out / "noisy.exr", overwrite=True)
-    ref.to_exr(out / "reference.exr", overwrite=True)
-    noisy = torchgi.GBuffer.from_exr(out / "noisy.exr", required=("color", "emission", "albedo", "normal", "depth"))
-    ref = torchgi.GBuffer.from_exr(out / "reference.exr")
+    noisy.to_exr(out_dir / "noisy.exr", overwrite=True)
+    ref.to_exr(out_dir / "reference.exr", overwrite=True)
+    noisy = torchgi.GBuffer.from_exr(out_dir / "noisy.exr", required=("color", "emission", "albedo", "normal", "depth"))
+    ref = torchgi.GBuffer.from_exr(out_dir / "reference.exr")
 
-    # Split off emission, demodulate by albedo where it is non-zero, filter, remodulate.
-    t0 = time.perf_counter()
-    surface = noisy.albedo > 1e-3
-    shading = noisy.color - noisy.emission
-    demod = torch.where(surface, shading / noisy.albedo.clamp_min(1e-3), torch.zeros(()))
-    filtered = guided(demod, guide_from_gbuffer(noisy), radius=args.radius, eps=args.eps)
-    denoised = torch.where(surface, filtered * noisy.albedo, shading) + noisy.emission
-    t_filter = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    # σ_position is in scene units squared: (a tenth of the scene's extent)², the box is 559 mm deep.
-    extent = float((noisy.position.amax((0, 2, 3)) - noisy.position.amin((0, 2, 3))).max())
-    filtered = atrous(demod, noisy.normal, noisy.position, iterations=5, sigma_position=(0.1 * extent) ** 2)
-    denoised_atrous = torch.where(surface, filtered * noisy.albedo, shading) + noisy.emission
-    t_atrous = time.perf_counter() - t0
-
-    rows = {"noisy": image_metrics(noisy.color, ref.color), "guided": image_metrics(denoised, ref.color),
-            "atrous": image_metrics(denoised_atrous, ref.color)}
-    sheet = torch.cat([noisy.color[0], denoised[0], denoised_atrous[0], ref.color[0], noisy.albedo[0],
-                       noisy.normal[0].abs()], dim=2)
-    write_png(out / "demo.png", to_srgb8(sheet), overwrite=True)
+    # Every method of the Denoiser: emission split off, demodulated, filtered, remodulated.
+    rows = {"noisy": image_metrics(noisy.color, ref.color)}
+    images, times = [noisy.color[0]], {}
+    for method in ("guided", "atrous", "bilateral"):
+        params = {"radius": args.radius, "eps": args.eps} if method == "guided" else {}
+        t0 = time.perf_counter()
+        out = Denoiser(method, **params)(noisy)
+        times[method] = (time.perf_counter() - t0) * 1e3
+        rows[method] = image_metrics(out, ref.color)
+        images.append(out[0])
+    sheet = torch.cat(images + [ref.color[0], noisy.albedo[0], noisy.normal[0].abs()], dim=2)
+    write_png(out_dir / "demo.png", to_srgb8(sheet), overwrite=True)
     print(f"rendered {args.size}x{args.size} at {args.spp} and {args.ref_spp} spp in {t_render:.1f} s (torchgi); "
-          f"guided filter (r={args.radius}, eps={args.eps}) {t_filter * 1e3:.1f} ms, "
-          f"À-Trous (5 levels, 3 weights, eager) {t_atrous * 1e3:.1f} ms")
+          + ", ".join(f"{m} {ms:.1f} ms" for m, ms in times.items()))
     print(f"{'method':10s} " + " ".join(f"{k:>9s}" for k in rows["noisy"]))
     for name, row in rows.items():
         print(f"{name:10s} " + " ".join(f"{v:9.4g}" for v in row.values()))
-    print(f"wrote {out / 'noisy.exr'}, {out / 'reference.exr'}, {out / 'demo.png'} "
-          "(noisy | guided | À-Trous | reference | albedo | |normal|)")
+    print(f"wrote {out_dir / 'noisy.exr'}, {out_dir / 'reference.exr'}, {out_dir / 'demo.png'} "
+          "(noisy | guided | À-Trous | bilateral | reference | albedo | |normal|)")
     return 0
 
 
@@ -210,6 +216,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true")
     p.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
     p.set_defaults(func=cmd_render)
+
+    p = sub.add_parser("denoise", help="denoise an EXR with AOVs (colour, albedo, normal; position/depth/emission used)")
+    p.add_argument("input", help="multi-layer EXR: torchgi, Blender/Cycles, Mitsuba 3 or Arnold layer names")
+    p.add_argument("--method", choices=["guided", "atrous", "bilateral", "none"], default="guided")
+    p.add_argument("--quality", choices=["fast", "balanced", "high"], default="balanced")
+    p.add_argument("--radius", type=_positive_int, default=None, help="filter radius (default: from spp)")
+    p.add_argument("--out", required=True, help="output EXR (layer 'color'; never overwritten unless --overwrite)")
+    p.add_argument("--overwrite", action="store_true")
+    p.add_argument("--sanitize", action="store_true", help="replace NaN/Inf in the input by 0 (with a warning)")
+    p.set_defaults(func=cmd_denoise)
 
     p = sub.add_parser("datagen", help="noisy/reference EXR shards for training (resumable; local or Dask)")
     p.add_argument("config", help="data-generation YAML (configs/data_gen/*.yaml)")

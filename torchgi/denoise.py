@@ -6,7 +6,8 @@ indirect light is demodulated by albedo, filtered with the geometry-aware filter
 that carry no noise), and direct light is filtered along with it (``filter_direct=True``, for
 area lights and skies at low spp) or kept as sampled (``False``, the papers' setting). With only ``color`` (plus an optional ``emission``)
 and guides - a Mitsuba or Blender render, say - it filters ``color - emission`` the same way
-(without ``emission``, visible light sources are filtered too and bleed into their surroundings).
+(without ``emission``, pixels brighter than 8x the median - visible light sources, the worst
+fireflies - are passed through and enter the filter as the median, so they do not bleed).
 Background pixels (``hit`` False, or albedo 0 when ``hit`` is absent) are passed through.
 
 Parameters that depend on the noise level are chosen from ``spp`` by default: the guided
@@ -31,6 +32,7 @@ __all__ = ["Denoiser", "DENOISERS", "METHODS", "QUALITIES"]
 METHODS = ("guided", "atrous", "bilateral", "none")
 QUALITIES = ("fast", "balanced", "high")
 _QUALITY_SCALE = {"fast": 0.5, "balanced": 1.0, "high": 1.5}
+_OUTLIER = 8.0  # x the median demodulated value: a light source when no emission is given
 _INPUTS = ("color", "albedo", "normal", "position", "depth", "emission", "direct", "indirect", "variance", "spp",
            "hit")
 
@@ -136,6 +138,16 @@ class Denoiser(torch.nn.Module):
         surface = gb.hit if gb.hit is not None else gb.albedo.amax(1, keepdim=True) > 0
         albedo = gb.albedo.clamp_min(1e-3)
         demod = torch.where(surface, noisy / albedo, zero)
+        if gb.emission is None:
+            # No emission AOV: visible light sources (and the brightest fireflies) would bleed into
+            # their neighbours. Pixels far above the image's median are kept as they are and enter
+            # the filter clamped to that threshold.
+            level = demod.amax(1, keepdim=True)
+            on = level[surface]
+            threshold = _OUTLIER * float(on.median()) if on.numel() and float(on.median()) > 0 else math.inf
+            bright = level > threshold
+            surface = surface & ~bright
+            demod = torch.where(bright, float(on.median()) if on.numel() else 0.0, demod)
         filtered = self._filter(demod, gb, surface)
         out = torch.where(surface, filtered * albedo, noisy) + keep
         return out if self.hdr else out.clamp(0, 1)
