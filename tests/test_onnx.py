@@ -57,3 +57,21 @@ def test_atrous_parity(tmp_path):
         n = torch.nn.functional.normalize(torch.randn(B, 3, H, W, generator=g), dim=1)
         x = torch.rand(B, 3, H, W, generator=g) + 100.0
         assert rel(session(color=c, normal=n, position=x), m(c, n, x)) < 1e-4, (B, H, W)
+
+
+def test_exported_denoiser_matches_torch(tmp_path):
+    pytest.importorskip("embreex")
+    import torchgi
+    from torchgi.cli import main
+    from torchgi.denoise import Denoiser
+    from torchgi.export import OrtDenoiser
+
+    path = tmp_path / "den.onnx"
+    assert main(["export", "--method", "guided", "--spp", "1", "--out", str(path)]) == 0
+    ort = OrtDenoiser(path)
+    deployed = Denoiser("guided").deploy(spp=1)
+    for size in (40, 24):
+        gb = torchgi.render(torchgi.scenes.cornell(size).with_resolution(size, size + 7), spp=1, bounces=1)
+        ours = Denoiser("guided")(gb)  # the torch Denoiser itself
+        assert rel(deployed(gb.color, gb.emission, gb.albedo, gb.normal, gb.depth), ours) < 1e-4
+        assert rel(ort(gb), ours) < 1e-4, size

@@ -1,4 +1,4 @@
-"""The ``torchgi`` command line: ``info``, ``metrics``, ``render``, ``denoise``, ``datagen``, ``demo``."""
+"""The ``torchgi`` command line: ``info``, ``metrics``, ``render``, ``denoise``, ``export``, ``datagen``, ``demo``."""
 
 from __future__ import annotations
 
@@ -128,6 +128,17 @@ def cmd_denoise(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_export(args: argparse.Namespace) -> int:
+    """Export a Denoiser, fixed for an spp, to ONNX."""
+    from torchgi.export import export_denoiser
+
+    path = export_denoiser(args.method, args.out, spp=args.spp, quality=args.quality,
+                           sigma_position=args.sigma_position, overwrite=args.overwrite)
+    print(f"wrote {path} ({args.method}, {args.spp} spp, {args.quality}); inputs color, emission, albedo, normal, "
+          f"{'depth' if args.method == 'guided' else 'position'} (B, C, H, W) float32, dynamic B/H/W")
+    return 0
+
+
 def cmd_datagen(args: argparse.Namespace) -> int:
     """Run or resume a data-generation job."""
     from torchgi.data import run_job
@@ -227,6 +238,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sanitize", action="store_true", help="replace NaN/Inf in the input by 0 (with a warning)")
     p.set_defaults(func=cmd_denoise)
 
+    p = sub.add_parser("export", help="export a Denoiser to ONNX (needs the onnx extra)")
+    p.add_argument("--method", choices=["guided", "atrous"], default="guided")
+    p.add_argument("--spp", type=float, default=1.0, help="samples per pixel the parameters are fixed for")
+    p.add_argument("--quality", choices=["fast", "balanced", "high"], default="balanced")
+    p.add_argument("--sigma-position", type=float, default=None, help="À-Trous σ_x, scene units squared")
+    p.add_argument("--out", required=True, help="the .onnx file (never overwritten unless --overwrite)")
+    p.add_argument("--overwrite", action="store_true")
+    p.set_defaults(func=cmd_export)
+
     p = sub.add_parser("datagen", help="noisy/reference EXR shards for training (resumable; local or Dask)")
     p.add_argument("config", help="data-generation YAML (configs/data_gen/*.yaml)")
     p.add_argument("--out", required=True, help="output folder (a re-run resumes it)")
@@ -252,7 +272,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except (TorchGIError, FileNotFoundError, FileExistsError, PermissionError) as exc:
+    except (TorchGIError, FileNotFoundError, FileExistsError, PermissionError, ValueError) as exc:
         print(f"torchgi {args.command}: error: {exc}", file=sys.stderr)
         return 2
 

@@ -27,7 +27,7 @@ from torchgi.core.check import check_option
 from torchgi.core.errors import ShapeError
 from torchgi.core.registry import Registry
 
-__all__ = ["Denoiser", "DENOISERS", "METHODS", "QUALITIES"]
+__all__ = ["Denoiser", "DeployedDenoiser", "DENOISERS", "METHODS", "QUALITIES"]
 
 METHODS = ("guided", "atrous", "bilateral", "none")
 QUALITIES = ("fast", "balanced", "high")
@@ -101,6 +101,30 @@ class Denoiser(torch.nn.Module):
                 config = yaml.safe_load(fh)
         return DENOISERS.build(config)
 
+    def deploy(self, *, spp: float = 1.0, sigma_position: float | None = None) -> DeployedDenoiser:
+        """Fix this Denoiser's parameters for ``spp`` samples per pixel (and, for "atrous", σ_x in
+        scene units squared, required unless given at construction) and return the exportable module.
+
+        Example:
+            >>> Denoiser("guided").deploy(spp=4)
+            DeployedDenoiser(method='guided', radius=4, eps=0.001)
+        """
+        p = self.filter_params
+        if self.method == "guided":
+            params = {"radius": self._radius(spp, 8), "eps": p.get("eps", 1e-3)}
+        elif self.method == "atrous":
+            sigma_x = p.get("sigma_position", sigma_position)
+            if sigma_x is None:
+                raise ValueError("sigma_position: an exported À-Trous needs a fixed σ_x (scene units squared)")
+            params = {
+                "iterations": self._iterations(spp),
+                "sigma_normal": p.get("sigma_normal", 0.1), "sigma_position": sigma_x,
+                "sigma_color": p.get("sigma_color", 1.0),
+            }
+        else:
+            raise ValueError(f"method: only 'guided' and 'atrous' deploy to ONNX, not {self.method!r}")
+        return DeployedDenoiser(self.method, params)
+
     def extra_repr(self) -> str:
         params = "".join(f", {k}={v!r}" for k, v in self.filter_params.items())
         return (f"method={self.method!r}, quality={self.quality!r}, hdr={self.hdr}, input_scale={self.input_scale}, "
@@ -152,6 +176,15 @@ class Denoiser(torch.nn.Module):
         out = torch.where(surface, filtered * albedo, noisy) + keep
         return out if self.hdr else out.clamp(0, 1)
 
+    def _radius(self, spp: float, base: int) -> int:
+        """Filter radius: given, or ``base · quality / sqrt(spp)`` (at least 2) px."""
+        return self.filter_params.get("radius", max(2, round(_QUALITY_SCALE[self.quality] * base / math.sqrt(spp))))
+
+    def _iterations(self, spp: float) -> int:
+        """À-Trous levels: given, or enough for a ``16 · quality / sqrt(spp)`` px footprint (2..8)."""
+        q = _QUALITY_SCALE[self.quality]
+        return self.filter_params.get("iterations", max(2, min(8, round(math.log2(16 * q / math.sqrt(spp)) + 2))))
+
     def _spp(self, gb: GBuffer) -> float:
         if gb.spp is None:
             return 1.0
@@ -161,17 +194,15 @@ class Denoiser(torch.nn.Module):
         from torchgi.filters import atrous, cross_bilateral, guide_from_gbuffer, guided
 
         p = self.filter_params
-        q = _QUALITY_SCALE[self.quality]
         spp = self._spp(gb)
         if self.method == "guided":
-            radius = p.get("radius", max(2, round(q * 8 / math.sqrt(spp))))
-            return guided(x, guide_from_gbuffer(gb), radius=radius, eps=p.get("eps", 1e-3))
+            return guided(x, guide_from_gbuffer(gb), radius=self._radius(spp, 8), eps=p.get("eps", 1e-3))
         scale = self.input_scale
         if scale is None:
             mean = float(x[surface.expand_as(x)].mean()) if bool(surface.any()) else 0.0
             scale = 1.0 / mean if mean > 0 else 1.0
         if self.method == "atrous":
-            iterations = p.get("iterations", max(2, min(8, round(math.log2(16 * q / math.sqrt(spp)) + 2))))
+            iterations = self._iterations(spp)
             sigma_x = p.get("sigma_position")
             if sigma_x is None and gb.position is not None:
                 from torchgi.sampling.adaptive import pixel_footprint
@@ -181,11 +212,53 @@ class Denoiser(torch.nn.Module):
                          sigma_normal=p.get("sigma_normal", 0.1), sigma_position=sigma_x,
                          sigma_color=p.get("sigma_color"))
             return out / scale
-        radius = p.get("radius", max(2, round(q * 6 / math.sqrt(spp))))
+        radius = self._radius(spp, 6)
         guides = [gb.normal] + ([gb.depth / gb.depth.amax().clamp_min(1e-12)] if gb.depth is not None else [])
         out = cross_bilateral(x * scale, guides, radius=radius, sigma_space=p.get("sigma_space", radius / 2),
                               sigma_color=p.get("sigma_color", 2.0), sigma_guides=[0.2] * len(guides))
         return out / scale
+
+
+class DeployedDenoiser(torch.nn.Module):
+    """A :class:`Denoiser` with every choice fixed, as plain tensor code for ONNX export.
+
+    ``forward(color, emission, albedo, normal, depth)`` for "guided" and
+    ``forward(color, emission, albedo, normal, position)`` for "atrous", all ``(B, C, H, W)``:
+    ``color - emission`` is demodulated by albedo where the albedo is non-zero, filtered with the
+    fixed parameters, remodulated, and emission is added back. Built by :meth:`Denoiser.deploy`.
+    """
+
+    def __init__(self, method: str, params: dict[str, Any]) -> None:
+        super().__init__()
+        check_option(method, "method", ("guided", "atrous"))
+        self.method, self.params = method, dict(params)
+
+    @property
+    def input_names(self) -> tuple[str, ...]:
+        last = "depth" if self.method == "guided" else "position"
+        return ("color", "emission", "albedo", "normal", last)
+
+    def forward(self, color: torch.Tensor, emission: torch.Tensor, albedo: torch.Tensor, normal: torch.Tensor,
+                geometry: torch.Tensor) -> torch.Tensor:
+        from torchgi.filters import atrous, guided
+
+        surface = albedo.amax(1, keepdim=True) > 0
+        a = albedo.clamp_min(1e-3)
+        noisy = color - emission
+        demod = torch.where(surface, noisy / a, torch.zeros_like(noisy))
+        if self.method == "guided":
+            depth = geometry / geometry.amax(dim=(1, 2, 3), keepdim=True).clamp_min(1e-12)
+            out = guided(demod, torch.cat([(normal + 1) * 0.5, depth], 1), radius=self.params["radius"],
+                         eps=self.params["eps"])
+        else:
+            out = atrous(demod, normal, geometry, iterations=self.params["iterations"],
+                         sigma_normal=self.params["sigma_normal"], sigma_position=self.params["sigma_position"],
+                         sigma_color=self.params["sigma_color"])
+        return torch.where(surface, out * a, noisy) + emission
+
+    def extra_repr(self) -> str:
+        return f"method={self.method!r}, " + ", ".join(f"{k}={v!r}" for k, v in self.params.items())
+
 
 
 DENOISERS: Registry[Denoiser] = Registry("denoiser")

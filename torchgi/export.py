@@ -13,7 +13,7 @@ from torch import nn
 
 from torchgi.core.check import check_shape, require
 
-__all__ = ["export_onnx", "OrtSession"]
+__all__ = ["export_onnx", "OrtSession", "export_denoiser", "OrtDenoiser"]
 
 
 def export_onnx(
@@ -59,12 +59,12 @@ def export_onnx(
     if path.exists() and not overwrite:
         raise FileExistsError(f"path: {path} exists; pass overwrite=True to replace it")
     B, H, W = (torch.export.Dim(d, min=1) for d in "BHW")
-    dynamic = {}
+    dynamic = []  # by position: graph input names need not be the forward's parameter names
     sizes: dict[str, int] = {}
     for name, x in zip(input_names, example_inputs):
         shape = check_shape(x, "B C H W", name)
         check_shape(x, f"B {shape['C']} H W", name, sizes)
-        dynamic[name] = {0: B, 2: H, 3: W}
+        dynamic.append({0: B, 2: H, 3: W})
     if len({sizes["B"], sizes["H"], sizes["W"]}) < 3:
         # The exporter can tie dimensions whose example sizes coincide into one symbol.
         raise ValueError(
@@ -76,7 +76,7 @@ def export_onnx(
     try:
         torch.onnx.export(
             module.eval(), tuple(example_inputs), tmp, input_names=list(input_names),
-            output_names=list(output_names), dynamic_shapes=dynamic, opset_version=opset, dynamo=True,
+            output_names=list(output_names), dynamic_shapes=tuple(dynamic), opset_version=opset, dynamo=True,
             optimize=optimize, verbose=False,
         )
         os.replace(tmp, path)
@@ -103,3 +103,51 @@ class OrtSession:
             raise ValueError(f"missing inputs {sorted(missing)}; the graph takes {self.input_names}")
         feed = {k: np.ascontiguousarray(inputs[k].detach().cpu().numpy()) for k in self.input_names}
         return torch.from_numpy(self.session.run(None, feed)[0])
+
+
+def export_denoiser(
+    method: str,
+    path: str | os.PathLike,
+    *,
+    spp: float = 1.0,
+    quality: str = "balanced",
+    sigma_position: float | None = None,
+    overwrite: bool = False,
+    **filter_params,
+) -> Path:
+    """Export ``torchgi.Denoiser(method, quality, **filter_params)`` fixed for ``spp`` to ONNX.
+
+    The graph takes ``color, emission, albedo, normal`` and ``depth`` (guided) or ``position``
+    (À-Trous, with ``sigma_position`` in scene units squared), all ``(B, C, H, W)`` float32 with
+    dynamic B/H/W, and returns the denoised ``(B, 3, H, W)`` colour.
+
+    Example:
+        >>> p = export_denoiser("guided", os.path.join(tempfile.mkdtemp(), "d.onnx"))
+        >>> OrtDenoiser(p).input_names
+        ['color', 'emission', 'albedo', 'normal', 'depth']
+    """
+    from torchgi.denoise import Denoiser
+
+    module = Denoiser(method, quality, **filter_params).deploy(spp=spp, sigma_position=sigma_position)
+    g = torch.Generator().manual_seed(0)
+    B, H, W = 2, 24, 32
+    examples = [torch.rand(B, 3, H, W, generator=g) for _ in range(4)] + [
+        torch.rand(B, 1 if method == "guided" else 3, H, W, generator=g)]
+    return export_onnx(module, examples, path, input_names=list(module.input_names), overwrite=overwrite,
+                       optimize=method == "guided")
+
+
+class OrtDenoiser:
+    """An exported Denoiser in onnxruntime, called like :class:`torchgi.Denoiser`: with a
+    GBuffer or with named tensors (``emission`` defaults to zeros)."""
+
+    def __init__(self, path: str | os.PathLike, providers: Sequence[str] | None = None) -> None:
+        self.session = OrtSession(path, providers)
+        self.input_names = self.session.input_names
+
+    def __call__(self, gb=None, **tensors: torch.Tensor) -> torch.Tensor:
+        if gb is not None:
+            tensors = {k: getattr(gb, k) for k in self.input_names if getattr(gb, k, None) is not None}
+        if "emission" not in tensors and "color" in tensors:
+            tensors["emission"] = torch.zeros_like(tensors["color"])
+        return self.session(**{k: v.float() for k, v in tensors.items() if k in self.input_names})
