@@ -26,22 +26,13 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from benchmark_utils import markdown_table, metadata, write_results  # noqa: E402
+from benchmark_utils import available_scenes, markdown_table, metadata, write_results  # noqa: E402
 
 import torchgi  # noqa: E402
 from torchgi import metrics  # noqa: E402
 from torchgi.denoise import Denoiser  # noqa: E402
 from torchgi.filters import atrous  # noqa: E402
 from torchgi.sampling import adaptive_render, pixel_footprint  # noqa: E402
-
-CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "scenes"
-
-
-def load(name: str, size: int):
-    if name in torchgi.scenes.BUILTINS:
-        return torchgi.scenes.BUILTINS[name](size)
-    return torchgi.load_scene(CONFIGS / f"{name}.yaml").with_resolution(size, size)
-
 
 def timed(fn):
     out, times = None, []
@@ -107,12 +98,7 @@ def peers() -> dict:
 def run(args) -> list[dict]:
     rows = []
     peer_fns = peers()
-    for name in args.scenes:
-        try:
-            scene = load(name, args.size)
-        except FileNotFoundError as exc:
-            print(f"skipping {name}: {exc}", flush=True)
-            continue
+    for name, scene in available_scenes(args.scenes, args.size):
         ref = torchgi.render(scene, spp=args.ref_spp, bounces=args.bounces, seed=999)
         for spp in args.spp:
             noisy = torchgi.render(scene, spp=spp, bounces=args.bounces, seed=1)

@@ -66,3 +66,25 @@ def markdown_table(rows: list[dict], columns: list[str]) -> str:
     lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
     lines += ["| " + " | ".join(fmt(r.get(c)) for c in columns) + " |" for r in rows]
     return "\n".join(lines)
+
+
+CONFIG_SCENES = Path(__file__).resolve().parents[1] / "configs" / "scenes"
+
+
+def load_scene(name: str, size: int):
+    """A built-in scene or ``configs/scenes/<name>.yaml`` at ``size`` x ``size`` pixels."""
+    import torchgi
+
+    if name in torchgi.scenes.BUILTINS:
+        return torchgi.scenes.BUILTINS[name](size)
+    return torchgi.load_scene(CONFIG_SCENES / f"{name}.yaml").with_resolution(size, size)
+
+
+def available_scenes(names: list[str], size: int):
+    """``(name, scene)`` for each name that loads; a scene whose mesh files are absent (the
+    shared meshes beside the checkout) is reported and skipped."""
+    for name in names:
+        try:
+            yield name, load_scene(name, size)
+        except FileNotFoundError as exc:
+            print(f"skipping {name}: {exc}", flush=True)

@@ -24,22 +24,21 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from benchmark_utils import SIZES, markdown_table, metadata, time_ms, write_results  # noqa: E402
+from benchmark_utils import (  # noqa: E402
+    SIZES,
+    available_scenes,
+    load_scene,
+    markdown_table,
+    metadata,
+    time_ms,
+    write_results,
+)
 
 import torchgi  # noqa: E402
 from torchgi import metrics  # noqa: E402
 from torchgi.filters import atrous, guide_from_gbuffer, guided  # noqa: E402
 from torchgi.render import render_guides  # noqa: E402
 from torchgi.sampling import adaptive_render, allocate, importance_map, pixel_footprint  # noqa: E402
-
-CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "scenes"
-
-
-def load(name: str, size: int):
-    if name in torchgi.scenes.BUILTINS:
-        return torchgi.scenes.BUILTINS[name](size)
-    return torchgi.load_scene(CONFIGS / f"{name}.yaml").with_resolution(size, size)
-
 
 def filtered_indirect(gb, method: str, sigma_x: float) -> torch.Tensor:
     albedo = gb.albedo.clamp_min(1e-3)
@@ -52,12 +51,7 @@ def filtered_indirect(gb, method: str, sigma_x: float) -> torch.Tensor:
 
 
 def quality(args, rows: list[dict], images: dict) -> None:
-    for name in args.scenes:
-        try:
-            scene = load(name, args.size)
-        except FileNotFoundError as exc:
-            print(f"skipping {name}: {exc}", flush=True)
-            continue
+    for name, scene in available_scenes(args.scenes, args.size):
         t0 = time.perf_counter()
         ref = torchgi.render(scene, spp=args.ref_spp, bounces=args.bounces, seed=99)
         print(f"{name}: reference {args.ref_spp} spp in {time.perf_counter() - t0:.1f} s", flush=True)
@@ -96,7 +90,7 @@ def quality(args, rows: list[dict], images: dict) -> None:
 
 def timing(args, rows: list[dict]) -> None:
     H, W = SIZES["1024x768"]
-    g = render_guides(load("grass", 1024).with_resolution(W, H))
+    g = render_guides(load_scene("grass", 1024).with_resolution(W, H))
     foot = pixel_footprint(g.position, g.hit)
     budget = 4 * int(g.hit.sum())
     for fused in (False, True):
