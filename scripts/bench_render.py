@@ -54,7 +54,8 @@ def peers(name: str, size: int, bounces: int, spp: int, repeats: int, mi) -> dic
         "scene": name, "size": f"{size}x{size}", "bounces": bounces, "spp": spp, "repeats": repeats,
         "torchgi_msps": samples / t_ours / 1e6, "mitsuba_msps": samples / t_theirs / 1e6,
         "ratio": t_theirs / t_ours, "torchgi_s": t_ours, "mitsuba_s": t_theirs,
-        "torchgi_min_max_s": f"{min(ours):.3f}-{max(ours):.3f}", "mitsuba_min_max_s": f"{min(theirs):.3f}-{max(theirs):.3f}",
+        "torchgi_min_max_s": f"{min(ours):.3f}-{max(ours):.3f}",
+        "mitsuba_min_max_s": f"{min(theirs):.3f}-{max(theirs):.3f}",
     }
 
 

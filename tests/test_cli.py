@@ -96,7 +96,8 @@ def test_denoise_command_on_a_mitsuba_render(tmp_path, capsys):
     mi.render(loaded, spp=2, seed=1)
     loaded.sensors()[0].film().bitmap(raw=False).write(str(tmp_path / "noisy.exr"))
     scene["integrator"] = {"type": "path", "max_depth": 3}
-    ref = torch.from_numpy(np.array(mi.render(mi.load_dict(scene), spp=256, seed=2))[..., :3].copy()).permute(2, 0, 1)[None]
+    ref = np.array(mi.render(mi.load_dict(scene), spp=256, seed=2))[..., :3]
+    ref = torch.from_numpy(ref.copy()).permute(2, 0, 1)[None]
     out = tmp_path / "den.exr"
     assert main(["denoise", str(tmp_path / "noisy.exr"), "--method", "guided", "--out", str(out)]) == 0
     den = read_aovs(out)["color"][None]

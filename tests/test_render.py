@@ -50,7 +50,8 @@ def test_furnace_sphere_radiance_is_one(integrator):
     bounces = 24
     gb = torchgi.render(furnace(), spp=64, bounces=bounces, seed=3, integrator=integrator)
     torch.testing.assert_close(gb.emission, torch.full_like(gb.emission, 0.5), rtol=0, atol=1e-6)
-    for got, want in ((gb.direct, 0.25), (gb.indirect, 0.25 - 0.5 ** (bounces + 2)), (gb.color, 1 - 0.5 ** (bounces + 2))):
+    cases = ((gb.direct, 0.25), (gb.indirect, 0.25 - 0.5 ** (bounces + 2)), (gb.color, 1 - 0.5 ** (bounces + 2)))
+    for got, want in cases:
         stderr = float(got.std()) / math.sqrt(got.numel()) + 1e-7
         assert abs(float(got.mean()) - want) < 5 * stderr + 2e-3, (float(got.mean()), want, stderr)
     assert abs(float(gb.color.mean()) - 1.0) < 0.01
@@ -262,7 +263,8 @@ def test_ggx_sampling_weight_integrates_to_the_albedo_by_quadrature():
     u = torch.rand(2, n, generator=torch.Generator().manual_seed(0))
     ones = torch.ones(3, n)
     normal = torch.tensor([0.0, 0.0, 1.0])[:, None].expand(3, n)
-    _, weight, _ = bsdf_sample(torch.ones(n, dtype=torch.bool), ones, torch.full((n,), alpha), normal, wi[:, None].expand(3, n), u)
+    glossy = torch.ones(n, dtype=torch.bool)
+    _, weight, _ = bsdf_sample(glossy, ones, torch.full((n,), alpha), normal, wi[:, None].expand(3, n), u)
     th, ph = torch.meshgrid(
         (torch.arange(800, dtype=torch.float64) + 0.5) * (math.pi / 2 / 800),
         (torch.arange(800, dtype=torch.float64) + 0.5) * (2 * math.pi / 800),

@@ -124,7 +124,8 @@ def cmd_denoise(args: argparse.Namespace) -> int:
     out = Denoiser(args.method, args.quality, **params)(gb)
     seconds = time.perf_counter() - t0
     path = write_exr(args.out, {"color": out[0]}, overwrite=args.overwrite)
-    print(f"denoised {args.input} ({gb.shape[2]}x{gb.shape[1]}) with {args.method} in {seconds * 1e3:.1f} ms; wrote {path}")
+    print(f"denoised {args.input} ({gb.shape[2]}x{gb.shape[1]}) with {args.method} in {seconds * 1e3:.1f} ms; "
+          f"wrote {path}")
     return 0
 
 
@@ -228,7 +229,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
     p.set_defaults(func=cmd_render)
 
-    p = sub.add_parser("denoise", help="denoise an EXR with AOVs (colour, albedo, normal; position/depth/emission used)")
+    p = sub.add_parser("denoise", help="denoise an EXR with AOVs (colour, albedo, normal; uses position, depth, "
+                       "emission when present)")
     p.add_argument("input", help="multi-layer EXR: torchgi, Blender/Cycles, Mitsuba 3 or Arnold layer names")
     p.add_argument("--method", choices=["guided", "atrous", "bilateral", "none"], default="guided")
     p.add_argument("--quality", choices=["fast", "balanced", "high"], default="balanced")

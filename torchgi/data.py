@@ -22,7 +22,6 @@ import dataclasses
 import glob
 import hashlib
 import json
-import math
 import os
 import tempfile
 import zlib

@@ -4,14 +4,16 @@ With the renderer's split (``emission``, ``direct``, ``indirect``) it follows th
 indirect light is demodulated by albedo, filtered with the geometry-aware filter chosen by
 ``method`` and remodulated; emission is added back untouched (DESIGN §4: no filtering of buffers
 that carry no noise), and direct light is filtered along with it (``filter_direct=True``, for
-area lights and skies at low spp) or kept as sampled (``False``, the papers' setting). With only ``color`` (plus an optional ``emission``)
-and guides - a Mitsuba or Blender render, say - it filters ``color - emission`` the same way
-(without ``emission``, pixels brighter than 8x the median - visible light sources, the worst
-fireflies - are passed through and enter the filter as the median, so they do not bleed).
-Background pixels (``hit`` False, or albedo 0 when ``hit`` is absent) are passed through.
+area lights and skies at low spp) or kept as sampled (``False``, the papers' setting). With only
+``color`` (plus an optional ``emission``) and guides - a Mitsuba or Blender render, say - it
+filters ``color - emission`` the same way (without ``emission``, pixels brighter than 8x the
+median - visible light sources, the worst fireflies - are passed through and enter the filter as
+the median, so they do not bleed). Background pixels (``hit`` False, or albedo 0 when ``hit`` is
+absent) are passed through.
 
 Parameters that depend on the noise level are chosen from ``spp`` by default: the guided
-filter's radius and À-Trous' iteration count grow as the samples shrink; ``quality`` scales them.
+filter's radius and À-Trous' iteration count grow as the samples shrink; ``quality`` scales
+them.
 """
 
 from __future__ import annotations

@@ -16,7 +16,9 @@ from torchgi.render import scenes
 from torchgi.render.engine import render, render_guides
 from torchgi.render.scene import Camera, Material, Mesh, PointLight, Scene, Sky, load_scene
 
-__all__ = ["render", "render_guides", "load_scene", "scenes", "Scene", "Camera", "Material", "Mesh", "PointLight", "Sky"]
+__all__ = [
+    "render", "render_guides", "load_scene", "scenes", "Scene", "Camera", "Material", "Mesh", "PointLight", "Sky",
+]
 
 
 class _CallableModule(types.ModuleType):

@@ -14,7 +14,10 @@ import torch
 from torchgi.render.materials import cosine_hemisphere, to_world
 from torchgi.render.scene import GLOSSY, SceneArrays
 
-__all__ = ["Tables", "sample_area_light", "sample_sky", "NORMAL", "ALBEDO", "EMISSION", "ALPHA", "GLOSSY_ROW", "LIGHT_PDF", "EMITTER_ROWS"]
+__all__ = [
+    "Tables", "sample_area_light", "sample_sky",
+    "NORMAL", "ALBEDO", "EMISSION", "ALPHA", "GLOSSY_ROW", "LIGHT_PDF", "EMITTER_ROWS",
+]
 
 
 # Rows of Tables.tri (per triangle) and Tables.light (per emissive triangle).

@@ -5,8 +5,8 @@
   below the ceiling as in Mitsuba's ``cbox.xml``.
 * :func:`cornell_glossy` - the same box with two GGX blocks.
 * :func:`sky` - a box, a sphere and a slab on a ground plane under a blue sky with a point sun.
-* :func:`grass` - thousands of thin, leaning grass blades (6000 blades, 18k triangles) on a ground plane under sky and sun:
-  the geometrically complex case adaptive sampling exists for.
+* :func:`grass` - thousands of thin, leaning grass blades (6000 blades, 18k triangles) on a
+  ground plane under sky and sun: the geometrically complex case adaptive sampling exists for.
 """
 
 from __future__ import annotations

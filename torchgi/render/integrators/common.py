@@ -13,7 +13,10 @@ from torchgi.render.lights import ALBEDO, ALPHA, EMISSION as EMISSION_ROWS, EMIT
 from torchgi.render.materials import dot
 from torchgi.render.scene import Camera
 
-__all__ = ["Context", "Surface", "surface", "guides", "emitted", "SKIPS", "EMISSION", "DIRECT", "INDIRECT", "dims", "CAMERA_DIMS"]
+__all__ = [
+    "Context", "Surface", "surface", "guides", "emitted", "SKIPS", "EMISSION", "DIRECT", "INDIRECT", "dims",
+    "CAMERA_DIMS",
+]
 
 # Rows of an integrator's (9, N) output.
 EMISSION, DIRECT, INDIRECT = slice(0, 3), slice(3, 6), slice(6, 9)
