@@ -264,7 +264,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ref-spp", type=int, default=256)
     p.add_argument("--bounces", type=int, default=1)
     p.add_argument("--radius", type=int, default=4, help="guided filter radius (px)")
-    p.add_argument("--eps", type=float, default=0.001, help="guided filter eps (guide units²)")
+    p.add_argument("--eps", type=float, default=1e-4, help="guided filter eps (guide units²)")
     p.set_defaults(func=cmd_demo)
     return parser
 
