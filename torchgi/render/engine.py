@@ -23,7 +23,7 @@ import torch
 
 from torchgi.buffers import GBuffer
 from torchgi.core.check import check_int, check_option
-from torchgi.core.errors import DeviceError, DTypeError, RangeError, ShapeError
+from torchgi.core.errors import DeviceError, DTypeError, OptionError, RangeError, ShapeError
 from torchgi.render.accel import Accel
 from torchgi.render.film import BLOCK, Film
 from torchgi.render.integrators import basic, path
@@ -279,9 +279,12 @@ def render(
         passes = [(_Pass(0, "all"), flat)]
     arrays = scene.arrays()
     total = sum(int(c.sum()) for _, c in passes)
+    can_fork = "fork" in multiprocessing.get_all_start_methods()
     if workers is None:
         workers = (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
-        workers = workers if total >= _PARALLEL_MIN_SAMPLES else 1
+        workers = workers if total >= _PARALLEL_MIN_SAMPLES and can_fork else 1
+    elif workers > 1 and not can_fork:
+        raise OptionError(f"workers: {workers} needs the 'fork' start method, which this platform lacks; pass 1")
 
     # Radiance rows 0-8 (emission, direct, indirect) and the colour variance 9-11, float32;
     # each tile is merged as soon as it arrives, so only one tile's film is held here at a time.
