@@ -85,7 +85,8 @@ def _chunks(block_counts: torch.Tensor, chunk_size: int) -> Iterator[tuple[int, 
 
 
 def _run_tile(job: _Job, on_chunk: Callable[[int], None] | None = None) -> tuple[np.ndarray, ...]:
-    """Trace one tile; returns its film's ``n (P,)``, ``mean (12, P)``, ``m2 (3, P)``."""
+    """Trace one tile; returns its film's means of the radiance rows ``(9, P)`` and the
+    variance of the colour mean ``(3, P)``."""
     ctx = _context(job.arrays, job.camera, job.bounces, job.seed, job.skip)
     radiance = INTEGRATORS[job.integrator]
     counts = torch.from_numpy(job.counts)
@@ -111,7 +112,7 @@ def _run_tile(job: _Job, on_chunk: Callable[[int], None] | None = None) -> tuple
         film.add_blocks(torch.cat([values, color]), block_pixel[a:b], cnt, slice(9, 12))
         if on_chunk is not None:
             on_chunk(n)
-    return film.n.numpy(), film.mean.numpy(), film.m2.numpy()
+    return film.mean[:9].numpy(), film.variance_of_mean().numpy()
 
 
 def _tiles(counts: torch.Tensor, pieces: int) -> list[tuple[int, int]]:
@@ -304,10 +305,9 @@ def render(
                 done = ((futures[f], f.result()) for f in concurrent.futures.as_completed(futures))
             else:
                 done = ((tile, _run_tile(job, bar.update)) for job, tile in zip(jobs, tiles))
-            for (a, b), (n, mean, m2) in done:
-                n_t = torch.from_numpy(n)
-                rows[:9, a:b] += torch.from_numpy(mean[:9])
-                rows[9:, a:b] = torch.where(n_t > 1, torch.from_numpy(m2) / (n_t * (n_t - 1)).clamp(min=1), 0.0)
+            for (a, b), (mean, variance) in done:
+                rows[:9, a:b] += torch.from_numpy(mean)
+                rows[9:, a:b] = torch.from_numpy(variance)
                 if workers > 1:
                     bar.update(int(pass_counts[a:b].sum()))
     g = render_guides(scene, chunk_size=chunk_size)

@@ -33,9 +33,12 @@ def frame(n: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return t, s
 
 
-def to_world(local: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
-    """Local ``(3, N)`` (x, y along the tangents, z along ``n``) -> world space."""
-    t, s = frame(n)
+def to_world(
+    local: torch.Tensor, n: torch.Tensor, tangents: tuple[torch.Tensor, torch.Tensor] | None = None
+) -> torch.Tensor:
+    """Local ``(3, N)`` (x, y along the tangents, z along ``n``) -> world space; ``tangents``
+    is ``frame(n)`` when the caller already has it."""
+    t, s = frame(n) if tangents is None else tangents
     return t * local[0] + s * local[1] + n * local[2]
 
 
@@ -81,19 +84,15 @@ def bsdf_eval(
     if glossy is None:
         return albedo * value, value
     above = cos_o > 0
-    pdf = value
-    if glossy is not None:
-        cos_i = dot(n, wi).clamp(min=1e-7)
-        h = wi + wo
-        h = h * torch.rsqrt((h * h).sum(0).clamp_(min=1e-20))
-        cos_h = dot(n, h)
-        d = ggx_d(cos_h, alpha)
-        spec = d * ggx_g1(cos_i, alpha) * ggx_g1(cos_o, alpha) / (4.0 * cos_i)
-        spec_pdf = d * cos_h / (4.0 * dot(wo, h).abs().clamp_(min=1e-7))
-        value = torch.where(glossy, spec, value)
-        pdf = torch.where(glossy, spec_pdf, pdf)
-    value = torch.where(above, value, 0.0)
-    pdf = torch.where(above, pdf, 0.0)
+    cos_i = dot(n, wi).clamp(min=1e-7)
+    h = wi + wo
+    h = h * torch.rsqrt((h * h).sum(0).clamp_(min=1e-20))
+    cos_h = dot(n, h)
+    d = ggx_d(cos_h, alpha)
+    spec = d * ggx_g1(cos_i, alpha) * ggx_g1(cos_o, alpha) / (4.0 * cos_i)
+    spec_pdf = d * cos_h / (4.0 * dot(wo, h).abs().clamp_(min=1e-7))
+    value = torch.where(above, torch.where(glossy, spec, value), 0.0)
+    pdf = torch.where(above, torch.where(glossy, spec_pdf, value), 0.0)
     return albedo * value, pdf
 
 
@@ -115,9 +114,10 @@ def bsdf_sample(
     cos2 = (1.0 - u[0]) / (1.0 + (a2 - 1.0) * u[0])
     sin_h = torch.sqrt((1.0 - cos2).clamp_(min=0.0))
     phi = (2.0 * math.pi) * u[1]
-    h = to_world(torch.stack([sin_h * torch.cos(phi), sin_h * torch.sin(phi), torch.sqrt(cos2)]), n)
+    tangents = frame(n)  # one frame for both lobes
+    h = to_world(torch.stack([sin_h * torch.cos(phi), sin_h * torch.sin(phi), torch.sqrt(cos2)]), n, tangents)
     spec_wo = 2.0 * dot(wi, h) * h - wi
-    wo = torch.where(glossy, spec_wo, to_world(local, n))
+    wo = torch.where(glossy, spec_wo, to_world(local, n, tangents))
     f_cos, pdf = bsdf_eval(glossy, albedo, alpha, n, wi, wo)
     weight = torch.where(pdf > 0, f_cos / pdf.clamp(min=1e-20), 0.0)
     return wo, weight, pdf

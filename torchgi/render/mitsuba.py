@@ -165,10 +165,8 @@ def render_gbuffer(scene: dict, *, spp: int, bounces: int = 1, seed: int = 0) ->
         >>> render_gbuffer(cornell_box(16), spp=4).hit.all().item()
         True
     """
-    if spp <= 0:
-        raise ValueError(f"spp: expected > 0, got {spp}")
-    if bounces < 0:
-        raise ValueError(f"bounces: expected >= 0, got {bounces}")
+    check_int(spp, "spp", 1)
+    check_int(bounces, "bounces", 0)
     mi = load_mitsuba()
     scene = dict(scene)
     scene["integrator"] = {
