@@ -355,9 +355,10 @@ def run_job(
                 bar.update()
     elif workers > 1 and len(todo) > 1:
         import concurrent.futures
-        import multiprocessing
 
-        with concurrent.futures.ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork")) as pool:
+        from torchgi.render.engine import process_context
+
+        with concurrent.futures.ProcessPoolExecutor(workers, mp_context=process_context()) as pool:
             for m in pool.map(_task_entry, [(config, t, str(out)) for t in todo]):
                 manifests[Task(**m["task"]).name] = m
                 bar.update()

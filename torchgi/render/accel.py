@@ -13,7 +13,15 @@ import torch
 
 from torchgi.core.check import require
 
-__all__ = ["Accel", "offset"]
+__all__ = ["Accel", "offset", "embree_started"]
+
+_EMBREE_STARTED = False
+
+
+def embree_started() -> bool:
+    """True once this process has built a BVH: embree's TBB worker threads then exist, and a
+    process forked from this one must not use embree (see ``engine.process_context``)."""
+    return _EMBREE_STARTED
 
 
 class Accel:
@@ -28,8 +36,10 @@ class Accel:
     """
 
     def __init__(self, triangles: np.ndarray) -> None:
+        global _EMBREE_STARTED
         rtcs = require("embreex.rtcore_scene", "render")
         mesh_construction = require("embreex.mesh_construction", "render")
+        _EMBREE_STARTED = True
         self._scene = rtcs.EmbreeScene()
         self._mesh = mesh_construction.TriangleMesh(self._scene, np.ascontiguousarray(triangles, dtype=np.float32))
 

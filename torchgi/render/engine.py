@@ -23,15 +23,15 @@ import torch
 
 from torchgi.buffers import GBuffer
 from torchgi.core.check import check_int, check_option
-from torchgi.core.errors import DeviceError, DTypeError, OptionError, RangeError, ShapeError
-from torchgi.render.accel import Accel
+from torchgi.core.errors import DeviceError, DTypeError, RangeError, ShapeError
+from torchgi.render.accel import Accel, embree_started
 from torchgi.render.film import BLOCK, Film
 from torchgi.render.integrators import basic, path
 from torchgi.render.integrators.common import SKIPS, Context, guides
 from torchgi.render.lights import Tables
 from torchgi.render.scene import Camera, Scene, SceneArrays, load_scene
 
-__all__ = ["render", "render_guides", "INTEGRATORS", "SKIPS"]
+__all__ = ["render", "render_guides", "process_context", "INTEGRATORS", "SKIPS"]
 
 INTEGRATORS: dict[str, Callable[..., torch.Tensor]] = {"path": path.radiance, "basic": basic.radiance}
 _PARALLEL_MIN_SAMPLES = 1 << 19  # below this a pool costs more than it saves (unless asked)
@@ -144,13 +144,32 @@ def _init_worker() -> None:
     torch.set_num_threads(1)
 
 
+def process_context() -> multiprocessing.context.BaseContext:
+    """The start method for worker processes (renders and data generation).
+
+    ``fork`` while this process has not built a BVH yet: fast, and nothing of ``__main__`` is
+    run again. Afterwards ``forkserver`` (``spawn`` where that is missing): embree's TBB threads
+    do not survive a fork, and a forked child that builds a BVH can deadlock (a CI run hung so,
+    in ``Accel.intersect``). Those start methods import ``__main__`` again in each worker, so a
+    script that renders before its first parallel render needs ``if __name__ == "__main__":``.
+    """
+    methods = multiprocessing.get_all_start_methods()
+    if "fork" in methods and not embree_started():
+        return multiprocessing.get_context("fork")
+    if "forkserver" in methods:
+        ctx = multiprocessing.get_context("forkserver")
+        ctx.set_forkserver_preload(["torchgi.render.engine"])
+        return ctx
+    return multiprocessing.get_context("spawn")
+
+
 def _pool(workers: int) -> concurrent.futures.ProcessPoolExecutor:
-    """A persistent pool of ``workers`` processes (forkserver: safe next to torch's threads)."""
+    """A persistent pool of ``workers`` single-threaded processes (see :func:`process_context`)."""
     global _POOL, _POOL_SIZE
     if _POOL is None or _POOL_SIZE != workers:
         if _POOL is not None:
             _POOL.shutdown()
-        ctx = multiprocessing.get_context("fork")
+        ctx = process_context()
         _POOL = concurrent.futures.ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker)
         _POOL_SIZE = workers
     return _POOL
@@ -230,7 +249,8 @@ def render(
             ``bounces + 2``).
         seed: in [0, 2^32); the same seed gives the same image, bit for bit.
         integrator: "path" (fast: MIS, compaction, Russian roulette) or "basic" (readable).
-        workers: processes; None = all available cores for renders of >= 2^19 samples.
+        workers: processes; None = all available cores for renders of >= 2^19 samples (see
+            :func:`process_context` for how they start).
         chunk_size: paths traced at once per worker (memory bound), >= 1024.
         progress: a progress bar (shown after 1 s); None = only on a terminal.
         skip_unneeded: skip work the scene does not need (DESIGN §4): True = every skip,
@@ -280,12 +300,9 @@ def render(
         passes = [(_Pass(0, "all"), flat)]
     arrays = scene.arrays()
     total = sum(int(c.sum()) for _, c in passes)
-    can_fork = "fork" in multiprocessing.get_all_start_methods()
     if workers is None:
         workers = (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
-        workers = workers if total >= _PARALLEL_MIN_SAMPLES and can_fork else 1
-    elif workers > 1 and not can_fork:
-        raise OptionError(f"workers: {workers} needs the 'fork' start method, which this platform lacks; pass 1")
+        workers = workers if total >= _PARALLEL_MIN_SAMPLES else 1
 
     # Radiance rows 0-8 (emission, direct, indirect) and the colour variance 9-11, float32;
     # each tile is merged as soon as it arrives, so only one tile's film is held here at a time.
