@@ -82,6 +82,7 @@ def test_render_command_writes_a_multilayer_exr_and_never_overwrites(tmp_path, c
 
 def test_denoise_command_on_a_mitsuba_render(tmp_path, capsys):
     # A Mitsuba 3 render with AOVs written by Mitsuba's own Bitmap, denoised from the command line.
+    # Two nested integrators on the same samples give a colour and an exact emission layer.
     mi = pytest.importorskip("mitsuba")
     pytest.importorskip("OpenEXR")
     from torchgi import metrics
@@ -89,19 +90,21 @@ def test_denoise_command_on_a_mitsuba_render(tmp_path, capsys):
     from torchgi.render.mitsuba import cornell_box, load_mitsuba
 
     load_mitsuba()
-    scene = cornell_box(48)
+    scene = cornell_box(64)  # box pixel filter: independent pixel noise
     scene["integrator"] = {"type": "aov", "aovs": "albedo:albedo,nn:sh_normal,dd:depth",
-                           "color": {"type": "path", "max_depth": 3}}
+                           "color": {"type": "path", "max_depth": 4},
+                           "emission": {"type": "path", "max_depth": 1}}
     loaded = mi.load_dict(scene)
-    mi.render(loaded, spp=2, seed=1)
+    mi.render(loaded, spp=1, seed=1)
     loaded.sensors()[0].film().bitmap(raw=False).write(str(tmp_path / "noisy.exr"))
-    scene["integrator"] = {"type": "path", "max_depth": 3}
-    ref = np.array(mi.render(mi.load_dict(scene), spp=256, seed=2))[..., :3]
+    scene["integrator"] = {"type": "path", "max_depth": 4}
+    ref = np.array(mi.render(mi.load_dict(scene), spp=512, seed=2))[..., :3]
     ref = torch.from_numpy(ref.copy()).permute(2, 0, 1)[None]
     out = tmp_path / "den.exr"
     assert main(["denoise", str(tmp_path / "noisy.exr"), "--method", "guided", "--out", str(out)]) == 0
     den = read_aovs(out)["color"][None]
     noisy = read_aovs(tmp_path / "noisy.exr")["color"][None]
-    assert float(metrics.relmse(den, ref)) < float(metrics.relmse(noisy, ref))  # no emission AOV here
+    gain = float(metrics.relmse(noisy, ref)) / float(metrics.relmse(den, ref))
+    assert gain > 6  # measured 8.9 here at 64², 1 spp (52.8 at 512²: README)
     assert main(["denoise", str(tmp_path / "noisy.exr"), "--out", str(out)]) == 2  # never overwrites
     assert "exists" in capsys.readouterr().err

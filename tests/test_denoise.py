@@ -30,16 +30,50 @@ def test_every_method_lowers_the_error(cornell, method):
     assert float(metrics.relmse(out, ref.color)) < 0.8 * float(metrics.relmse(noisy.color, ref.color))
 
 
-def test_none_returns_the_noisy_colour_and_emission_passes_untouched(cornell):
+def _with_emission(gb, emission):
+    keys = ("direct", "indirect", "albedo", "normal", "position", "depth", "spp", "hit")
+    return torchgi.GBuffer(**{k: getattr(gb, k) for k in keys}, emission=emission)
+
+
+def test_none_returns_the_noisy_colour_and_light_sources_pass_untouched(cornell):
     noisy, _ = cornell
     assert torch.equal(Denoiser("none")(noisy), noisy.color)
-    # emission is added back, never filtered: the output moves by exactly the emission
-    dark = torchgi.GBuffer(**{k: getattr(noisy, k) for k in ("direct", "indirect", "albedo", "normal", "position",
-                                                             "depth", "spp", "hit")},
-                           emission=torch.zeros_like(noisy.emission))
-    for method in ("guided", "atrous"):
-        diff = Denoiser(method)(noisy) - Denoiser(method)(dark)
-        torch.testing.assert_close(diff, noisy.emission, rtol=1e-5, atol=1e-5)
+    # A light source (emission far above the scene over more than a 3x3 square) is added back,
+    # never filtered: the output moves by exactly that emission, corners included.
+    light = torch.zeros_like(noisy.emission)
+    light[..., 30:36, 10:17] = torch.tensor([40.0, 30.0, 20.0])[:, None, None]
+    for method in ("guided", "atrous", "bilateral"):
+        diff = Denoiser(method)(_with_emission(noisy, noisy.emission + light)) - Denoiser(method)(noisy)
+        torch.testing.assert_close(diff, light, rtol=1e-5, atol=1e-4)
+
+
+def test_isolated_emission_and_fireflies_do_not_pass_or_bleed(cornell):
+    noisy, _ = cornell
+    clean = Denoiser("guided")(noisy)
+    # one pixel beside a light's silhouette hit by a sample of the light: not a light source
+    speck = noisy.emission.clone()
+    speck[..., 30, 12] += 40.0
+    out = Denoiser("guided")(_with_emission(noisy, speck))
+    assert float((out - clean)[..., 30, 12].amax()) < 0.05 * 40.0
+    # a firefly of 1e4 in the indirect light stays below 5x the local light and changes no
+    # neighbour by more than 10 % of it
+    fire = noisy.indirect.clone()
+    fire[..., 24, 24] += 1e4
+    gb = torchgi.GBuffer(**{k: getattr(noisy, k) for k in ("direct", "emission", "albedo", "normal", "position",
+                                                           "depth", "spp", "hit")}, indirect=fire)
+    for method in ("guided", "atrous", "bilateral"):
+        base = Denoiser(method)(noisy)
+        local = float(base[..., 19:30, 19:30].max())
+        change = (Denoiser(method)(gb) - base).abs()[..., 19:30, 19:30]
+        assert float(change[..., 5, 5].max()) < 5 * local, method
+        change[..., 5, 5] = 0
+        assert float(change.max()) < 0.1 * local, method
+
+
+@pytest.mark.parametrize("method", ["guided", "atrous", "bilateral"])
+def test_output_is_finite_and_non_negative(cornell, method):
+    out = Denoiser(method)(cornell[0])
+    assert torch.isfinite(out).all() and (out >= 0).all()
 
 
 def test_named_tensors_equal_the_gbuffer_call(cornell):

@@ -221,6 +221,20 @@ def test_sampler_is_uniform_and_a_pure_function():
     assert torch.equal(uniform(keys[perm], [3]), uniform(keys, [3])[:, perm])
 
 
+def test_mitsuba_gbuffer_emission_comes_from_the_colour_samples():
+    # The emission layer is traced on the colour's own camera samples, so colour - emission is
+    # never negative, even at 1 spp on the light's silhouette (a second render would differ there).
+    pytest.importorskip("mitsuba")
+    from torchgi.core import OptionError
+    from torchgi.render.mitsuba import cornell_box, render_gbuffer
+
+    gb = render_gbuffer(cornell_box(32), spp=1, bounces=1, seed=3)
+    assert float(gb.emission.amax()) > 1  # the light is in view
+    assert float((gb.color - gb.emission).min()) >= -1e-5
+    with pytest.raises(OptionError, match="pixel_filter"):
+        cornell_box(8, pixel_filter="lanczos")
+
+
 # ------------------------------------------------------------------------------ materials
 def _mitsuba_bsdf_eval(bsdf_dict, wi, wo):
     mi = pytest.importorskip("mitsuba")

@@ -1,15 +1,19 @@
 """``torchgi.Denoiser``: what users call (DESIGN §2), in Intel Open Image Denoise's vocabulary.
 
-With the renderer's split (``emission``, ``direct``, ``indirect``) it follows the papers: the
-indirect light is demodulated by albedo, filtered with the geometry-aware filter chosen by
-``method`` and remodulated; emission is added back untouched (DESIGN §4: no filtering of buffers
-that carry no noise), and direct light is filtered along with it (``filter_direct=True``, for
-area lights and skies at low spp) or kept as sampled (``False``, the papers' setting). With only
-``color`` (plus an optional ``emission``) and guides - a Mitsuba or Blender render, say - it
-filters ``color - emission`` the same way (without ``emission``, pixels brighter than 8x the
-median - visible light sources, the worst fireflies - are passed through and enter the filter as
-the median, so they do not bleed). Background pixels (``hit`` False, or albedo 0 when ``hit`` is
-absent) are passed through.
+The noisy light is demodulated by albedo on surfaces (background pixels - the sky, missed rays -
+are filtered as they are), filtered with the geometry-aware filter chosen by ``method`` and
+remodulated. Around the filter:
+
+* Light sources pass untouched (DESIGN §4: no filtering of what carries no noise): emission far
+  above the lit scene (8x the median demodulated light) over at least a 3x3 square of pixels.
+  Other emission - the sky, pixels beside a light's silhouette that one sample hit, lights
+  smaller than 3x3 pixels - is noisy like the rest and is filtered with it. Without an ``emission`` input, such bright coherent
+  regions of ``color`` pass untouched and enter the filter at the median level, so they do not bleed.
+* Fireflies: demodulated light above 4x its local level is scaled down to that bound before
+  filtering; the excess energy of one outlier sample is dropped rather than spread over a window.
+* The filtered light is clamped at 0 (the guided filter's local linear models can undershoot).
+* With the renderer's direct/indirect split and ``filter_direct=False``, direct light is kept as
+  sampled and only indirect light is filtered (the papers' setting).
 
 Parameters that depend on the noise level are chosen from ``spp`` by default: the guided
 filter's radius and À-Trous' iteration count grow as the samples shrink; ``quality`` scales
@@ -19,7 +23,7 @@ them.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import torch
@@ -38,9 +42,71 @@ _QUALITY_SCALE = {"fast": 0.5, "balanced": 1.0, "high": 1.5}
 # A sweep at 1 spp, 128² (r 3/5/8 x eps 1e-4/1e-3/1e-2 on grass, bunny, cornell, sky) put the
 # best relMSE at r 3-5 with eps 1e-4 on three of the four scenes.
 _GUIDED_RADIUS, _GUIDED_EPS = 4, 1e-4
-_OUTLIER = 8.0  # x the median demodulated value: a light source when no emission is given
+_LIGHT = 8.0  # emission above 8x the median demodulated light is a light source, passed untouched
+# Fireflies: demodulated light above 4x its local level (the box mean over 17x17 pixels of the light
+# capped at 4x the image median) is scaled down to that bound before filtering (its excess energy is
+# dropped: one sample's outlier spread over a filter window costs more error than it carries).
+_FIREFLY, _FIREFLY_RADIUS = 4.0, 8
 _INPUTS = ("color", "albedo", "normal", "position", "depth", "emission", "direct", "indirect", "variance", "spp",
            "hit")
+
+
+def _median_level(x: torch.Tensor, surface: torch.Tensor) -> torch.Tensor:
+    """``(B,1,1,1)``: per image, the (lower) median over surface pixels of the channel maximum of
+    ``x (B,C,H,W)``, read on every 4th row and column (a scale for thresholds, so 1/16 of the
+    pixels is plenty); 1 where there is none or it is not > 0. Plain tensor ops (exportable)."""
+    peak = x.amax(1)[:, ::4, ::4].flatten(1)
+    on = surface[:, 0, ::4, ::4].flatten(1)
+    ranked = torch.where(on, peak, torch.full((), float("inf"), dtype=x.dtype, device=x.device)).sort(1).values
+    count = on.sum(1, keepdim=True)
+    m = ranked.gather(1, ((count - 1).clamp_min(0) // 2))
+    return torch.where((count > 0) & (m > 0), m, torch.ones_like(m)).reshape(-1, 1, 1, 1)
+
+
+def _light_sources(emission: torch.Tensor, threshold: torch.Tensor) -> torch.Tensor:
+    """``(B,1,H,W)`` bool: pixels whose emission exceeds ``threshold`` and that lie in a 3x3 square
+    of such pixels (a morphological opening: whole lights, corners included, stay; single pixels
+    and one-pixel fringes that a few samples hit along a light's silhouette do not)."""
+    from torchgi.filters import box
+
+    bright = emission.amax(1, keepdim=True) > threshold
+    core = box(bright.to(emission.dtype), 1) > 1 - 1e-3  # erosion: the whole 3x3 window is bright
+    return bright & (box(core.to(emission.dtype), 1) > 0)  # dilation back
+
+
+def _clamp_fireflies(x: torch.Tensor, scene_level: torch.Tensor) -> torch.Tensor:
+    """Scale pixels of ``x (B,C,H,W)`` (>= 0) whose maximum exceeds ``_FIREFLY`` x their local level
+    down to that bound, hue kept."""
+    from torchgi.filters import box
+
+    peak = x.amax(1, keepdim=True)
+    # (box sums round: a mean of zeros can come out as -1e-9, so the bound is clamped at 0)
+    bound = _FIREFLY * box(torch.minimum(peak, _FIREFLY * scene_level), _FIREFLY_RADIUS).clamp_min(0)
+    over = peak > bound  # so peak > 0 wherever it divides
+    return torch.where(over, x * (bound / torch.where(over, peak, 1.0)), x)
+
+
+def _restore(
+    color: torch.Tensor, emission: torch.Tensor | None, kept: torch.Tensor | None, albedo: torch.Tensor,
+    surface: torch.Tensor, filter_fn: Callable[[torch.Tensor], torch.Tensor],
+) -> torch.Tensor:
+    """The module docstring's pipeline around ``filter_fn`` (demodulated light in, filtered out),
+    shared by :class:`Denoiser` and :class:`DeployedDenoiser`: all ``(B, C, H, W)``; ``kept`` is
+    light added back unfiltered (direct light in the papers' split) or None."""
+    one = torch.ones((), dtype=color.dtype, device=color.device)
+    albedo = torch.where(surface, albedo.clamp_min(1e-3), one)  # background is not demodulated
+    base = color - kept if kept is not None else color
+    level = _median_level((base - emission if emission is not None else base) / albedo, surface)
+    lights = _light_sources(emission if emission is not None else base / albedo, _LIGHT * level)
+    if emission is not None:
+        light = torch.where(lights, emission, 0.0)
+        kept = light if kept is None else kept + light
+        x = (base - light) / albedo
+    else:  # no emission input: a light source's pixels pass whole and enter the filter at the median level
+        x = torch.where(lights, level.expand_as(color), base / albedo)
+    out = filter_fn(_clamp_fireflies(x, level)).clamp_min(0) * albedo  # light is >= 0; linear models undershoot
+    out = out + kept if kept is not None else out
+    return out if emission is not None else torch.where(lights, color, out)
 
 
 class Denoiser(torch.nn.Module):
@@ -152,34 +218,14 @@ class Denoiser(torch.nn.Module):
     def _denoise(self, gb: GBuffer) -> torch.Tensor:
         if gb.color is None:
             raise ShapeError("color: required (or direct and indirect)")
-        color = gb.color
         if self.method == "none":
-            return color
-        zero = torch.zeros((), dtype=color.dtype, device=color.device)
-        emission = gb.emission if gb.emission is not None else torch.zeros_like(color)
-        if gb.indirect is not None and gb.direct is not None and not self.filter_direct:
-            noisy, keep = gb.indirect, gb.direct + emission  # the papers' split: direct is noise-free
-        elif gb.indirect is not None and gb.direct is not None:
-            noisy, keep = gb.indirect + gb.direct, emission
-        else:
-            noisy, keep = color - emission, emission
+            return gb.color
         if gb.albedo is None or gb.normal is None:
             raise ShapeError("albedo and normal: required by every method but 'none'")
         surface = gb.hit if gb.hit is not None else gb.albedo.amax(1, keepdim=True) > 0
-        albedo = gb.albedo.clamp_min(1e-3)
-        demod = torch.where(surface, noisy / albedo, zero)
-        if gb.emission is None:
-            # No emission AOV: visible light sources (and the brightest fireflies) would bleed into
-            # their neighbours. Pixels far above the image's median are kept as they are and enter
-            # the filter clamped to that threshold.
-            level = demod.amax(1, keepdim=True)
-            on = level[surface]
-            threshold = _OUTLIER * float(on.median()) if on.numel() and float(on.median()) > 0 else math.inf
-            bright = level > threshold
-            surface = surface & ~bright
-            demod = torch.where(bright, float(on.median()) if on.numel() else 0.0, demod)
-        filtered = self._filter(demod, gb, surface)
-        out = torch.where(surface, filtered * albedo, noisy) + keep
+        split = gb.indirect is not None and gb.direct is not None and not self.filter_direct
+        kept = gb.direct if split else None  # the papers' split: direct light as sampled
+        out = _restore(gb.color, gb.emission, kept, gb.albedo, surface, lambda x: self._filter(x, gb, surface))
         return out if self.hdr else out.clamp(0, 1)
 
     def _radius(self, spp: float, base: int) -> int:
@@ -231,8 +277,9 @@ class DeployedDenoiser(torch.nn.Module):
 
     ``forward(color, emission, albedo, normal, depth)`` for "guided" and
     ``forward(color, emission, albedo, normal, position)`` for "atrous", all ``(B, C, H, W)``:
-    ``color - emission`` is demodulated by albedo where the albedo is non-zero, filtered with the
-    fixed parameters, remodulated, and emission is added back. Built by :meth:`Denoiser.deploy`.
+    the Denoiser's pipeline (module docstring) with the fixed parameters; surfaces are the pixels
+    of non-zero albedo. ``emission`` is required (zeros when no light source is in view). Built
+    by :meth:`Denoiser.deploy`.
     """
 
     def __init__(self, method: str, params: dict[str, Any]) -> None:
@@ -250,18 +297,17 @@ class DeployedDenoiser(torch.nn.Module):
         from torchgi.filters import atrous, guided
 
         surface = albedo.amax(1, keepdim=True) > 0
-        a = albedo.clamp_min(1e-3)
-        noisy = color - emission
-        demod = torch.where(surface, noisy / a, torch.zeros_like(noisy))
-        if self.method == "guided":
-            depth = geometry / geometry.amax(dim=(1, 2, 3), keepdim=True).clamp_min(1e-12)
-            out = guided(demod, torch.cat([(normal + 1) * 0.5, depth], 1), radius=self.params["radius"],
-                         eps=self.params["eps"])
-        else:
-            out = atrous(demod, normal, geometry, iterations=self.params["iterations"],
-                         sigma_normal=self.params["sigma_normal"], sigma_position=self.params["sigma_position"],
-                         sigma_color=self.params["sigma_color"])
-        return torch.where(surface, out * a, noisy) + emission
+
+        def filter_fn(x: torch.Tensor) -> torch.Tensor:
+            if self.method == "guided":
+                depth = geometry / geometry.amax(dim=(1, 2, 3), keepdim=True).clamp_min(1e-12)
+                return guided(x, torch.cat([(normal + 1) * 0.5, depth], 1), radius=self.params["radius"],
+                              eps=self.params["eps"])
+            return atrous(x, normal, geometry, iterations=self.params["iterations"],
+                          sigma_normal=self.params["sigma_normal"], sigma_position=self.params["sigma_position"],
+                          sigma_color=self.params["sigma_color"])
+
+        return _restore(color, emission, None, albedo, surface, filter_fn)
 
     def extra_repr(self) -> str:
         return f"method={self.method!r}, " + ", ".join(f"{k}={v!r}" for k, v in self.params.items())

@@ -71,10 +71,17 @@ def _segments(n: int, r: int) -> list[tuple[int, int]]:
     return [(a, b) for a, b in zip(cuts, cuts[1:]) if b > a]
 
 
-class PlaneBoxer:
-    """Box-filters single ``(H, W)`` planes on the CPU into caller-given outputs, reusing buffers.
+# Planes box-filtered together by one call of PlaneBoxer.planes: about 1 MB of float32 per
+# operand, so small images pay the per-op overhead once per stack, not once per plane, and
+# large ones still go one cache-resident plane at a time.
+_STACK_ELEMENTS = 1 << 18
 
-    Writes box *means* (count-normalised). Not differentiable; the plane being read and
+
+class PlaneBoxer:
+    """Box-filters ``(H, W)`` planes (or ``(P, H, W)`` stacks of them) on the CPU into
+    caller-given outputs, reusing buffers.
+
+    Writes box *means* (count-normalised). Not differentiable; the planes being read and
     the output may be the same tensor.
 
     Example:
@@ -86,8 +93,9 @@ class PlaneBoxer:
 
     def __init__(self, H: int, W: int, radius: int, dtype: torch.dtype = torch.float32) -> None:
         self.H, self.W, self.r = H, W, radius
-        self._prefix_buf = torch.empty(H, W, dtype=dtype)  # prefix sums along W, then along H
-        self._rows_buf = torch.empty(H, W, dtype=dtype)  # box sums along W
+        self.stack = max(1, _STACK_ELEMENTS // max(H * W, 1))  # planes per call of ``planes``
+        self._prefix_buf = torch.empty(self.stack, H, W, dtype=dtype)  # prefix sums along W, then H
+        self._rows_buf = torch.empty(self.stack, H, W, dtype=dtype)  # box sums along W
         self._upper = torch.triu(torch.ones(_BLOCK_W, _BLOCK_W, dtype=dtype))
         self._lower = torch.tril(torch.ones(_BLOCK_H, _BLOCK_H, dtype=dtype))
         # running totals of the block sums along H as a triangular matmul (a cumsum over rows
@@ -102,27 +110,32 @@ class PlaneBoxer:
         self._seg_w, self._seg_h = _segments(W, radius), _segments(H, radius)
 
     def _prefix(self, x: torch.Tensor, s: torch.Tensor, dim: int) -> None:
-        """Inclusive prefix sums of ``x`` along ``dim`` into ``s``: blocks by one triangular
-        matmul, then each block adds the running total of the blocks before it."""
-        b, H, W = (_BLOCK_W if dim == 1 else _BLOCK_H), self.H, self.W
+        """Inclusive prefix sums of ``x (P, H, W)`` along ``dim`` (-1: W, -2: H) into ``s``:
+        blocks by one triangular matmul, then each block adds the running total of the blocks
+        before it."""
+        P, H, W = x.shape
+        b = _BLOCK_W if dim == -1 else _BLOCK_H
         n = x.shape[dim]
         nb = n // b
         m = nb * b
         if nb:
-            if dim == 1:
-                blocks = x[:, :m].reshape(H, nb, b)
+            if dim == -1:
+                blocks = x[..., :m].reshape(P, H, nb, b)
                 if m == W:
-                    torch.matmul(blocks, self._upper, out=s.view(H, nb, b))
+                    torch.matmul(blocks, self._upper, out=s.view(P, H, nb, b))
                 else:
-                    s[:, :m].copy_(torch.matmul(blocks, self._upper).view(H, m))
+                    s[..., :m].copy_(torch.matmul(blocks, self._upper).view(P, H, m))
                 if nb > 1:
-                    carry = s[:, b - 1 : m - b : b].cumsum(1)
-                    s[:, b:m].view(H, nb - 1, b).add_(carry[:, :, None])
+                    carry = s[..., b - 1 : m - b : b].cumsum(-1)
+                    s[..., b:m].unflatten(-1, (nb - 1, b)).add_(carry[..., None])
             else:
-                torch.matmul(self._lower, x[:m].view(nb, b, W), out=s[:m].view(nb, b, W))
+                if m == H:
+                    torch.matmul(self._lower, x.view(P, nb, b, W), out=s.view(P, nb, b, W))
+                else:
+                    s[:, :m].copy_(torch.matmul(self._lower, x[:, :m].unflatten(1, (nb, b))).view(P, m, W))
                 if nb > 1:
-                    carry = torch.matmul(self._carry_h, s[b - 1 : m - b : b])
-                    s[b:m].view(nb - 1, b, W).add_(carry[:, None, :])
+                    carry = torch.matmul(self._carry_h, s[:, b - 1 : m - b : b])
+                    s[:, b:m].unflatten(1, (nb - 1, b)).add_(carry[:, :, None, :])
         for j in range(m, n):  # fewer than b leftovers
             if j == 0:
                 s.select(dim, 0).copy_(x.select(dim, 0))
@@ -140,13 +153,25 @@ class PlaneBoxer:
             else:
                 torch.sub(hi, s.narrow(dim, a - r - 1, e - a), out=dst)
 
+    def _stack(self, x: torch.Tensor, out: torch.Tensor) -> None:
+        """Box means of at most ``self.stack`` planes ``x (P, H, W)`` into ``out``."""
+        P = x.shape[0]
+        prefix, rows = self._prefix_buf[:P], self._rows_buf[:P]
+        self._prefix(x, prefix, -1)
+        self._difference(prefix, rows, -1, self._seg_w)
+        self._prefix(rows, prefix, -2)
+        self._difference(prefix, out, -2, self._seg_h)
+        out.mul_(self.inv_count)
+
     def __call__(self, x: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
-        """Box means of plane ``x (H, W)`` into ``out (H, W)`` (may be ``x`` itself)."""
-        self._prefix(x, self._prefix_buf, 1)
-        self._difference(self._prefix_buf, self._rows_buf, 1, self._seg_w)
-        self._prefix(self._rows_buf, self._prefix_buf, 0)
-        self._difference(self._prefix_buf, out, 0, self._seg_h)
-        return out.mul_(self.inv_count)
+        """Box means of ``x`` - one plane ``(H, W)`` or planes ``(P, H, W)`` - into ``out`` of
+        the same shape (may be ``x`` itself); stacks of ``self.stack`` planes at a time."""
+        if x.dim() == 2:
+            self._stack(x[None], out[None])
+            return out
+        for a in range(0, x.shape[0], self.stack):
+            self._stack(x[a : a + self.stack], out[a : a + self.stack])
+        return out
 
 
 def box(x: torch.Tensor, radius: int) -> torch.Tensor:
@@ -175,9 +200,7 @@ def box(x: torch.Tensor, radius: int) -> torch.Tensor:
         return _box_cumsum(xc, radius).to(x.dtype)
     boxer = PlaneBoxer(H, W, radius, ct)
     out = torch.empty(B, C, H, W, dtype=ct)
-    for b in range(B):
-        for c in range(C):
-            boxer(xc[b, c], out[b, c])
+    boxer(xc.reshape(B * C, H, W), out.view(B * C, H, W))
     return out.to(x.dtype)
 
 

@@ -160,7 +160,7 @@ def _guided_reference(I: torch.Tensor, p: torch.Tensor, r: int, eps: torch.Tenso
     return out
 
 
-_STRIP = 64  # rows per strip of the per-pixel solve: temporaries stay in L2
+_STRIP_ELEMENTS = 1 << 16  # pixels per strip of the per-pixel solve: temporaries stay in L2
 
 
 class _Workspace:
@@ -208,18 +208,22 @@ def _guided_fast(
     for bi in range(B):
         Ib = torch.sub(g[bi], mean_g[bi], out=ws.I)
         pb = torch.sub(p[bi], mean_p[bi], out=ws.p)
-        for i in range(n):
-            boxer(Ib[i], ws.mI[i])
-        for c in range(Cs):
-            boxer(pb[c], ws.mp[c])
-        for k, (i, j) in enumerate(pairs):
-            boxer(torch.mul(Ib[i], Ib[j], out=ws.mII[k]), ws.mII[k])
-        for i in range(n):
-            for c in range(Cs):
-                boxer(torch.mul(Ib[i], pb[c], out=ws.mIp[i, c]), ws.mIp[i, c])
+        boxer(Ib, ws.mI)
+        boxer(pb, ws.mp)
+        # products and their box means a stack at a time: while a stack is in cache
+        for group, factors in (
+            (ws.mII, [(Ib[i], Ib[j]) for i, j in pairs]),
+            (ws.mIp.view(n * Cs, H, W), [(Ib[i], pb[c]) for i in range(n) for c in range(Cs)]),
+        ):
+            for a in range(0, len(factors), boxer.stack):
+                stack = group[a : a + boxer.stack]
+                for dst, (u, v) in zip(stack, factors[a : a + boxer.stack]):
+                    torch.mul(u, v, out=dst)
+                boxer(stack, stack)
         e = eps[bi : bi + 1]
-        for y in range(0, H, _STRIP):
-            rows = slice(y, y + _STRIP)
+        strip = max(1, _STRIP_ELEMENTS // W)
+        for y in range(0, H, strip):
+            rows = slice(y, y + strip)
             _solve(
                 [ws.mI[i : i + 1, rows][None] for i in range(n)], ws.mp[:, rows][None],
                 {pr: ws.mII[k : k + 1, rows][None] for k, pr in enumerate(pairs)},
@@ -227,8 +231,7 @@ def _guided_fast(
                 out=[ws.coeffs[k, :, rows][None] for k in range(n + 1)],
             )
         planes = ws.coeffs.view(-1, H, W)
-        for c in range(planes.shape[0]):
-            boxer(planes[c], planes[c])
+        boxer(planes, planes)
         acc = torch.add(ws.coeffs[n], mean_p[bi], out=out[bi])
         for i in range(n):
             acc.addcmul_(ws.coeffs[i], Ib[i : i + 1])

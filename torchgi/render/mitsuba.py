@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from torchgi.buffers import GBuffer
-from torchgi.core.check import check_int, require
+from torchgi.core.check import check_int, check_option, require
 from torchgi.render.scene import Material, Scene, PointLight, Sky
 
 __all__ = ["load_mitsuba", "cornell_box", "render_gbuffer", "to_mitsuba", "render_mitsuba"]
@@ -132,8 +132,12 @@ def load_mitsuba(variant: str = "scalar_rgb") -> Any:
     return mi
 
 
-def cornell_box(resolution: int = 128) -> dict:
+def cornell_box(resolution: int = 128, *, pixel_filter: str = "box") -> dict:
     """Mitsuba's built-in Cornell box scene dict at ``resolution``² pixels.
+
+    ``pixel_filter`` is the film's reconstruction filter: "box" (default here) gives each
+    sample to its own pixel, so pixel noise is independent, as denoisers expect; Mitsuba's
+    own default "gaussian" spreads each sample over neighbours and correlates the noise.
 
     Example:
         >>> cornell_box(32)["sensor"]["film"]["width"]
@@ -143,6 +147,8 @@ def cornell_box(resolution: int = 128) -> dict:
     scene = mi.cornell_box()
     scene["sensor"]["film"]["width"] = resolution
     scene["sensor"]["film"]["height"] = resolution
+    check_option(pixel_filter, "pixel_filter", ("box", "gaussian", "tent"))
+    scene["sensor"]["film"]["rfilter"] = {"type": pixel_filter}
     return scene
 
 
@@ -156,9 +162,9 @@ def render_gbuffer(scene: dict, *, spp: int, bounces: int = 1, seed: int = 0) ->
         seed: Mitsuba's sampler seed.
 
     Returns:
-        GBuffer with ``color (1,3,H,W)``, ``emission`` (light seen directly, from a second
-        render with ``max_depth = 1``), ``albedo``, ``normal``, ``position``, ``depth
-        (1,1,H,W)``, ``hit (1,1,H,W)`` and ``spp``. Guides are Mitsuba's AOVs, which average
+        GBuffer with ``color (1,3,H,W)``, ``emission`` (light seen directly: a path tracer
+        with ``max_depth = 1`` on the same camera samples), ``albedo``, ``normal``,
+        ``position``, ``depth (1,1,H,W)``, ``hit (1,1,H,W)`` and ``spp``. Guides are Mitsuba's AOVs, which average
         over the pixel's samples (not a single centre ray).
 
     Example:
@@ -169,10 +175,14 @@ def render_gbuffer(scene: dict, *, spp: int, bounces: int = 1, seed: int = 0) ->
     check_int(bounces, "bounces", 0)
     mi = load_mitsuba()
     scene = dict(scene)
+    # One pass, two nested integrators on the same camera samples: the colour and the light seen
+    # directly (max_depth 1), so ``color - emission`` is exact per sample (a second render would
+    # trace other camera rays and leave light-source edges in the difference).
     scene["integrator"] = {
         "type": "aov",
         "aovs": _AOVS,
         "color": {"type": "path", "max_depth": bounces + 2},
+        "emission": {"type": "path", "max_depth": 1},
     }
     loaded = mi.load_dict(scene)
     mi.render(loaded, spp=spp, seed=seed)
@@ -182,12 +192,8 @@ def render_gbuffer(scene: dict, *, spp: int, bounces: int = 1, seed: int = 0) ->
         .contiguous()
         for name, bmp in loaded.sensors()[0].film().bitmap(raw=False).split()
     }
-    color, albedo, normal = parts["<root>"], parts["albedo"], parts["nn"]
-    position, depth = parts["pp"], parts["dd"]
-    # Emission seen directly by the camera: Mitsuba's path tracer with max_depth = 1.
-    scene["integrator"] = {"type": "path", "max_depth": 1}
-    img = mi.render(mi.load_dict(scene), spp=spp, seed=seed)
-    emission = torch.from_numpy(np.array(img, dtype=np.float32)[..., :3].copy()).permute(2, 0, 1)[None].contiguous()
+    color, emission = parts["color"][:, :3].contiguous(), parts["emission"][:, :3].contiguous()
+    albedo, normal, position, depth = parts["albedo"], parts["nn"], parts["pp"], parts["dd"]
     hit = depth > 0
     return GBuffer(
         color=color,
