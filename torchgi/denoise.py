@@ -32,6 +32,7 @@ from torchgi.buffers import GBuffer
 from torchgi.core.check import check_option
 from torchgi.core.errors import ShapeError
 from torchgi.core.registry import Registry
+from torchgi.supersample import EyeSamples
 
 __all__ = ["Denoiser", "DeployedDenoiser", "DENOISERS", "METHODS", "QUALITIES"]
 
@@ -86,6 +87,14 @@ def _clamp_fireflies(x: torch.Tensor, scene_level: torch.Tensor) -> torch.Tensor
     return torch.where(over, x * (bound / torch.where(over, peak, 1.0)), x)
 
 
+def _filter_light(
+    x: torch.Tensor, level: torch.Tensor, filter_fn: Callable[[torch.Tensor], torch.Tensor]
+) -> torch.Tensor:
+    """``filter_fn`` of demodulated light ``x (B,C,H,W)`` with its fireflies clamped (``level``
+    from :func:`_median_level`), clamped at 0: light is >= 0 and linear models can undershoot."""
+    return filter_fn(_clamp_fireflies(x, level)).clamp_min(0)
+
+
 def _restore(
     color: torch.Tensor, emission: torch.Tensor | None, kept: torch.Tensor | None, albedo: torch.Tensor,
     surface: torch.Tensor, filter_fn: Callable[[torch.Tensor], torch.Tensor],
@@ -104,7 +113,7 @@ def _restore(
         x = (base - light) / albedo
     else:  # no emission input: a light source's pixels pass whole and enter the filter at the median level
         x = torch.where(lights, level.expand_as(color), base / albedo)
-    out = filter_fn(_clamp_fireflies(x, level)).clamp_min(0) * albedo  # light is >= 0; linear models undershoot
+    out = _filter_light(x, level, filter_fn) * albedo
     out = out + kept if kept is not None else out
     return out if emission is not None else torch.where(lights, color, out)
 
@@ -226,6 +235,51 @@ class Denoiser(torch.nn.Module):
         split = gb.indirect is not None and gb.direct is not None and not self.filter_direct
         kept = gb.direct if split else None  # the papers' split: direct light as sampled
         out = _restore(gb.color, gb.emission, kept, gb.albedo, surface, lambda x: self._filter(x, gb, surface))
+        return out if self.hdr else out.clamp(0, 1)
+
+    def supersample(self, gb: GBuffer, samples: EyeSamples) -> torch.Tensor:
+        """Supersampling with guide rays (Bauszat et al. 2011 §3.2, :mod:`torchgi.supersample`).
+
+        The guide rays' light is demodulated, filtered with this Denoiser's method (fireflies
+        clamped, as in a call) and handed to every further eye ray from its most similar guide
+        ray; every eye ray keeps its own emission. With ``filter_direct=False`` (the papers'
+        setting: noise-free direct light) only indirect light is filtered and each eye ray keeps
+        its own direct light; with ``filter_direct=True`` the guide rays' direct light is
+        filtered with it. The pixel is the mean of its samples.
+
+        Args:
+            gb: the guide rays, as from :func:`torchgi.render.render_guide_rays`: ``emission``,
+                ``direct``, ``indirect``, ``albedo``, ``normal``, ``depth`` (and ``position``
+                for "atrous"), ``hit`` optional.
+            samples: the further eye rays.
+
+        Returns:
+            ``(B, 3, H, W)`` radiance, dtype and device of ``gb``.
+
+        Example:
+            >>> from torchgi.render import render_guide_rays, scenes
+            >>> gb, eye = render_guide_rays(scenes.cornell(16), spp=4)
+            >>> Denoiser("guided").supersample(gb, eye).shape
+            torch.Size([1, 3, 16, 16])
+        """
+        from torchgi.supersample import composite, distribute
+
+        for name in ("emission", "direct", "indirect", "albedo", "normal", "depth"):
+            if getattr(gb, name) is None:
+                raise ShapeError(f"gb.{name}: required by supersample (render with render_guide_rays)")
+        surface = gb.hit if gb.hit is not None else gb.albedo.amax(1, keepdim=True) > 0
+        albedo = torch.where(surface, gb.albedo.clamp_min(1e-3), torch.ones((), dtype=gb.dtype, device=gb.device))
+        x = (gb.indirect + gb.direct if self.filter_direct else gb.indirect) / albedo
+        if self.method == "none":
+            light = x
+        else:
+            light = _filter_light(x, _median_level(x, surface), lambda v: self._filter(v, gb, surface))
+        light = torch.where(surface, light, 0.0)  # no reflected light without a surface
+        own, sample_own = gb.emission, samples.emission
+        if not self.filter_direct:
+            own, sample_own = own + gb.direct, sample_own + samples.direct
+        out = composite(own, gb.albedo, light, sample_own, samples.albedo,
+                        distribute(light, gb.normal, gb.depth, samples))
         return out if self.hdr else out.clamp(0, 1)
 
     def _radius(self, spp: float, base: int) -> int:

@@ -13,11 +13,11 @@ import types
 from typing import Any
 
 from torchgi.render import scenes
-from torchgi.render.engine import render, render_guides
+from torchgi.render.engine import render, render_guide_rays, render_guides
 from torchgi.render.scene import Camera, Material, Mesh, PointLight, Scene, Sky, load_scene
 
 __all__ = [
-    "render", "render_guides", "load_scene", "scenes", "Scene", "Camera", "Material", "Mesh", "PointLight", "Sky",
+    "render", "render_guides", "render_guide_rays", "load_scene", "scenes", "Scene", "Camera", "Material", "Mesh", "PointLight", "Sky",
 ]
 
 

@@ -27,11 +27,13 @@ from torchgi.core.errors import DeviceError, DTypeError, RangeError, ShapeError
 from torchgi.render.accel import Accel, embree_started
 from torchgi.render.film import BLOCK, Film
 from torchgi.render.integrators import basic, path
-from torchgi.render.integrators.common import SKIPS, Context, guides
+from torchgi.render.integrators.common import CAMERA_DIMS, SKIPS, Context, guides
 from torchgi.render.lights import Tables
+from torchgi.render.sampler import sample_keys, uniform
 from torchgi.render.scene import Camera, Scene, SceneArrays, load_scene
+from torchgi.supersample import EyeSamples
 
-__all__ = ["render", "render_guides", "process_context", "INTEGRATORS", "SKIPS"]
+__all__ = ["render", "render_guides", "render_guide_rays", "process_context", "INTEGRATORS", "SKIPS"]
 
 INTEGRATORS: dict[str, Callable[..., torch.Tensor]] = {"path": path.radiance, "basic": basic.radiance}
 _PARALLEL_MIN_SAMPLES = 1 << 19  # below this a pool costs more than it saves (unless asked)
@@ -224,6 +226,85 @@ def render_guides(scene: Scene | str | os.PathLike[str], *, chunk_size: int = 1 
         for k, v in guides(ctx, pixel).items():
             g[k][:, start : start + pixel.numel()] = v
     return GBuffer(**{k: v.reshape(1, -1, height, width) for k, v in g.items()})
+
+
+def render_guide_rays(
+    scene: Scene | str | os.PathLike[str],
+    spp: int = 4,
+    bounces: int = 1,
+    seed: int = 0,
+    *,
+    integrator: str = "path",
+    chunk_size: int = 1 << 15,
+) -> tuple[GBuffer, EyeSamples]:
+    """Render for supersampling with guide rays (Bauszat et al. 2011 §3.2; :mod:`torchgi.supersample`).
+
+    Sample 0 of each pixel is a guide ray through its centre, the only path that estimates
+    indirect light; the ``spp - 1`` further eye rays are jittered in the pixel and compute only
+    emission and direct light, plus their first-hit guides. One process (no workers).
+
+    Args:
+        scene: a :class:`Scene`, a YAML path or a built-in name.
+        spp: eye rays per pixel, >= 1 (the guide ray included).
+        bounces: indirect bounces of the guide rays' paths, >= 0.
+        seed: in [0, 2^32).
+        integrator: "path" or "basic".
+        chunk_size: rays traced at once, >= 1.
+
+    Returns:
+        The guide rays' GBuffer (B = 1, CPU, float32): ``emission``, ``direct``, ``indirect``
+        of one path per pixel centre, its first-hit ``albedo``, ``normal``, ``position``,
+        ``depth``, ``hit`` and ``spp`` (1); and the :class:`~torchgi.supersample.EyeSamples` of
+        the other eye rays, ``S = spp - 1``.
+
+    Example:
+        >>> from torchgi.render import scenes
+        >>> gb, eye = render_guide_rays(scenes.cornell(8), spp=3)
+        >>> gb.indirect.shape, eye.direct.shape
+        (torch.Size([1, 3, 8, 8]), torch.Size([1, 2, 3, 8, 8]))
+    """
+    if not isinstance(scene, Scene):
+        scene = load_scene(scene)
+    check_int(spp, "spp", 1)
+    check_int(bounces, "bounces", 0)
+    check_int(seed, "seed", 0)
+    if seed >= 1 << 32:
+        raise RangeError(f"seed: expected an int in [0, 2^32), got {seed}")
+    check_option(integrator, "integrator", tuple(INTEGRATORS))
+    check_int(chunk_size, "chunk_size", 1)
+    width, height = scene.camera.resolution
+    P, S = width * height, spp - 1
+    ctx = _context(scene.arrays(), scene.camera, bounces, seed)
+    radiance = INTEGRATORS[integrator]
+    rows = torch.zeros(9, P)
+    for start in range(0, P, chunk_size):
+        pixel = torch.arange(start, min(start + chunk_size, P))
+        rows[:, start : start + pixel.numel()] = radiance(ctx, pixel, torch.zeros_like(pixel), centre=True)
+    eye = {k: torch.zeros(c, S * P) for k, c in (("offset", 2), ("normal", 3), ("depth", 1), ("albedo", 3),
+                                                 ("emission", 3), ("direct", 3))}
+    for start in range(0, S * P, chunk_size):
+        index = torch.arange(start, min(start + chunk_size, S * P))
+        pixel, sample = index % P, index // P + 1
+        jitter = uniform(sample_keys(seed, pixel, sample, 0), CAMERA_DIMS)
+        g = guides(ctx, pixel, jitter)
+        values = radiance(ctx, pixel, sample, record="direct")
+        chunk = slice(start, start + index.numel())
+        eye["offset"][:, chunk] = jitter
+        for k in ("normal", "depth", "albedo"):
+            eye[k][:, chunk] = g[k]
+        eye["emission"][:, chunk] = values[0:3]
+        eye["direct"][:, chunk] = values[3:6]
+    g = render_guides(scene, chunk_size=chunk_size)
+
+    def image(x: torch.Tensor) -> torch.Tensor:  # (C, P) -> (1, C, H, W)
+        return x.reshape(1, -1, height, width)
+
+    samples = EyeSamples(**{k: v.reshape(v.shape[0], S, height, width).permute(1, 0, 2, 3)[None].contiguous()
+                            for k, v in eye.items()})
+    gb = GBuffer(emission=image(rows[0:3]), direct=image(rows[3:6]), indirect=image(rows[6:9]), albedo=g.albedo,
+                 normal=g.normal, position=g.position, depth=g.depth, hit=g.hit,
+                 spp=torch.ones(1, 1, height, width, dtype=torch.int64))
+    return gb, samples
 
 
 def render(

@@ -30,7 +30,8 @@ __all__ = ["radiance"]
 
 
 def radiance(
-    ctx: Context, pixel: torch.Tensor, sample: torch.Tensor, *, stream: int = 0, record: str = "all"
+    ctx: Context, pixel: torch.Tensor, sample: torch.Tensor, *, stream: int = 0, record: str = "all",
+    centre: bool = False,
 ) -> torch.Tensor:
     """Same contract as :func:`torchgi.render.integrators.path.radiance`."""
     tables = ctx.tables
@@ -42,7 +43,8 @@ def radiance(
     bounces = 0 if record == "direct" else ctx.bounces
 
     # ---- camera ray
-    origin, direction = camera_rays(ctx.camera, pixel % ctx.pixels_per_image, uniform(keys, CAMERA_DIMS))
+    jitter = None if centre else uniform(keys, CAMERA_DIMS)
+    origin, direction = camera_rays(ctx.camera, pixel % ctx.pixels_per_image, jitter)
     origin = origin.expand(3, n)
     t, prim = ctx.accel.intersect(origin, direction)
     alive = prim >= 0

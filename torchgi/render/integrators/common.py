@@ -95,13 +95,14 @@ def emitted(ctx: Context, direction: torch.Tensor, prim: torch.Tensor) -> tuple[
     return rows[EMISSION_ROWS] * front, rows
 
 
-def guides(ctx: Context, pixel: torch.Tensor) -> dict[str, torch.Tensor]:
-    """First-hit guides of rays through pixel centres ``pixel (N,)`` (index within one image).
+def guides(ctx: Context, pixel: torch.Tensor, jitter: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+    """First-hit guides of camera rays through ``pixel (N,)`` (index within one image) at
+    ``jitter (2, N)`` in the pixel (None: its centre).
 
     Returns ``albedo, normal, position (3, N)``, ``depth (1, N)`` (distance along the ray, 0 on
     a miss) and ``hit (1, N)``; the normal faces the camera, everything is 0 on a miss.
     """
-    origin, direction = camera_rays(ctx.camera, pixel, None)
+    origin, direction = camera_rays(ctx.camera, pixel, jitter)
     t, prim = ctx.accel.intersect(origin, direction)
     hit = prim >= 0
     t = torch.where(hit, t, 0.0)

@@ -39,7 +39,8 @@ def _power(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 
 def radiance(
-    ctx: Context, pixel: torch.Tensor, sample: torch.Tensor, *, stream: int = 0, record: str = "all"
+    ctx: Context, pixel: torch.Tensor, sample: torch.Tensor, *, stream: int = 0, record: str = "all",
+    centre: bool = False,
 ) -> torch.Tensor:
     """Radiance of one path per ``(pixel, sample)``.
 
@@ -50,6 +51,7 @@ def radiance(
         stream: random stream (separate passes over the same samples use different ones).
         record: "all"; "direct" (emission and direct light only); "indirect" (only light
             after >= 2 surface interactions, skipping the first vertex's light sampling).
+        centre: camera rays through pixel centres (guide rays) instead of jittered ones.
 
     Returns:
         ``(9, N)`` float32: emission, direct and indirect RGB rows.
@@ -61,7 +63,8 @@ def radiance(
     n_total = pixel.numel()
     out = torch.zeros(9, n_total)
     keys = sample_keys(ctx.seed, pixel, sample, stream)
-    origin, direction = camera_rays(ctx.camera, pixel % ctx.pixels_per_image, uniform(keys, CAMERA_DIMS))
+    jitter = None if centre else uniform(keys, CAMERA_DIMS)
+    origin, direction = camera_rays(ctx.camera, pixel % ctx.pixels_per_image, jitter)
     t, prim = ctx.accel.intersect(origin, direction)
     hit = prim >= 0
     if record != "indirect":
