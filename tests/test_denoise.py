@@ -7,17 +7,16 @@ from pathlib import Path
 import pytest
 import torch
 
-pytest.importorskip("embreex", reason="the render extra is not installed")
-
-import torchgi  # noqa: E402
-from torchgi import metrics  # noqa: E402
-from torchgi.denoise import Denoiser  # noqa: E402
+import torchgi
+from torchgi import metrics
+from torchgi.denoise import Denoiser
 
 PRESETS = Path(__file__).resolve().parents[1] / "configs" / "denoise"
 
 
 @pytest.fixture(scope="module")
 def cornell():
+    pytest.importorskip("embreex", reason="the render extra is not installed")
     scene = torchgi.scenes.cornell(48)
     return torchgi.render(scene, spp=1, bounces=1, seed=1), torchgi.render(scene, spp=256, bounces=1, seed=2)
 
@@ -107,3 +106,29 @@ def test_bad_input(cornell):
         Denoiser("guided")(colour=noisy.color)
     with pytest.raises(ValueError):
         Denoiser("guided")(color=noisy.color, albedo=noisy.albedo[..., :10], normal=noisy.normal)
+
+
+def _synthetic(device: torch.device) -> torchgi.GBuffer:
+    g = torch.Generator().manual_seed(0)
+    H, W = 40, 48
+    normal = torch.nn.functional.normalize(torch.randn(1, 3, H, W, generator=g), dim=1)
+    normal[..., :, 24:] = torch.tensor([0.0, 0.0, 1.0])[:, None, None]
+    emission = torch.zeros(1, 3, H, W)
+    emission[..., 4:9, 30:36] = 20.0  # a light source
+    color = torch.rand(1, 3, H, W, generator=g) ** 4 * 2 + emission
+    color[..., 20, 10] += 500.0  # a firefly
+    return torchgi.GBuffer(color=color, emission=emission, albedo=torch.rand(1, 3, H, W, generator=g) * 0.8 + 0.1,
+                           normal=normal, depth=torch.rand(1, 1, H, W, generator=g) + 1,
+                           position=torch.rand(1, 3, H, W, generator=g)).to(device)
+
+
+@pytest.mark.parametrize("method", ["guided", "atrous", "bilateral"])
+def test_the_pipeline_gives_the_same_result_on_every_device(device, method):
+    cpu = Denoiser(method)(_synthetic(torch.device("cpu")))
+    out = Denoiser(method)(_synthetic(device))
+    assert out.device.type == device.type and out.dtype == torch.float32
+    torch.testing.assert_close(out.cpu(), cpu, rtol=1e-4, atol=1e-4)
+    if method == "guided":
+        gb = _synthetic(device)
+        deployed = Denoiser("guided").deploy()(gb.color, gb.emission, gb.albedo, gb.normal, gb.depth)
+        assert deployed.device.type == device.type and torch.isfinite(deployed).all()

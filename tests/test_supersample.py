@@ -52,12 +52,15 @@ def _oracle(filtered, gn, gd, eye):
     return out
 
 
-def test_distribute_matches_a_brute_force_lookup():
+def test_distribute_matches_a_brute_force_lookup(device):
     B, S, H, W = 2, 3, 5, 6
     eye, gn, gd = _random_samples(B, S, H, W, seed=1)
     filtered = torch.rand(B, 3, H, W, generator=torch.Generator().manual_seed(2))
-    got = distribute(filtered, gn, gd, eye)
-    assert torch.equal(got.double(), _oracle(filtered, gn, gd, eye))
+    on = EyeSamples(*(getattr(eye, f).to(device) for f in ("offset", "normal", "depth", "albedo", "emission",
+                                                           "direct")))
+    got = distribute(filtered.to(device), gn.to(device), gd.to(device), on)
+    assert got.device.type == device.type
+    assert torch.equal(got.cpu().double(), _oracle(filtered, gn, gd, eye))
 
 
 def test_distribute_picks_the_matching_neighbour():
