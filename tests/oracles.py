@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn.functional as F
 
@@ -14,8 +16,9 @@ def box_oracle(x: torch.Tensor, r: int) -> torch.Tensor:
     return F.avg_pool2d(x, (k, 1), stride=1, padding=(r, 0), count_include_pad=False)
 
 
-def guided_oracle(p: torch.Tensor, I: torch.Tensor, r: int, eps) -> torch.Tensor:
-    """He et al.'s guided filter in float64 with torch.linalg.solve, no centring tricks."""
+def guided_oracle(p: torch.Tensor, I: torch.Tensor, r: int, eps, coefficients: bool = False) -> torch.Tensor:
+    """He et al.'s guided filter in float64 with torch.linalg.solve, no centring tricks (or its
+    box-filtered coefficients ``(B, n + 1, C, H, W)``: a_0 .. a_{n-1}, b)."""
     p, I = p.double(), I.double()
     B, C, H, W = p.shape
     n = I.shape[1]
@@ -30,7 +33,42 @@ def guided_oracle(p: torch.Tensor, I: torch.Tensor, r: int, eps) -> torch.Tensor
     a = a.permute(0, 3, 4, 1, 2)  # (B, n, C, H, W)
     b = mp - (a * mI[:, :, None]).sum(1)
     ma = box_oracle(a.reshape(B, n * C, H, W), r).reshape(B, n, C, H, W)
+    if coefficients:
+        return torch.cat([ma, box_oracle(b, r)[:, None]], 1)
     return (ma * I[:, :, None]).sum(1) + box_oracle(b, r)
+
+
+def fast_guided_oracle(p: torch.Tensor, I: torch.Tensor, r: int, eps, s: int) -> torch.Tensor:
+    """He & Sun 2015 in float64 loops: s x s means (partial blocks at the far edges average what
+    exists), coefficients at radius round(r / s), bilinear upsampling with pixel centres aligned
+    (u = (i + 0.5) h / H - 0.5, clamped to the image), applied to the full-resolution guide."""
+    p, I = p.double(), I.double()
+    B, C, H, W = p.shape
+    h, w = -(-H // s), -(-W // s)
+
+    def down(x):
+        out = torch.zeros(x.shape[0], x.shape[1], h, w, dtype=torch.float64)
+        for i in range(h):
+            for j in range(w):
+                out[:, :, i, j] = x[:, :, i * s : (i + 1) * s, j * s : (j + 1) * s].mean((2, 3))
+        return out
+
+    def weights(n_out, n_in):
+        rows = []
+        for i in range(n_out):
+            u = max((i + 0.5) * n_in / n_out - 0.5, 0.0)
+            i0 = min(int(math.floor(u)), n_in - 1)
+            i1 = min(i0 + 1, n_in - 1)
+            row = torch.zeros(n_in, dtype=torch.float64)
+            row[i0] += 1 - (u - i0)
+            row[i1] += u - i0
+            rows.append(row)
+        return torch.stack(rows)
+
+    co = guided_oracle(down(p), down(I), round(r / s), eps, coefficients=True)  # (B, n+1, C, h, w)
+    up = torch.einsum("Hh,bnchw,Ww->bncHW", weights(H, h), co, weights(W, w))
+    n = I.shape[1]
+    return (up[:, :n] * I[:, :, None]).sum(1) + up[:, n]
 
 
 def scene(B, H, W, n, seed=0, noise=0.5):

@@ -108,11 +108,10 @@ def test_bad_input(cornell):
         Denoiser("guided")(color=noisy.color, albedo=noisy.albedo[..., :10], normal=noisy.normal)
 
 
-def _synthetic(device: torch.device) -> torchgi.GBuffer:
+def _synthetic(device: torch.device, H: int = 40, W: int = 48) -> torchgi.GBuffer:
     g = torch.Generator().manual_seed(0)
-    H, W = 40, 48
     normal = torch.nn.functional.normalize(torch.randn(1, 3, H, W, generator=g), dim=1)
-    normal[..., :, 24:] = torch.tensor([0.0, 0.0, 1.0])[:, None, None]
+    normal[..., :, W // 2 :] = torch.tensor([0.0, 0.0, 1.0])[:, None, None]
     emission = torch.zeros(1, 3, H, W)
     emission[..., 4:9, 30:36] = 20.0  # a light source
     color = torch.rand(1, 3, H, W, generator=g) ** 4 * 2 + emission
@@ -132,3 +131,11 @@ def test_the_pipeline_gives_the_same_result_on_every_device(device, method):
         gb = _synthetic(device)
         deployed = Denoiser("guided").deploy()(gb.color, gb.emission, gb.albedo, gb.normal, gb.depth)
         assert deployed.device.type == device.type and torch.isfinite(deployed).all()
+
+
+def test_guided_runs_at_half_resolution_from_256_pixels():
+    small, large = _synthetic(torch.device("cpu")), _synthetic(torch.device("cpu"), 256, 272)
+    torch.testing.assert_close(Denoiser("guided")(large), Denoiser("guided", subsample=2)(large))
+    assert not torch.allclose(Denoiser("guided")(large), Denoiser("guided", subsample=1)(large))
+    torch.testing.assert_close(Denoiser("guided", "high")(large), Denoiser("guided", "high", subsample=1)(large))
+    torch.testing.assert_close(Denoiser("guided")(small), Denoiser("guided", subsample=1)(small))

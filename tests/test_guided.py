@@ -7,7 +7,7 @@ from torchgi import GBuffer
 from torchgi.core import DeviceError, DTypeError, NonFiniteError, RangeError, ShapeError
 from torchgi.filters import Guided, guide_from_gbuffer, guided
 
-from .oracles import box_oracle, guided_oracle, scene
+from .oracles import box_oracle, fast_guided_oracle, guided_oracle, scene
 
 
 def rel_err(out, ref):
@@ -22,6 +22,21 @@ def test_matches_float64_oracle(n, r):
     assert rel_err(guided(p, I, radius=r, eps=0.01), want) < 1e-5  # CPU fast path, float32
     p64 = p.double().requires_grad_()  # autograd forces the cumsum (export) path
     assert rel_err(guided(p64, I.double(), radius=r, eps=0.01).detach(), want) < 1e-10
+
+
+@pytest.mark.parametrize("s", [2, 3])
+def test_subsampled_matches_float64_oracle(s, device):
+    # odd sizes: partial s x s blocks at the right and bottom edges
+    p, I = scene(2, 37, 53, 4, seed=s)
+    want = fast_guided_oracle(p, I, 6, 0.01, s)
+    out = guided(p.to(device), I.to(device), radius=6, eps=0.01, subsample=s)
+    assert out.shape == p.shape and out.device.type == device.type
+    assert rel_err(out.cpu(), want) < 1e-5  # CPU: the fast path; CUDA: the cumsum path
+    p64 = p.double().requires_grad_()
+    got = guided(p64, I.double(), radius=6, eps=0.01, subsample=s)
+    assert rel_err(got.detach(), want) < 1e-10
+    assert torch.autograd.gradcheck(lambda a: guided(a, I[:1, :, :7, :9].double(), radius=2, eps=0.05, subsample=s),
+                                    (p64[:1, :1, :7, :9].detach().requires_grad_(),))
 
 
 @pytest.mark.parametrize("offset", [0.0, 1e3, 1e4])

@@ -16,6 +16,7 @@ the rounding level of the variance so flat guides and ``eps=0`` stay finite and 
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from torchgi.buffers import GBuffer
@@ -143,8 +144,12 @@ def _unpack(planes: list[torch.Tensor], n: int, Cs: int):
     return mI, mp, mII, mIp
 
 
-def _guided_reference(I: torch.Tensor, p: torch.Tensor, r: int, eps: torch.Tensor) -> torch.Tensor:
-    """Differentiable, traceable path: cumsum box filters over stacked planes."""
+def _guided_reference(
+    I: torch.Tensor, p: torch.Tensor, r: int, eps: torch.Tensor, coefficients_only: bool = False
+) -> torch.Tensor:
+    """Differentiable, traceable path: cumsum box filters over stacked planes. Returns the output
+    without ``mean(p)`` (centred inputs), or the box-filtered coefficients ``(B, n + 1, Cs, H, W)``
+    (``a_0 .. a_{n-1}, b``)."""
     n, Cs = I.shape[1], p.shape[1]
     tensors = {"I": I, "p": p}
     planes = [
@@ -154,9 +159,17 @@ def _guided_reference(I: torch.Tensor, p: torch.Tensor, r: int, eps: torch.Tenso
     m = _box_cumsum(torch.cat(planes, 1), r)
     a, b = _solve(*_unpack(list(m.split(1, 1)), n, Cs), eps)
     coeffs = _box_cumsum(torch.cat(a + [b], 1), r)
-    out = coeffs[:, n * Cs :]
+    if coefficients_only:
+        return coeffs.unflatten(1, (n + 1, Cs))
+    return _apply(coeffs.unflatten(1, (n + 1, Cs)), I)
+
+
+def _apply(coeffs: torch.Tensor, I: torch.Tensor) -> torch.Tensor:
+    """``b + Σ_i a_i I_i`` for coefficients ``(B, n + 1, Cs, H, W)`` and a centred guide ``(B, n, H, W)``."""
+    n = I.shape[1]
+    out = coeffs[:, n]
     for i in range(n):
-        out = out + coeffs[:, i * Cs : (i + 1) * Cs] * I[:, i : i + 1]
+        out = out + coeffs[:, i] * I[:, i : i + 1]
     return out
 
 
@@ -195,16 +208,17 @@ class _Workspace:
 
 def _guided_fast(
     g: torch.Tensor, p: torch.Tensor, mean_g: torch.Tensor, mean_p: torch.Tensor, r: int,
-    eps: torch.Tensor, holder: dict | None = None,
+    eps: torch.Tensor, holder: dict | None = None, coefficients_only: bool = False,
 ) -> torch.Tensor:
     """CPU eager path: box means one plane at a time (cache-resident, reused buffers), the
     solve in row strips so its temporaries stay small; strips of the grouped buffers are views.
-    Centring (by ``mean_g``, ``mean_p``) happens here, into the workspace."""
+    Centring (by ``mean_g``, ``mean_p``) happens here, into the workspace. Returns the output,
+    or the box-filtered coefficients ``(B, n + 1, Cs, H, W)``."""
     B, n, H, W = g.shape
     Cs = p.shape[1]
     ws = _Workspace.get(holder, n, Cs, H, W, r, g.dtype)
     boxer, pairs = ws.boxer, _pairs(n)
-    out = torch.empty(B, Cs, H, W, dtype=g.dtype)
+    out = torch.empty((B, n + 1, Cs, H, W) if coefficients_only else (B, Cs, H, W), dtype=g.dtype)
     for bi in range(B):
         Ib = torch.sub(g[bi], mean_g[bi], out=ws.I)
         pb = torch.sub(p[bi], mean_p[bi], out=ws.p)
@@ -232,6 +246,9 @@ def _guided_fast(
             )
         planes = ws.coeffs.view(-1, H, W)
         boxer(planes, planes)
+        if coefficients_only:
+            out[bi].copy_(ws.coeffs)
+            continue
         acc = torch.add(ws.coeffs[n], mean_p[bi], out=out[bi])
         for i in range(n):
             acc.addcmul_(ws.coeffs[i], Ib[i : i + 1])
@@ -240,7 +257,7 @@ def _guided_fast(
 
 def _guided(
     src: torch.Tensor, guide: torch.Tensor, radius: int, eps: float | torch.Tensor, sanitize: bool,
-    _holder: dict | None,
+    _holder: dict | None, subsample: int = 1,
 ) -> torch.Tensor:
     """:func:`guided`; ``_holder`` keeps the CPU workspace between calls (see :class:`Guided`)."""
     sizes = check_shape(src, "B C H W", "src")
@@ -251,6 +268,7 @@ def _guided(
     if not 1 <= n <= 4:
         raise ShapeError(f"guide: expected 1 to 4 channels, got {n} (shape {tuple(guide.shape)})")
     check_int(radius, "radius")
+    check_int(subsample, "subsample", 1)
     src = finite_or_sanitized(src, "src", sanitize)
     guide = finite_or_sanitized(guide, "guide", sanitize)
     ct = compute_dtype(src.dtype)
@@ -260,11 +278,24 @@ def _guided(
     g, p = guide.to(ct), src.to(ct)
     mean_g, mean_p = g.mean(dim=(2, 3), keepdim=True), p.mean(dim=(2, 3), keepdim=True)
     e = _check_eps(eps, B, n, g)
-    if use_fast_path(src, guide, e):
-        out = _guided_fast(g, p, mean_g, mean_p, radius, e, _holder)
+    fast = use_fast_path(src, guide, e)
+    if subsample == 1:
+        if fast:
+            return _guided_fast(g, p, mean_g, mean_p, radius, e, _holder).to(src.dtype)
+        return (_guided_reference(g - mean_g, p - mean_p, radius, e) + mean_p).to(src.dtype)
+    # He & Sun 2015: coefficients from s x s means at radius r / s, upsampled bilinearly, applied
+    # to the full-resolution guide
+    gc = g - mean_g
+    low_g = F.avg_pool2d(gc, subsample, ceil_mode=True)
+    low_p = F.avg_pool2d(p - mean_p, subsample, ceil_mode=True)
+    r_low = round(radius / subsample)
+    if fast:
+        coeffs = _guided_fast(low_g, low_p, torch.zeros_like(mean_g), torch.zeros_like(mean_p), r_low, e, _holder,
+                              coefficients_only=True)
     else:
-        out = _guided_reference(g - mean_g, p - mean_p, radius, e) + mean_p
-    return out.to(src.dtype)
+        coeffs = _guided_reference(low_g, low_p, r_low, e, coefficients_only=True)
+    coeffs = F.interpolate(coeffs.flatten(1, 2), size=(H, W), mode="bilinear", align_corners=False)
+    return (_apply(coeffs.unflatten(1, (n + 1, Cs)), gc) + mean_p).to(src.dtype)
 
 
 def guided(
@@ -273,6 +304,7 @@ def guided(
     *,
     radius: int = 24,
     eps: float | torch.Tensor = 0.01,
+    subsample: int = 1,
     sanitize: bool = False,
 ) -> torch.Tensor:
     """Guided image filter of ``src`` with a 1-4 channel ``guide``; cost independent of ``radius``.
@@ -287,6 +319,10 @@ def guided(
             ``(B, G)``; ``>= 0``. Per pixel it is raised to at least ``16 · finfo.eps ·
             E[I²]`` (the rounding level of the variance), so ``eps=0`` and flat guides stay
             finite.
+        subsample: ``s >= 1``; above 1, the fast guided filter (He & Sun 2015): the
+            coefficients are solved on ``s x s`` means of ``src`` and ``guide`` with radius
+            ``round(r / s)``, upsampled bilinearly and applied to the full-resolution guide
+            (about ``s²`` times less work; edges stay those of the full guide).
         sanitize: replace NaN/Inf in the inputs by 0 (with a warning) instead of raising.
 
     Returns:
@@ -305,7 +341,7 @@ def guided(
         ...                box(box(src[..., :8, :8], 1), 1), atol=1e-6)
         True
     """
-    return _guided(src, guide, radius, eps, sanitize, None)
+    return _guided(src, guide, radius, eps, sanitize, None, subsample)
 
 
 def guide_from_gbuffer(
@@ -360,6 +396,7 @@ class Guided(nn.Module):
         radius: window radius in pixels.
         eps: float or ``(G,)`` tensor, guide units squared.
         learnable: make ``eps`` an ``nn.Parameter``.
+        subsample: see :func:`guided`.
 
     Example:
         >>> f = Guided(radius=8, eps=torch.tensor([0.01, 0.01, 0.01, 0.03]))
@@ -367,10 +404,13 @@ class Guided(nn.Module):
         torch.Size([1, 3, 16, 16])
     """
 
-    def __init__(self, radius: int = 24, eps: float | torch.Tensor = 0.01, learnable: bool = False) -> None:
+    def __init__(
+        self, radius: int = 24, eps: float | torch.Tensor = 0.01, learnable: bool = False, subsample: int = 1
+    ) -> None:
         super().__init__()
         check_int(radius, "radius")
-        self.radius = radius
+        check_int(subsample, "subsample", 1)
+        self.radius, self.subsample = radius, subsample
         self._workspace: dict = {}
         value = torch.as_tensor(eps, dtype=torch.float32).clone()
         if learnable:
@@ -380,11 +420,13 @@ class Guided(nn.Module):
 
     def forward(self, src: torch.Tensor, guide: torch.Tensor) -> torch.Tensor:
         eps = self.eps if self.eps.dim() else self.eps.expand(guide.shape[1])
-        return _guided(src, guide, self.radius, eps.to(dtype=compute_dtype(src.dtype)), False, self._workspace)
+        return _guided(src, guide, self.radius, eps.to(dtype=compute_dtype(src.dtype)), False, self._workspace,
+                       self.subsample)
 
     def release(self) -> None:
         """Free the CPU scratch buffers kept between calls."""
         self._workspace.clear()
 
     def extra_repr(self) -> str:
-        return f"radius={self.radius}, eps={self.eps.tolist()}"
+        sub = f", subsample={self.subsample}" if self.subsample > 1 else ""
+        return f"radius={self.radius}, eps={self.eps.tolist()}{sub}"
