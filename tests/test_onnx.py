@@ -22,8 +22,9 @@ def test_box_parity(tmp_path):
         assert rel(session(x=x), Box(3)(x)) < 1e-5, shape
 
 
-def test_guided_parity(tmp_path):
-    m = Guided(radius=6, eps=torch.tensor([0.01, 0.01, 0.01, 0.03]))
+@pytest.mark.parametrize("subsample", [1, 2])
+def test_guided_parity(tmp_path, subsample):
+    m = Guided(radius=6, eps=torch.tensor([0.01, 0.01, 0.01, 0.03]), subsample=subsample)
     path = export_onnx(m, [torch.rand(2, 3, 24, 32), torch.rand(2, 4, 24, 32)], tmp_path / "g.onnx",
                        input_names=["src", "guide"])
     session = OrtSession(path)
