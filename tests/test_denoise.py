@@ -146,3 +146,14 @@ def test_guided_runs_at_half_resolution_where_that_loses_nothing():
     torch.testing.assert_close(Denoiser("guided")(rough), full(rough))
     torch.testing.assert_close(Denoiser("guided", "high")(smooth), Denoiser("guided", "high", subsample=1)(smooth))
     torch.testing.assert_close(Denoiser("guided")(small), full(small))
+
+
+def test_noise_free_input_is_returned_as_it_is():
+    # a zero variance measured from >= 2 samples everywhere: nothing to filter (DESIGN §4)
+    gb = _synthetic(torch.device("cpu"))
+    clean = gb.replace(variance=torch.zeros_like(gb.color), spp=torch.full((1, 1, 40, 48), 4))
+    assert torch.equal(Denoiser("guided")(clean), clean.color)
+    one_sample = clean.replace(spp=torch.ones(1, 1, 40, 48, dtype=torch.int64))  # variance unknown at 1 spp
+    assert not torch.equal(Denoiser("guided")(one_sample), clean.color)
+    noisy = clean.replace(variance=torch.full_like(gb.color, 1e-3))
+    assert not torch.equal(Denoiser("guided")(noisy), clean.color)
