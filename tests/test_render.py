@@ -459,17 +459,17 @@ def test_mitsuba_export_never_overwrites(tmp_path):
 
 def test_workers_start_safely_after_embree_was_used_in_process(tmp_path):
     # A BVH built in this process starts embree's TBB threads; forking after that can deadlock,
-    # so later pools start by forkserver. Run in a fresh interpreter so the order is known.
+    # so later pools start by forkserver - without running this script again in the workers, so
+    # it needs no main guard. A fresh interpreter, so the order is known.
     script = tmp_path / "job.py"
     script.write_text(
         "import torch, torchgi\n"
         "from torchgi.render import engine\n"
-        "if __name__ == '__main__':\n"
-        "    scene = torchgi.scenes.sky(24)\n"
-        "    one = torchgi.render(scene, spp=4, bounces=2, seed=2, workers=1)\n"
-        "    method = engine.process_context().get_start_method()\n"
-        "    two = torchgi.render(scene, spp=4, bounces=2, seed=2, workers=2)\n"
-        "    print(method, torch.equal(one.color, two.color), torch.equal(one.variance, two.variance))\n"
+        "scene = torchgi.scenes.sky(24)\n"
+        "one = torchgi.render(scene, spp=4, bounces=2, seed=2, workers=1)\n"
+        "method = engine.process_context().get_start_method()\n"
+        "two = torchgi.render(scene, spp=4, bounces=2, seed=2, workers=2)\n"
+        "print(method, torch.equal(one.color, two.color), torch.equal(one.variance, two.variance))\n"
     )
     import subprocess
     import sys

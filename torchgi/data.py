@@ -354,11 +354,9 @@ def run_job(
                 manifests[Task(**m["task"]).name] = m
                 bar.update()
     elif workers > 1 and len(todo) > 1:
-        import concurrent.futures
+        from torchgi.render.engine import worker_pool
 
-        from torchgi.render.engine import process_context
-
-        with concurrent.futures.ProcessPoolExecutor(workers, mp_context=process_context()) as pool:
+        with worker_pool(workers) as pool:
             for m in pool.map(_task_entry, [(config, t, str(out)) for t in todo]):
                 manifests[Task(**m["task"]).name] = m
                 bar.update()

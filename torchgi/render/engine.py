@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import atexit
 import concurrent.futures
+import contextlib
 import dataclasses
 import multiprocessing
 import os
@@ -33,7 +34,7 @@ from torchgi.render.sampler import sample_keys, uniform
 from torchgi.render.scene import Camera, Scene, SceneArrays, load_scene
 from torchgi.supersample import EyeSamples
 
-__all__ = ["render", "render_guides", "render_guide_rays", "process_context", "INTEGRATORS", "SKIPS"]
+__all__ = ["render", "render_guides", "render_guide_rays", "process_context", "worker_pool", "INTEGRATORS", "SKIPS"]
 
 INTEGRATORS: dict[str, Callable[..., torch.Tensor]] = {"path": path.radiance, "basic": basic.radiance}
 _PARALLEL_MIN_SAMPLES = 1 << 19  # below this a pool costs more than it saves (unless asked)
@@ -149,11 +150,10 @@ def _init_worker() -> None:
 def process_context() -> multiprocessing.context.BaseContext:
     """The start method for worker processes (renders and data generation).
 
-    ``fork`` while this process has not built a BVH yet: fast, and nothing of ``__main__`` is
-    run again. Afterwards ``forkserver`` (``spawn`` where that is missing): embree's TBB threads
-    do not survive a fork, and a forked child that builds a BVH can deadlock (a CI run hung so,
-    in ``Accel.intersect``). Those start methods import ``__main__`` again in each worker, so a
-    script that renders before its first parallel render needs ``if __name__ == "__main__":``.
+    ``fork`` while this process has not built a BVH yet: fast. Afterwards ``forkserver``
+    (``spawn`` where that is missing): embree's TBB threads do not survive a fork, and a forked
+    child that builds a BVH can deadlock (a CI run hung so, in ``Accel.intersect``). Pools from
+    :func:`worker_pool` start those workers without running the user's ``__main__`` script again.
     """
     methods = multiprocessing.get_all_start_methods()
     if "fork" in methods and not embree_started():
@@ -165,14 +165,42 @@ def process_context() -> multiprocessing.context.BaseContext:
     return multiprocessing.get_context("spawn")
 
 
+@contextlib.contextmanager
+def _main_hidden() -> Iterator[None]:
+    """While worker processes start by forkserver / spawn, hide ``__main__``'s file and spec:
+    multiprocessing would otherwise run the user's script again in every worker (which then
+    renders again, or fails without a main guard); the workers only need torchgi."""
+    main = sys.modules.get("__main__")
+    saved = {k: main.__dict__[k] for k in ("__file__", "__spec__") if main is not None and k in main.__dict__}
+    try:
+        if main is not None:
+            main.__dict__.pop("__file__", None)
+            main.__dict__["__spec__"] = None
+        yield
+    finally:
+        if main is not None:
+            main.__dict__.pop("__spec__", None)
+            main.__dict__.update(saved)
+
+
+def worker_pool(workers: int, initializer: Callable[[], None] | None = None) -> concurrent.futures.ProcessPoolExecutor:
+    """A process pool of ``workers`` (see :func:`process_context`), all started now; with
+    forkserver / spawn they start without re-running ``__main__``, so scripts need no main guard."""
+    ctx = process_context()
+    pool = concurrent.futures.ProcessPoolExecutor(workers, mp_context=ctx, initializer=initializer)
+    if ctx.get_start_method() != "fork":
+        with _main_hidden():
+            pool._launch_processes()  # noqa: SLF001 - every worker now, while __main__ is hidden
+    return pool
+
+
 def _pool(workers: int) -> concurrent.futures.ProcessPoolExecutor:
-    """A persistent pool of ``workers`` single-threaded processes (see :func:`process_context`)."""
+    """A persistent pool of ``workers`` single-threaded processes (see :func:`worker_pool`)."""
     global _POOL, _POOL_SIZE
     if _POOL is None or _POOL_SIZE != workers:
         if _POOL is not None:
             _POOL.shutdown()
-        ctx = process_context()
-        _POOL = concurrent.futures.ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker)
+        _POOL = worker_pool(workers, _init_worker)
         _POOL_SIZE = workers
     return _POOL
 
@@ -331,7 +359,7 @@ def render(
         seed: in [0, 2^32); the same seed gives the same image, bit for bit.
         integrator: "path" (fast: MIS, compaction, Russian roulette) or "basic" (readable).
         workers: processes; None = all available cores for renders of >= 2^19 samples (see
-            :func:`process_context` for how they start).
+            :func:`process_context` for how they start; no main guard is needed).
         chunk_size: paths traced at once per worker (memory bound), >= 1024.
         progress: a progress bar (shown after 1 s); None = only on a terminal.
         skip_unneeded: skip work the scene does not need (DESIGN §4): True = every skip,
