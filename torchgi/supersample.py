@@ -36,6 +36,14 @@ class EyeSamples:
         albedo: ``(B, S, 3, H, W)`` first-hit albedo (0 on a miss).
         emission: ``(B, S, 3, H, W)`` light the ray meets directly (emitters, the sky).
         direct: ``(B, S, 3, H, W)`` direct light at its first hit.
+
+    Radiance in the scene's units; all fields floating, on one device. Usually made by
+    :func:`torchgi.render.render_guide_rays`.
+
+    Example:
+        >>> z = lambda c: torch.zeros(1, 3, c, 4, 4)  # B = 1, S = 3 eye rays, 4x4 pixels
+        >>> EyeSamples(z(2) + 0.5, z(3), z(1), z(3), z(3), z(3)).offset.shape
+        torch.Size([1, 3, 2, 4, 4])
     """
 
     offset: torch.Tensor

@@ -185,7 +185,13 @@ def _main_hidden() -> Iterator[None]:
 
 def worker_pool(workers: int, initializer: Callable[[], None] | None = None) -> concurrent.futures.ProcessPoolExecutor:
     """A process pool of ``workers`` (see :func:`process_context`), all started now; with
-    forkserver / spawn they start without re-running ``__main__``, so scripts need no main guard."""
+    forkserver / spawn they start without re-running ``__main__``, so scripts need no main guard.
+
+    Example:
+        >>> with worker_pool(2) as pool:
+        ...     sorted(pool.map(abs, [-1, 2]))
+        [1, 2]
+    """
     ctx = process_context()
     pool = concurrent.futures.ProcessPoolExecutor(workers, mp_context=ctx, initializer=initializer)
     if ctx.get_start_method() != "fork":
