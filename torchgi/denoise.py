@@ -145,7 +145,7 @@ class Denoiser(torch.nn.Module):
         filter_direct: with a direct/indirect split, filter direct light too (True: it is noisy,
             as with area lights and skies at low spp) or keep it as sampled (False: the papers'
             setting, noise-free direct light).
-        **filter_params: override the automatic choices: ``radius``, ``eps`` (guided);
+        **filter_params: override the automatic choices: ``radius``, ``eps``, ``subsample`` (guided);
             ``iterations``, ``sigma_normal``, ``sigma_position``, ``sigma_color`` (À-Trous);
             ``radius``, ``sigma_space``, ``sigma_color`` (bilateral).
 
@@ -174,9 +174,12 @@ class Denoiser(torch.nn.Module):
         super().__init__()
         check_option(method, "method", METHODS)
         check_option(quality, "quality", QUALITIES)
-        known = {"guided": ("radius", "eps", "subsample"), "atrous": ("iterations", "sigma_normal", "sigma_position",
-                                                          "sigma_color"),
-                 "bilateral": ("radius", "sigma_space", "sigma_color"), "none": ()}[method]
+        known = {
+            "guided": ("radius", "eps", "subsample"),
+            "atrous": ("iterations", "sigma_normal", "sigma_position", "sigma_color"),
+            "bilateral": ("radius", "sigma_space", "sigma_color"),
+            "none": (),
+        }[method]
         for key in filter_params:
             check_option(key, f"filter parameter for method={method!r}", known)
         if input_scale is not None and not input_scale > 0:
@@ -320,9 +323,9 @@ class Denoiser(torch.nn.Module):
         measurable, else 1. Half resolution needs >= 256 px on the short side, quality
         "fast"/"balanced", and a guide that is smooth at the pixel scale: fewer than 10 % of
         (every other row's) horizontal neighbours differing by more than 0.1 in the guide.
-        Measured at 1 spp: the same relMSE at 256² and 512² for 2-4x less filter work on
-        cornell, cornell_glossy, sky, bunny and a Mitsuba Cornell box (2-12 % of such edges),
-        but +30 % on grass (28 % edges: sub-pixel blades) and +3-20 % at 128²."""
+        Measured at 1 spp, 512²: relMSE -5 % to +1 % on cornell, cornell_glossy, bunny and
+        Mitsuba's Cornell box and +14 % on sky (0.3-3 % such edges) for 2-4x less filter work;
+        +30 % on grass (28 %: sub-pixel blades, so it stays at full resolution); +3-20 % at 128²."""
         if "subsample" in self.filter_params:
             return self.filter_params["subsample"]
         H, W = guide.shape[-2:]

@@ -68,7 +68,7 @@ def _neighbours(offset: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """For samples at ``offset (B,S,2,H,W)``, the row and column index ``(B,S,4,H,W)`` of the 4
     guide rays (pixel centres) around each, clamped to the image, in the order
     (top-left, top-right, bottom-left, bottom-right)."""
-    B, S, _, H, W = offset.shape
+    H, W = offset.shape[-2:]
     ys = torch.arange(H, device=offset.device).view(1, 1, H, 1)
     xs = torch.arange(W, device=offset.device).view(1, 1, 1, W)
     # the centre left of / above the sample: this pixel's if the offset is past 0.5, else the previous

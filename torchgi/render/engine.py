@@ -196,7 +196,7 @@ def worker_pool(workers: int, initializer: Callable[[], None] | None = None) -> 
     pool = concurrent.futures.ProcessPoolExecutor(workers, mp_context=ctx, initializer=initializer)
     if ctx.get_start_method() != "fork":
         with _main_hidden():
-            pool._launch_processes()  # noqa: SLF001 - every worker now, while __main__ is hidden
+            pool._launch_processes()  # private, stable since 3.9: every worker now, while __main__ is hidden
     return pool
 
 
