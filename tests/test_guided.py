@@ -37,6 +37,8 @@ def test_subsampled_matches_float64_oracle(s, device):
     assert rel_err(got.detach(), want) < 1e-10
     assert torch.autograd.gradcheck(lambda a: guided(a, I[:1, :, :7, :9].double(), radius=2, eps=0.05, subsample=s),
                                     (p64[:1, :1, :7, :9].detach().requires_grad_(),))
+    with pytest.raises(RangeError, match="subsample"):
+        guided(p, I, radius=2, subsample=0)
 
 
 @pytest.mark.parametrize("offset", [0.0, 1e3, 1e4])

@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from torchgi.core import ShapeError
+from torchgi.core import DeviceError, DTypeError, ShapeError
 from torchgi.supersample import EyeSamples, composite, distribute
 
 
@@ -105,6 +105,11 @@ def test_bad_input():
         distribute(torch.rand(1, 3, 5, 4), gn[..., :1, :].expand(1, 3, 5, 4), gd[..., :1, :].expand(1, 1, 5, 4), eye)
     with pytest.raises(ShapeError, match="direct"):
         EyeSamples(eye.offset, eye.normal, eye.depth, eye.albedo, eye.emission, eye.direct[:, :1])
+    with pytest.raises(DTypeError, match="depth"):
+        EyeSamples(eye.offset, eye.normal, eye.depth.long(), eye.albedo, eye.emission, eye.direct)
+    if torch.cuda.is_available():
+        with pytest.raises(DeviceError):
+            EyeSamples(eye.offset.cuda(), eye.normal, eye.depth, eye.albedo, eye.emission, eye.direct)
 
 
 def test_render_guide_rays_and_denoiser():
@@ -134,3 +139,6 @@ def test_render_guide_rays_and_denoiser():
     assert abs(float(raw.mean()) / float(ref.color.mean()) - 1) < 0.1
     with pytest.raises(ShapeError, match="gb.indirect"):
         Denoiser("guided").supersample(gb.replace(indirect=None, color=gb.color), eye)
+    for bad in ({"spp": 0}, {"bounces": -1}, {"seed": 1 << 32}, {"integrator": "bdpt"}, {"chunk_size": 0}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            render_guide_rays(scene, **{"spp": 2, **bad})
