@@ -129,7 +129,14 @@ def distribute(
         top = d.amax(2, keepdim=True)
         return torch.where(top > 0, 1 - d / torch.where(top > 0, top, 1), 1)
 
-    best = (similarity(dn) * similarity(dd)).argmax(2, keepdim=True)  # (B,S,1,H,W)
+    score = similarity(dn) * similarity(dd)  # (B,S,4,H,W)
+    # the first best of 4, by comparisons (argmax over a size-4 middle dimension is ~20x slower)
+    best = torch.zeros_like(score[:, :, :1], dtype=torch.long)
+    top = score[:, :, :1]
+    for k in range(1, 4):
+        better = score[:, :, k : k + 1] > top
+        best = torch.where(better, k, best)
+        top = torch.where(better, score[:, :, k : k + 1], top)
     r = rows.gather(2, best)
     c = cols.gather(2, best)
     return _gather(filtered, r, c)[:, :, 0]
