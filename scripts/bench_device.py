@@ -20,10 +20,10 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from benchmark_utils import SIZES, markdown_table, metadata, time_ms, write_results  # noqa: E402
+from benchmark_utils import SIZES, markdown_table, metadata, time_ms, write_results
 
-from torchgi.filters import Guided, atrous  # noqa: E402
-from torchgi.sampling import allocate, importance_map  # noqa: E402
+from torchgi.filters import Guided, atrous
+from torchgi.sampling import allocate, importance_map
 
 PAPER = {
     ("guided", 1): 16.0, ("guided", 3): 71.0, ("guided", 4): 80.0,

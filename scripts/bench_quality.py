@@ -30,13 +30,14 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from benchmark_utils import available_scenes, markdown_table, metadata, write_results  # noqa: E402
+from benchmark_utils import available_scenes, markdown_table, metadata, write_results
 
-import torchgi  # noqa: E402
-from torchgi import metrics  # noqa: E402
-from torchgi.denoise import Denoiser  # noqa: E402
-from torchgi.filters import atrous  # noqa: E402
-from torchgi.sampling import adaptive_render, pixel_footprint  # noqa: E402
+import torchgi
+from torchgi import metrics
+from torchgi.denoise import Denoiser
+from torchgi.filters import atrous
+from torchgi.sampling import adaptive_render, pixel_footprint
+
 
 def timed(fn):
     out, times = None, []
@@ -89,7 +90,7 @@ def peers() -> dict:
         import pyoidn
 
         def oidn(gb):
-            hwc = lambda t: t[0].permute(1, 2, 0).contiguous()  # noqa: E731
+            hwc = lambda t: t[0].permute(1, 2, 0).contiguous()
             y = pyoidn.denoise(hwc(gb.color), hwc(gb.albedo), hwc(gb.normal), hdr=True, quality="high")
             return y.permute(2, 0, 1)[None]
 

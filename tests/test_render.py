@@ -14,14 +14,15 @@ import yaml
 pytest.importorskip("embreex", reason="the render extra is not installed")
 trimesh = pytest.importorskip("trimesh")
 
-import torchgi  # noqa: E402
-from .oracles import z_pass_rate  # noqa: E402
-from torchgi.core import ConfigError, DTypeError, NonFiniteError, RangeError, ShapeError  # noqa: E402
-from torchgi.render import accel, scenes  # noqa: E402
-from torchgi.render.film import Film  # noqa: E402
-from torchgi.render.materials import bsdf_eval, bsdf_sample  # noqa: E402
-from torchgi.render.sampler import sample_keys, uniform  # noqa: E402
-from torchgi.render.scene import MATERIALS, Camera, Mesh, PointLight, Scene, Sky, load_scene, scene_from_dict  # noqa: E402
+import torchgi
+from torchgi.core import ConfigError, DTypeError, NonFiniteError, RangeError, ShapeError
+from torchgi.render import accel, scenes
+from torchgi.render.film import Film
+from torchgi.render.materials import bsdf_eval, bsdf_sample
+from torchgi.render.sampler import sample_keys, uniform
+from torchgi.render.scene import MATERIALS, Camera, Mesh, PointLight, Scene, Sky, load_scene, scene_from_dict
+
+from .oracles import z_pass_rate
 
 CONFIGS = os.path.join(os.path.dirname(__file__), "..", "configs", "scenes")
 

@@ -35,7 +35,7 @@ import torch
 from torchgi.core.check import check_option, require
 from torchgi.core.errors import ConfigError, RangeError
 
-__all__ = ["DataGenConfig", "Task", "load_config", "plan", "run_task", "run_job", "ShardDataset", "FilterFeatures"]
+__all__ = ["DataGenConfig", "FilterFeatures", "ShardDataset", "Task", "load_config", "plan", "run_job", "run_task"]
 
 _KEYS = ("scenes", "resolution", "views", "jitter", "spp", "reference_spp", "bounces", "seeds")
 INDEX = "index.json"

@@ -35,7 +35,7 @@ from torchgi.core.errors import ShapeError
 from torchgi.core.registry import Registry
 from torchgi.supersample import EyeSamples
 
-__all__ = ["Denoiser", "DeployedDenoiser", "DENOISERS", "METHODS", "QUALITIES"]
+__all__ = ["DENOISERS", "METHODS", "QUALITIES", "Denoiser", "DeployedDenoiser"]
 
 METHODS = ("guided", "atrous", "bilateral", "none")
 QUALITIES = ("fast", "balanced", "high")

@@ -22,7 +22,7 @@ import torch
 
 from torchgi.core.check import check_floating, check_same_device, check_shape
 
-__all__ = ["EyeSamples", "distribute", "composite"]
+__all__ = ["EyeSamples", "composite", "distribute"]
 
 
 @dataclasses.dataclass

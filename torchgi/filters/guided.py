@@ -33,7 +33,7 @@ from torchgi.core.check import (
 from torchgi.core.errors import RangeError, ShapeError
 from torchgi.filters.box import PlaneBoxer, _box_cumsum, compute_dtype, use_fast_path
 
-__all__ = ["guided", "Guided", "guide_from_gbuffer"]
+__all__ = ["Guided", "guide_from_gbuffer", "guided"]
 
 
 def _pairs(n: int) -> list[tuple[int, int]]:

@@ -17,7 +17,17 @@ from torchgi.render.engine import render, render_guide_rays, render_guides
 from torchgi.render.scene import Camera, Material, Mesh, PointLight, Scene, Sky, load_scene
 
 __all__ = [
-    "render", "render_guides", "render_guide_rays", "load_scene", "scenes", "Scene", "Camera", "Material", "Mesh", "PointLight", "Sky",
+    "Camera",
+    "Material",
+    "Mesh",
+    "PointLight",
+    "Scene",
+    "Sky",
+    "load_scene",
+    "render",
+    "render_guide_rays",
+    "render_guides",
+    "scenes",
 ]
 
 

@@ -34,7 +34,7 @@ from torchgi.render.sampler import sample_keys, uniform
 from torchgi.render.scene import Camera, Scene, SceneArrays, load_scene
 from torchgi.supersample import EyeSamples
 
-__all__ = ["render", "render_guides", "render_guide_rays", "process_context", "worker_pool", "INTEGRATORS", "SKIPS"]
+__all__ = ["INTEGRATORS", "SKIPS", "process_context", "render", "render_guide_rays", "render_guides", "worker_pool"]
 
 INTEGRATORS: dict[str, Callable[..., torch.Tensor]] = {"path": path.radiance, "basic": basic.radiance}
 _PARALLEL_MIN_SAMPLES = 1 << 19  # below this a pool costs more than it saves (unless asked)

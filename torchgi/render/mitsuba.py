@@ -18,9 +18,9 @@ import torch
 
 from torchgi.buffers import GBuffer
 from torchgi.core.check import check_int, check_option, require
-from torchgi.render.scene import Material, Scene, PointLight, Sky
+from torchgi.render.scene import Material, PointLight, Scene, Sky
 
-__all__ = ["load_mitsuba", "cornell_box", "render_gbuffer", "to_mitsuba", "render_mitsuba"]
+__all__ = ["cornell_box", "load_mitsuba", "render_gbuffer", "render_mitsuba", "to_mitsuba"]
 
 
 def _rgb(value: Any) -> dict:

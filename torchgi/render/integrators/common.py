@@ -9,13 +9,23 @@ import torch
 
 from torchgi.render.accel import Accel, offset
 from torchgi.render.camera import camera_rays
-from torchgi.render.lights import ALBEDO, ALPHA, EMISSION as EMISSION_ROWS, EMITTER_ROWS, GLOSSY_ROW, NORMAL, Tables
+from torchgi.render.lights import ALBEDO, ALPHA, EMITTER_ROWS, GLOSSY_ROW, NORMAL, Tables
+from torchgi.render.lights import EMISSION as EMISSION_ROWS
 from torchgi.render.materials import dot
 from torchgi.render.scene import Camera
 
 __all__ = [
-    "Context", "Surface", "surface", "guides", "emitted", "SKIPS", "EMISSION", "DIRECT", "INDIRECT", "dims",
     "CAMERA_DIMS",
+    "DIRECT",
+    "EMISSION",
+    "INDIRECT",
+    "SKIPS",
+    "Context",
+    "Surface",
+    "dims",
+    "emitted",
+    "guides",
+    "surface",
 ]
 
 # Rows of an integrator's (9, N) output.

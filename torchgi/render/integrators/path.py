@@ -22,7 +22,8 @@ import torch
 
 from torchgi.render.camera import camera_rays
 from torchgi.render.integrators.common import CAMERA_DIMS, DIRECT, EMISSION, INDIRECT, Context, dims, emitted, surface
-from torchgi.render.lights import EMISSION as EMISSION_ROWS, LIGHT_PDF, NORMAL, sample_area_light, sample_sky
+from torchgi.render.lights import EMISSION as EMISSION_ROWS
+from torchgi.render.lights import LIGHT_PDF, NORMAL, sample_area_light, sample_sky
 from torchgi.render.materials import bsdf_eval, bsdf_sample, dot
 from torchgi.render.sampler import sample_keys, uniform
 
