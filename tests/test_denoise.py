@@ -157,3 +157,16 @@ def test_noise_free_input_is_returned_as_it_is():
     assert not torch.equal(Denoiser("guided")(one_sample), clean.color)
     noisy = clean.replace(variance=torch.full_like(gb.color, 1e-3))
     assert not torch.equal(Denoiser("guided")(noisy), clean.color)
+
+
+def test_radius_follows_the_measured_variance():
+    # relative variance v on every surface pixel (4 samples each): the noise of 0.25 / v samples,
+    # so radius round(4 / sqrt(0.25 / v)) - 4 at v = 0.25, 2 at v = 0.0625 - whatever spp says
+    gb = _synthetic(torch.device("cpu")).replace(spp=torch.full((1, 1, 40, 48), 4))
+    for v, r in ((0.25, 4), (0.0625, 2)):
+        noisy = gb.replace(variance=v * (gb.color.square() + 1e-4))
+        torch.testing.assert_close(Denoiser("guided")(noisy), Denoiser("guided", radius=r)(noisy))
+    without = gb.replace(spp=torch.full((1, 1, 40, 48), 16))  # no variance: from spp, 4 / sqrt(16) = 1 -> 2
+    torch.testing.assert_close(Denoiser("guided")(without), Denoiser("guided", radius=2)(without))
+    low = gb.replace(variance=0.01 * (gb.color.square() + 1e-4))  # the noise of 25 samples: 0.8 -> 2
+    torch.testing.assert_close(Denoiser("guided")(low), Denoiser("guided", radius=2)(low))
