@@ -71,7 +71,7 @@ def _segments(n: int, r: int) -> list[tuple[int, int]]:
     return [(a, b) for a, b in zip(cuts, cuts[1:]) if b > a]
 
 
-# Planes box-filtered together by one call of PlaneBoxer.planes: about 1 MB of float32 per
+# Planes box-filtered together (PlaneBoxer._stack): about 1 MB of float32 per
 # operand, so small images pay the per-op overhead once per stack, not once per plane, and
 # large ones still go one cache-resident plane at a time.
 _STACK_ELEMENTS = 1 << 18
@@ -93,7 +93,7 @@ class PlaneBoxer:
 
     def __init__(self, H: int, W: int, radius: int, dtype: torch.dtype = torch.float32) -> None:
         self.H, self.W, self.r = H, W, radius
-        self.stack = max(1, _STACK_ELEMENTS // max(H * W, 1))  # planes per call of ``planes``
+        self.stack = max(1, _STACK_ELEMENTS // max(H * W, 1))  # planes boxed together
         self._prefix_buf = torch.empty(self.stack, H, W, dtype=dtype)  # prefix sums along W, then H
         self._rows_buf = torch.empty(self.stack, H, W, dtype=dtype)  # box sums along W
         self._upper = torch.triu(torch.ones(_BLOCK_W, _BLOCK_W, dtype=dtype))
