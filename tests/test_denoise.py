@@ -9,6 +9,7 @@ import torch
 
 import torchgi
 from torchgi import metrics
+from torchgi.core import NonFiniteError
 from torchgi.denoise import Denoiser
 
 PRESETS = Path(__file__).resolve().parents[1] / "configs" / "denoise"
@@ -106,6 +107,12 @@ def test_bad_input(cornell):
         Denoiser("guided")(colour=noisy.color)
     with pytest.raises(ValueError):
         Denoiser("guided")(color=noisy.color, albedo=noisy.albedo[..., :10], normal=noisy.normal)
+    bad = noisy.color.clone()
+    bad[0, 1, 5, 5] = float("nan")
+    with pytest.raises(NonFiniteError, match="color"):
+        Denoiser("guided")(color=bad, albedo=noisy.albedo, normal=noisy.normal)
+    with pytest.raises(NonFiniteError, match="normal"):
+        Denoiser("atrous")(color=noisy.color, albedo=noisy.albedo, normal=noisy.normal / 0)
 
 
 def _synthetic(device: torch.device, H: int = 40, W: int = 48) -> torchgi.GBuffer:

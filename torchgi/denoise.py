@@ -30,7 +30,7 @@ from typing import Any
 import torch
 
 from torchgi.buffers import GBuffer
-from torchgi.core.check import check_option, is_tracing
+from torchgi.core.check import check_finite, check_option, is_tracing
 from torchgi.core.errors import ShapeError
 from torchgi.core.registry import Registry
 from torchgi.supersample import EyeSamples
@@ -264,6 +264,9 @@ class Denoiser(torch.nn.Module):
             return gb.color
         if gb.albedo is None or gb.normal is None:
             raise ShapeError("albedo and normal: required by every method but 'none'")
+        for name in ("color", "emission", "direct", "albedo", "normal", "position", "depth", "variance"):
+            if getattr(gb, name) is not None:
+                check_finite(getattr(gb, name), name)  # named here, not as the filter's input
         if _noise_free(gb):
             return gb.color if self.hdr else gb.color.clamp(0, 1)
         surface = gb.hit if gb.hit is not None else gb.albedo.amax(1, keepdim=True) > 0
