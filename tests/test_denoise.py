@@ -111,6 +111,9 @@ def test_bad_input(cornell):
     bad[0, 1, 5, 5] = float("nan")
     with pytest.raises(NonFiniteError, match="color"):
         Denoiser("guided")(color=bad, albedo=noisy.albedo, normal=noisy.normal)
+    empty = torch.zeros(0, 3, 8, 8)
+    for method in ("guided", "atrous", "bilateral"):
+        assert Denoiser(method)(color=empty, albedo=empty, normal=empty, position=empty).shape == (0, 3, 8, 8)
     with pytest.raises(NonFiniteError, match="normal"):
         Denoiser("atrous")(color=noisy.color, albedo=noisy.albedo, normal=noisy.normal / 0)
 

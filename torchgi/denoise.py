@@ -267,7 +267,7 @@ class Denoiser(torch.nn.Module):
         for name in ("color", "emission", "direct", "albedo", "normal", "position", "depth", "variance"):
             if getattr(gb, name) is not None:
                 check_finite(getattr(gb, name), name)  # named here, not as the filter's input
-        if _noise_free(gb):
+        if _noise_free(gb) or gb.color.numel() == 0:  # nothing to filter (an empty batch included)
             return gb.color if self.hdr else gb.color.clamp(0, 1)
         surface = gb.hit if gb.hit is not None else gb.albedo.amax(1, keepdim=True) > 0
         split = gb.indirect is not None and gb.direct is not None and not self.filter_direct
