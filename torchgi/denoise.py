@@ -68,6 +68,17 @@ _INPUTS = ("color", "albedo", "normal", "position", "depth", "emission", "direct
            "hit")
 
 
+def _surface(hit: torch.Tensor | None, albedo: torch.Tensor) -> torch.Tensor:
+    """``(B,1,H,W)`` bool: pixels on geometry - ``hit`` when given, else non-zero albedo."""
+    return hit if hit is not None else albedo.amax(1, keepdim=True) > 0
+
+
+def _demodulator(albedo: torch.Tensor, surface: torch.Tensor) -> torch.Tensor:
+    """What light is divided by: the albedo (at least 1e-3) on surfaces, 1 on the background,
+    which is filtered as it is."""
+    return torch.where(surface, albedo.clamp_min(1e-3), torch.ones((), dtype=albedo.dtype, device=albedo.device))
+
+
 def _noise_free(gb: GBuffer) -> bool:
     """The colour carries no noise to filter (DESIGN §4): a measured variance of 0 everywhere,
     from at least 2 samples in every pixel (with 1 sample the variance is unknown, stored as 0)."""
@@ -129,8 +140,7 @@ def _restore(
     """The module docstring's pipeline around ``filter_fn`` (demodulated light in, filtered out),
     shared by :class:`Denoiser` and :class:`DeployedDenoiser`: all ``(B, C, H, W)``; ``kept`` is
     light added back unfiltered (direct light in the papers' split) or None."""
-    one = torch.ones((), dtype=color.dtype, device=color.device)
-    albedo = torch.where(surface, albedo.clamp_min(1e-3), one)  # background is not demodulated
+    albedo = _demodulator(albedo, surface)
     base = color - kept if kept is not None else color
     level = _median_level((base - emission if emission is not None else base) / albedo, surface)
     lights = _light_sources(emission if emission is not None else base / albedo, _LIGHT * level)
@@ -269,7 +279,7 @@ class Denoiser(torch.nn.Module):
                 check_finite(getattr(gb, name), name)  # named here, not as the filter's input
         if _noise_free(gb) or gb.color.numel() == 0:  # nothing to filter (an empty batch included)
             return gb.color if self.hdr else gb.color.clamp(0, 1)
-        surface = gb.hit if gb.hit is not None else gb.albedo.amax(1, keepdim=True) > 0
+        surface = _surface(gb.hit, gb.albedo)
         split = gb.indirect is not None and gb.direct is not None and not self.filter_direct
         kept = gb.direct if split else None  # the papers' split: direct light as sampled
         out = _restore(gb.color, gb.emission, kept, gb.albedo, surface, lambda x: self._filter(x, gb, surface),
@@ -306,8 +316,8 @@ class Denoiser(torch.nn.Module):
         for name in ("emission", "direct", "indirect", "albedo", "normal", "depth"):
             if getattr(gb, name) is None:
                 raise ShapeError(f"gb.{name}: required by supersample (render with render_guide_rays)")
-        surface = gb.hit if gb.hit is not None else gb.albedo.amax(1, keepdim=True) > 0
-        albedo = torch.where(surface, gb.albedo.clamp_min(1e-3), torch.ones((), dtype=gb.dtype, device=gb.device))
+        surface = _surface(gb.hit, gb.albedo)
+        albedo = _demodulator(gb.albedo, surface)
         x = (gb.indirect + gb.direct if self.filter_direct else gb.indirect) / albedo
         if self.method == "none":
             light = x
@@ -330,7 +340,7 @@ class Denoiser(torch.nn.Module):
         q = _QUALITY_SCALE[self.quality]
         return self.filter_params.get("iterations", max(2, min(8, round(math.log2(16 * q / math.sqrt(spp)) + 2))))
 
-    def _spp(self, gb: GBuffer) -> float:
+    def _spp(self, gb: GBuffer, surface: torch.Tensor) -> float:
         """The sample count the noise corresponds to. With a measured variance (>= 2 samples on
         every surface pixel): ``_REL_VAR_1SPP`` over the mean relative variance of the colour on
         surfaces (>= 1/4), so noisier images get wider filters; otherwise the mean ``spp`` (>= 1)."""
@@ -339,7 +349,7 @@ class Denoiser(torch.nn.Module):
         spp = max(float(gb.spp.float().mean()), 1.0)
         if gb.variance is None or gb.color is None:
             return spp
-        surface = (gb.hit if gb.hit is not None else gb.albedo.amax(1, keepdim=True) > 0).expand_as(gb.color)
+        surface = surface.expand_as(gb.color)
         if not bool(surface.any()) or bool((gb.spp.expand_as(gb.color) < 2)[surface].any()):
             return spp  # some surface pixel has no variance estimate
         rel = float((gb.variance / (gb.color.square() + 1e-4))[surface].mean())
@@ -366,7 +376,7 @@ class Denoiser(torch.nn.Module):
         from torchgi.filters.guided import _guided
 
         p = self.filter_params
-        spp = self._spp(gb)
+        spp = self._spp(gb, surface)
         if self.method == "guided":  # the workspace of the CPU path is kept between calls
             guide = guide_from_gbuffer(gb)
             return _guided(x, guide, self._radius(spp, _GUIDED_RADIUS), p.get("eps", _GUIDED_EPS), False,
@@ -417,7 +427,7 @@ class DeployedDenoiser(torch.nn.Module):
                 geometry: torch.Tensor) -> torch.Tensor:
         from torchgi.filters import atrous, guided
 
-        surface = albedo.amax(1, keepdim=True) > 0
+        surface = _surface(None, albedo)
 
         def filter_fn(x: torch.Tensor) -> torch.Tensor:
             if self.method == "guided":
