@@ -6,16 +6,19 @@ and accuracy against a float64 oracle. Writes CSV/JSON/Markdown and a PNG plot.
     python scripts/bench_filters.py --only atrous --out out/bench
 
 Sections: guided (DESIGN §3.2, issue 5) at 1024x768 / 1080p / 4K, guide dims 1/3/4, r = 8..64,
-kornia guided_blur(separable=True) at the same window, flatness in r, accuracy with offset
-guides; À-Trous (DESIGN §3.1, issue 4) eager and fused, 512² / 1024x768 / 1080p, 1/5/10
-iterations, 0-3 weights (the shape of the paper's Table 2), the time of the bare exponentials
-side by side, the first-call (compile) cost, peak extra memory, and the brute-force
-cross-bilateral and kornia joint_bilateral_blur at the footprint of 3 levels.
+the compiled kernels (the default on the CPU, ``torchgi.filters.native``) and the torch code
+side by side, kornia guided_blur(separable=True) at the same window, flatness in r, accuracy
+with offset guides; À-Trous (DESIGN §3.1, issue 4) with the compiled kernel, torch eager and
+``torch.compile`` (fused), 512² / 1024x768 / 1080p, 1/5/10 iterations, 0-3 weights (the shape
+of the paper's Table 2), the time of the bare exponentials side by side, the first-call cost of
+both compiled forms, peak extra memory, and the brute-force cross-bilateral and kornia
+joint_bilateral_blur at the footprint of 3 levels.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import subprocess
 import sys
@@ -23,8 +26,9 @@ import tempfile
 import time
 from pathlib import Path
 
-# A fresh inductor cache, so the first fused call shows the real compile cost.
+# Fresh caches, so the first calls show the real build / compile costs.
 os.environ.setdefault("TORCHINDUCTOR_CACHE_DIR", tempfile.mkdtemp(prefix="torchgi-inductor-"))
+os.environ.setdefault("TORCHGI_CACHE", tempfile.mkdtemp(prefix="torchgi-native-"))
 
 import torch
 
@@ -33,7 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 from benchmark_utils import SIZES, markdown_table, metadata, time_ms, write_results  # noqa: E402
 
-from torchgi.filters import Guided, atrous, guided  # noqa: E402
+from torchgi.filters import Guided, atrous, guided, native  # noqa: E402
 
 
 def make_inputs(H: int, W: int, n: int, seed: int = 0, offset: float = 0.0):
@@ -60,9 +64,12 @@ def bench_guided(args, rows: list[dict]) -> None:
         t_fn = time_ms(lambda: guided(p, I, radius=r, eps=0.01), min_run_time=args.min_time)
         t_mod = time_ms(lambda: module(p, I), min_run_time=args.min_time)
         module.release()
+        with native.disabled():
+            t_torch = time_ms(lambda: module(p, I), min_run_time=args.min_time)
+        module.release()
         row = {"filter": "guided", "impl": "torchgi", "size": size, "guide_dim": n, "radius": r,
                "fn_ms": t_fn["median_ms"], "fn_iqr_ms": t_fn["iqr_ms"],
-               "module_ms": t_mod["median_ms"], "module_iqr_ms": t_mod["iqr_ms"]}
+               "module_ms": t_mod["median_ms"], "module_iqr_ms": t_mod["iqr_ms"], "torch_module_ms": t_torch["median_ms"]}
         if size == "1024x768" and r == 32 and n in (3, 4) or (args.quick and r == 32):
             # kornia at the same (2r+1)² window, separable box, same eps; its border mode is
             # reflect (ours shrinks the window), which does not change the cost.
@@ -79,23 +86,30 @@ def bench_guided(args, rows: list[dict]) -> None:
 
 
 def accuracy(args, rows: list[dict]) -> None:
-    """Max error relative to the output range against the float64 oracle, NaN count and the
-    number of negative variances before the clamp (from the module's kept workspace)."""
+    """Max error relative to the output range against the float64 oracle and NaN count, for the
+    compiled kernels and the torch code; for the latter also the number of negative variances
+    before the clamp (from the module's kept workspace)."""
     from oracles import guided_oracle  # noqa: PLC0415
 
     H, W = (540, 960) if args.quick else SIZES["1080p"]
     for offset in (0.0, 1e3, 1e4):
         p, I = make_inputs(H, W, 4, seed=3, offset=offset)
-        module = Guided(radius=24, eps=0.01)
-        out = module(p, I)
-        ws = module._workspace["ws"]
-        negative = sum(int((ws.mII[k] - ws.mI[i] * ws.mI[i] < 0).sum()) for k, i in ((0, 0), (2, 1), (5, 2), (9, 3)))
         ref = guided_oracle(p, I, 24, 0.01)
-        err = float((out.double() - ref).abs().max() / (ref.max() - ref.min()))
-        row = {"filter": "guided-accuracy", "size": f"{W}x{H}", "guide_dim": 4, "radius": 24, "offset": offset,
-               "max_rel_err": err, "nan": int(torch.isnan(out).sum()), "neg_var_before_clamp": negative}
-        rows.append(row)
-        print(row, flush=True)
+        for impl in ("compiled", "torch"):
+            module = Guided(radius=24, eps=0.01)
+            with native.disabled() if impl == "torch" else contextlib.nullcontext():
+                out = module(p, I)
+            negative = None
+            if impl == "torch":
+                ws = module._workspace["ws"]
+                negative = sum(int((ws.mII[k] - ws.mI[i] * ws.mI[i] < 0).sum())
+                               for k, i in ((0, 0), (2, 1), (5, 2), (9, 3)))
+            err = float((out.double() - ref).abs().max() / (ref.max() - ref.min()))
+            row = {"filter": "guided-accuracy", "impl": impl, "size": f"{W}x{H}", "guide_dim": 4, "radius": 24,
+                   "offset": offset, "max_rel_err": err, "nan": int(torch.isnan(out).sum()),
+                   "neg_var_before_clamp": negative}
+            rows.append(row)
+            print(row, flush=True)
 
 
 def atrous_inputs(H: int, W: int, seed: int = 0):
@@ -111,10 +125,13 @@ WEIGHTS = {0: dict(color_weight=False, normal=False, position=False), 1: dict(co
            3: dict(color_weight=True, normal=True, position=True)}
 
 
-def run_atrous(c, n, x, iterations: int, weights: int, fused: bool):
+def run_atrous(c, n, x, iterations: int, weights: int, mode: str = "compiled"):
+    """``mode``: "compiled" (the default call: the compiled CPU kernel), "eager" (torch code),
+    "fused" (torch code under ``torch.compile``)."""
     w = WEIGHTS[weights]
-    return atrous(c, n if w["normal"] else None, x if w["position"] else None, iterations=iterations,
-                  color_weight=w["color_weight"], fused=fused)
+    with native.disabled() if mode != "compiled" else contextlib.nullcontext():
+        return atrous(c, n if w["normal"] else None, x if w["position"] else None, iterations=iterations,
+                      color_weight=w["color_weight"], fused=mode == "fused")
 
 
 _PEAK_CHILD = """
@@ -126,29 +143,29 @@ page = os.sysconf("SC_PAGE_SIZE")
 def rss():
     with open("/proc/self/statm") as fh:
         return int(fh.read().split()[1]) * page
-H, W, fused = {H}, {W}, {fused}
+H, W, mode = {H}, {W}, {mode!r}
 c, n, x = atrous_inputs(H, W)
-run_atrous(c, n, x, 5, 3, fused)  # warm-up (compiles when fused)
+run_atrous(c, n, x, 5, 3, mode)  # warm-up (builds or compiles)
 base, peak, stop = rss(), [0], [False]
 def poll():
     while not stop[0]:
         peak[0] = max(peak[0], rss())
         time.sleep(0.0005)
 t = threading.Thread(target=poll); t.start()
-run_atrous(c, n, x, 5, 3, fused)
+run_atrous(c, n, x, 5, 3, mode)
 stop[0] = True; t.join()
 print(peak[0] - base, c.numel() * 4)
 """
 
 
-def peak_memory(size: str, fused: bool) -> dict:
+def peak_memory(size: str, mode: str) -> dict:
     """Peak resident memory of one 5-level, 3-weight call above the resident memory just
     before it, in a fresh process whose allocator returns freed blocks to the OS at once
     (``MALLOC_MMAP_THRESHOLD_``), so the resident size tracks live buffers; RSS is polled
     every 0.5 ms from a thread while the call runs."""
     H, W = SIZES[size]
     env = dict(os.environ, MALLOC_MMAP_THRESHOLD_="131072")
-    out = subprocess.run([sys.executable, "-c", _PEAK_CHILD.format(H=H, W=W, fused=fused)], capture_output=True,
+    out = subprocess.run([sys.executable, "-c", _PEAK_CHILD.format(H=H, W=W, mode=mode)], capture_output=True,
                          text=True, check=True, env=env, cwd=Path(__file__).resolve().parents[1]).stdout.split()
     extra, color_bytes = int(out[-2]), int(out[-1])
     return {"peak_extra_MB": extra / 2**20, "extra_over_color": extra / color_bytes,
@@ -158,18 +175,20 @@ def peak_memory(size: str, fused: bool) -> dict:
 def bench_atrous(args, rows: list[dict]) -> None:
     from torchgi.filters import cross_bilateral
 
-    # first-call cost of the fused path: compile at one size, then a new size and step
+    # first-call cost of both compiled forms at one size, then a new size and step (the C kernels
+    # were built in main: metadata native_build_s)
     c, n, x = atrous_inputs(*SIZES["1024x768"])
-    t0 = time.perf_counter()
-    run_atrous(c, n, x, 5, 3, True)
-    first = time.perf_counter() - t0
     c2, n2, x2 = atrous_inputs(*SIZES["512²"])
-    t0 = time.perf_counter()
-    run_atrous(c2, n2, x2, 5, 3, True)
-    new_size = time.perf_counter() - t0
-    rows.append({"filter": "atrous-first-call", "size": "1024x768", "first_call_s": first,
-                 "new_size_first_call_s": new_size})
-    print(rows[-1], flush=True)
+    for mode in ("compiled", "fused"):
+        t0 = time.perf_counter()
+        run_atrous(c, n, x, 5, 3, mode)
+        first = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        run_atrous(c2, n2, x2, 5, 3, mode)
+        new_size = time.perf_counter() - t0
+        rows.append({"filter": "atrous-first-call", "impl": mode, "size": "1024x768", "first_call_s": first,
+                     "new_size_first_call_s": new_size})
+        print(rows[-1], flush=True)
 
     cases = [("1024x768", 5, w) for w in (0, 1, 2, 3)] + [("1024x768", it, 3) for it in (1, 10)]
     if not args.quick:
@@ -185,17 +204,20 @@ def bench_atrous(args, rows: list[dict]) -> None:
                 torch.exp(e, out=buf)
 
         t_exp = time_ms(exps, min_run_time=args.min_time)
-        t_fused = time_ms(lambda: run_atrous(c, n, x, iterations, weights, True), min_run_time=args.min_time)
-        eager = size == "1024x768" or iterations == 5
-        t_eager = time_ms(lambda: run_atrous(c, n, x, iterations, weights, False), min_run_time=args.min_time) \
-            if eager else None
+        t_c = time_ms(lambda: run_atrous(c, n, x, iterations, weights, "compiled"), min_run_time=args.min_time)
+        torch_too = size == "1024x768" or iterations == 5
+        t_fused = time_ms(lambda: run_atrous(c, n, x, iterations, weights, "fused"), min_run_time=args.min_time) \
+            if torch_too else None
+        t_eager = time_ms(lambda: run_atrous(c, n, x, iterations, weights, "eager"), min_run_time=args.min_time) \
+            if torch_too else None
         row = {"filter": "atrous", "size": size, "iterations": iterations, "weights": weights,
-               "exp_ms": t_exp["median_ms"], "fused_ms": t_fused["median_ms"], "fused_iqr_ms": t_fused["iqr_ms"],
-               "fused_over_exp": t_fused["median_ms"] / t_exp["median_ms"],
+               "exp_ms": t_exp["median_ms"], "compiled_ms": t_c["median_ms"], "compiled_iqr_ms": t_c["iqr_ms"],
+               "compiled_over_exp": t_c["median_ms"] / t_exp["median_ms"],
+               "fused_ms": t_fused["median_ms"] if t_fused else None,
                "eager_ms": t_eager["median_ms"] if t_eager else None}
         if size == "1024x768" and iterations == 5 and weights == 3:
-            for fused in (False, True):
-                row.update({f"{k}_{'fused' if fused else 'eager'}": v for k, v in peak_memory(size, fused).items()})
+            for mode in ("compiled", "eager"):
+                row.update({f"{k}_{mode}": v for k, v in peak_memory(size, mode).items()})
         rows.append(row)
         print({k: (round(v, 2) if isinstance(v, float) else v) for k, v in row.items()}, flush=True)
 
@@ -204,12 +226,12 @@ def bench_atrous(args, rows: list[dict]) -> None:
 
     c, n, x = atrous_inputs(*SIZES["512²"])
     r = 14
-    t_a = time_ms(lambda: run_atrous(c, n, x, 3, 3, True), min_run_time=args.min_time)
+    t_a = time_ms(lambda: run_atrous(c, n, x, 3, 3), min_run_time=args.min_time)
     t_b = time_ms(lambda: cross_bilateral(c, [n, x], radius=r, sigma_space=r / 2, sigma_color=0.5,
                                           sigma_guides=[0.3, 0.3]), min_run_time=args.min_time)
     t_k = time_ms(lambda: kornia.filters.joint_bilateral_blur(c, n, 2 * r + 1, 0.3, (r / 2, r / 2)),
                   min_run_time=args.min_time)
-    row = {"filter": "footprint-29", "size": "512²", "atrous_3it_fused_ms": t_a["median_ms"],
+    row = {"filter": "footprint-29", "size": "512²", "atrous_3it_ms": t_a["median_ms"],
            "cross_bilateral_r14_ms": t_b["median_ms"], "kornia_joint_bilateral_k29_ms": t_k["median_ms"]}
     rows.append(row)
     print(row, flush=True)
@@ -252,6 +274,9 @@ def main() -> None:
     torch.manual_seed(0)
     torch.set_num_threads(args.threads)
     meta = metadata(args.threads)
+    t0 = time.perf_counter()
+    native.library()  # build the C kernels into the empty cache
+    meta.update(native_build_s=time.perf_counter() - t0, native=native.status())
     print(meta, flush=True)
     rows: list[dict] = []
     if args.only in (None, "guided"):
@@ -265,19 +290,19 @@ def main() -> None:
     md = ""
     if args.only in (None, "guided"):
         speed = [r for r in rows if r.get("filter") == "guided"]
-        md += markdown_table(speed, ["size", "guide_dim", "radius", "fn_ms", "module_ms", "kornia_ms",
-                                     "kornia_over_module"])
+        md += markdown_table(speed, ["size", "guide_dim", "radius", "fn_ms", "module_ms", "torch_module_ms",
+                                     "kornia_ms", "kornia_over_module"])
         md += "\n\n" + markdown_table([r for r in rows if r.get("filter") == "guided-accuracy"],
-                                      ["size", "offset", "max_rel_err", "nan", "neg_var_before_clamp"])
+                                      ["impl", "size", "offset", "max_rel_err", "nan", "neg_var_before_clamp"])
         plot(rows, out / f"{stem}.png")
     if args.only in (None, "atrous"):
         md += "\n\n" + markdown_table([r for r in rows if r.get("filter") == "atrous"],
-                                      ["size", "iterations", "weights", "exp_ms", "fused_ms", "fused_over_exp",
-                                       "eager_ms"])
+                                      ["size", "iterations", "weights", "exp_ms", "compiled_ms",
+                                       "compiled_over_exp", "fused_ms", "eager_ms"])
         for kind in ("atrous-first-call", "footprint-29"):
             sel = [r for r in rows if r.get("filter") == kind]
             md += "\n\n" + markdown_table(sel, [k for k in sel[0] if k != "filter"])
-        mem = [r for r in rows if "peak_extra_MB_eager" in r]
+        mem = [r for r in rows if "peak_extra_MB_compiled" in r]
         md += "\n\n" + markdown_table(mem, [k for k in mem[0] if k.startswith(("peak", "extra"))])
     (out / f"{stem}.md").write_text(md + "\n")
     print(md)

@@ -7,7 +7,8 @@ Iteration ``i = 0..N-1`` with step ``s = 2^i`` over the 25 taps of ``h = b ⊗ b
     w_n = exp(-|n(p)-n(q)|² / (s² σ_n)),  w_x = exp(-|x(p)-x(q)|² / σ_x),  σ_rt,i = 2^-i σ_rt
 
 (the paper's shader form: squared distances over σ). The three exponentials are one
-``exp(-(d_rt + d_n + d_x))``. Beyond the paper: sub-sampled input with in-painting, global
+``exp(-(d_rt + d_n + d_x))``. On the CPU a level runs in a compiled C kernel
+(:mod:`torchgi.filters.native`) where it applies, else in the torch code below. Beyond the paper: sub-sampled input with in-painting, global
 energy post-normalisation (the paper's stated fix), and an SVGF-style variance-guided colour
 weight (Schied et al. 2017) that replaces the tie of σ_rt to the image maximum.
 """
@@ -30,6 +31,7 @@ from torchgi.core.check import (
     is_tracing,
 )
 from torchgi.core.errors import RangeError, ShapeError
+from torchgi.filters import native
 from torchgi.filters.box import compute_dtype
 from torchgi.filters.taps import Padded, kernel_5x5
 
@@ -134,6 +136,15 @@ def _iteration(
 
 
 _fused_iteration = None
+_taps_f32: torch.Tensor | None = None
+
+
+def _native_taps() -> torch.Tensor:
+    """The 25 tap weights ``h`` as a float32 tensor, in :func:`kernel_5x5`'s order."""
+    global _taps_f32
+    if _taps_f32 is None:
+        _taps_f32 = torch.tensor([h for _, _, h in _TAPS], dtype=torch.float32)
+    return _taps_f32
 
 
 def _compiled_iteration():
@@ -184,9 +195,12 @@ def atrous(
             paper's post-normalisation fix for energy loss at edges).
         return_details: also return the detail coefficients ``d_i = c_{i+1} - c_i``.
         sanitize: replace NaN/Inf inputs by 0 (with a warning) instead of raising.
-        fused: run each level through ``torch.compile`` (one fused loop per level, about 8x
-            faster on CPU). The first call in a process compiles (about a minute on 2 cores;
-            inductor caches it on disk for later processes); new sizes and steps reuse it.
+        fused: run the torch code of each level through ``torch.compile`` (one fused loop per
+            level). The first call in a process compiles (about a minute on 2 cores; inductor
+            caches it on disk for later processes); new sizes and steps reuse it. On the CPU,
+            float32 (and float16/bfloat16) calls without autograd or tracing run each level in
+            the compiled C kernel of :mod:`torchgi.filters.native` instead, whatever ``fused``
+            says (about 2x faster than ``fused`` and 15x than eager at 1024x768).
 
     Returns:
         ``(B, C, H, W)`` filtered colour in the input's dtype (float16/bfloat16 computed in
@@ -256,18 +270,28 @@ def atrous(
     details = []
     total_in = c.sum(dim=(2, 3), keepdim=True) if energy else None
     level = _compiled_iteration() if fused else _iteration
+    # w_n · w_x = exp(-|f(p) - f(q)|²) with f = (n / (s·√σ_n), x / √σ_x): the guides divided
+    # by √σ here, normals also by the step s of each level
+    guides = ([(n, inv_n.sqrt(), True)] if inv_n is not None else []) + \
+        ([(x, inv_x.sqrt(), False)] if inv_x is not None else [])
+    compiled = native.applies(c, n, x, var, inv_c, inv_n, inv_x)  # the compiled CPU kernel
+    if compiled and guides:  # built once: the kernel scales the normals' distances by 1 / s²
+        feat = native.padded(B, 3 * len(guides), *c.shape[-2:])
+        for k, (g, s, _) in enumerate(guides):
+            torch.mul(g, s, out=feat[:, 3 * k : 3 * k + 3])
     for i in range(iterations):
         step = 2**i
         scale = None
         if color_weight and i >= fill:
             # variance-guided: 1 / (σ² · blurred per-pixel variance summed over channels)
             scale = inv_c * (2.0**i) if var is None else inv_c / (_blur3(var).sum(1, keepdim=True) + 1e-12)
-        # w_n · w_x = exp(-|f(p) - f(q)|²) with f = (n / (s·√σ_n), x / √σ_x)
-        feat = None  # built in one expression so the scaled parts are freed at once
-        if inv_n is not None or inv_x is not None:
-            feat = torch.cat(([n * (inv_n.sqrt() / step)] if inv_n is not None else [])
-                             + ([x * inv_x.sqrt()] if inv_x is not None else []), 1)
-        c_next, var, den = level(c, feat, var, valid, step, scale, fused)
+        if compiled:
+            c_next, var, den = native.atrous_level(
+                c, feat if guides else None, [1.0 / step**2 if per_step else 1.0 for _, _, per_step in guides], var,
+                valid, step, _native_taps(), scale)
+        else:
+            feat = torch.cat([g * (s / step if per_step else s) for g, s, per_step in guides], 1) if guides else None
+            c_next, var, den = level(c, feat, var, valid, step, scale, fused)
         if return_details:
             details.append(c_next - c)
         c = c_next
@@ -276,7 +300,7 @@ def atrous(
     if energy:
         total_out = c.sum(dim=(2, 3), keepdim=True)
         c = c * torch.where(total_out != 0, total_in / torch.where(total_out != 0, total_out, 1.0), 1.0)
-    out = c.to(color.dtype)
+    out = c.to(color.dtype).contiguous()
     if return_details:
         return out, [d.to(color.dtype) for d in details]
     return out

@@ -8,6 +8,10 @@ with every mean a count-normalised box filter (:mod:`torchgi.filters.box`), so c
 depend on ``r``. The per-pixel ``C x C`` solve is a closed-form LDLᵀ written with
 elementwise ops (ONNX-exportable, half-safe), not ``torch.linalg.solve``.
 
+On the CPU the whole filter runs in a compiled C kernel (:mod:`torchgi.filters.native`: box
+sums sliding down the rows in double, the same solve) where it applies, else in the torch code
+below.
+
 Numerics: guide and source are centred by their per-image means before any sum (the filter
 is invariant to constant offsets), variances are clamped at 0, and ε is raised per pixel to
 the rounding level of the variance so flat guides and ``eps=0`` stay finite and exact.
@@ -31,6 +35,7 @@ from torchgi.core.check import (
     finite_or_sanitized,
 )
 from torchgi.core.errors import RangeError, ShapeError
+from torchgi.filters import native
 from torchgi.filters.box import PlaneBoxer, _box_cumsum, compute_dtype, use_fast_path
 
 __all__ = ["Guided", "guide_from_gbuffer", "guided"]
@@ -279,6 +284,9 @@ def _guided(
     mean_g, mean_p = g.mean(dim=(2, 3), keepdim=True), p.mean(dim=(2, 3), keepdim=True)
     e = _check_eps(eps, B, n, g)
     fast = use_fast_path(src, guide, e)
+    if subsample == 1 and native.applies(g, p, e):
+        e_pos = e.clamp_min(torch.finfo(ct).tiny)
+        return native.guided(g, p, mean_g, mean_p, mean_p, radius, e_pos, holder=_holder).to(src.dtype)
     if subsample == 1:
         if fast:
             return _guided_fast(g, p, mean_g, mean_p, radius, e, _holder).to(src.dtype)
@@ -289,7 +297,11 @@ def _guided(
     low_g = F.avg_pool2d(gc, subsample, ceil_mode=True)
     low_p = F.avg_pool2d(p - mean_p, subsample, ceil_mode=True)
     r_low = round(radius / subsample)
-    if fast:
+    if native.applies(low_g, low_p, e):
+        zero_g, zero_p = torch.zeros_like(mean_g), torch.zeros_like(mean_p)  # low_g, low_p are centred
+        coeffs = native.guided(low_g, low_p, zero_g, zero_p, zero_p, r_low, e.clamp_min(torch.finfo(ct).tiny),
+                               coefficients_only=True, holder=_holder)
+    elif fast:
         coeffs = _guided_fast(low_g, low_p, torch.zeros_like(mean_g), torch.zeros_like(mean_p), r_low, e, _holder,
                               coefficients_only=True)
     else:
@@ -388,9 +400,11 @@ def guide_from_gbuffer(
 class Guided(nn.Module):
     """Module form of :func:`guided`; ``eps`` is a buffer (or a learnable Parameter).
 
-    On the CPU the module keeps its scratch buffers between calls of the same size (about
-    ``(G² / 2 + 2 G C + 2 C + 2 G)`` planes of ``H x W``; 140 MB at 1024x768 with G = 4,
-    C = 3), which saves the page faults of fresh buffers; ``release()`` frees them.
+    On the CPU the module keeps its scratch buffers between calls of the same size, which
+    saves the page faults of fresh buffers: the coefficient planes of the compiled kernel
+    (``(G + 1) C`` planes of ``H x W``; 45 MB at 1024x768 with G = 4, C = 3) or, where the
+    torch code runs, its workspace (about ``(G² / 2 + 2 G C + 2 C + 2 G)`` planes; 140 MB);
+    ``release()`` frees them.
 
     Args:
         radius: window radius in pixels.

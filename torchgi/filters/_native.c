@@ -1,0 +1,536 @@
+/* CPU kernels of the two hot filters, float32, one image and a band of rows per call.
+ *
+ * Compiled at first use by torchgi/filters/native.py (gcc/cc, -O3 -march=native) and called
+ * through ctypes, which releases the GIL: the Python side runs one band per thread. The maths
+ * is exactly that of the torch code paths (atrous._iteration, guided._solve); only the order
+ * of the sums differs (box sums accumulate in double here, so they are more accurate).
+ *
+ * Planes are contiguous H x W float32; a multi-channel buffer is its planes back to back.
+ */
+#include <math.h>
+#include <stddef.h>
+#include <stdint.h>
+#include <string.h>
+#if defined(__SSE__)
+#include <xmmintrin.h>
+#endif
+
+#define INLINE static inline __attribute__((always_inline))
+#define MAXF(a, b) ((a) > (b) ? (a) : (b))
+
+
+/* v = 0 .. N-1 for a compile-time N <= 8, written out so that the loops fold into straight code */
+#define FOR8(v, N, ...) \
+    do { if (0 < (N)) { const int v = 0; __VA_ARGS__; } if (1 < (N)) { const int v = 1; __VA_ARGS__; } \
+         if (2 < (N)) { const int v = 2; __VA_ARGS__; } if (3 < (N)) { const int v = 3; __VA_ARGS__; } \
+         if (4 < (N)) { const int v = 4; __VA_ARGS__; } if (5 < (N)) { const int v = 5; __VA_ARGS__; } \
+         if (6 < (N)) { const int v = 6; __VA_ARGS__; } if (7 < (N)) { const int v = 7; __VA_ARGS__; } } while (0)
+
+
+/* Flush denormals to zero for the duration of a call (weights far below 1e-38 would otherwise
+ * take the slow microcode path); the caller's mode is restored on return. */
+INLINE unsigned ftz_begin(void) {
+#if defined(__SSE__)
+    unsigned csr = _mm_getcsr();
+    _mm_setcsr(csr | 0x8040);
+    return csr;
+#else
+    return 0;
+#endif
+}
+
+INLINE void ftz_end(unsigned csr) {
+#if defined(__SSE__)
+    _mm_setcsr(csr);
+#else
+    (void)csr;
+#endif
+}
+
+/* exp(-d) for d >= 0 (Cephes expf: Cody-Waite reduction, degree-6 polynomial, ~1 ulp), written
+ * branch-free so that loops around it vectorise; 0 where exp(-d) < 1.2e-38 (d > 87.3). One
+ * scalar form for the loops the compiler vectorises, one on explicit vectors (below). */
+#define EXP_LO (-87.3f)
+#define EXP_LOG2E 1.44269504088896341f
+#define EXP_ROUND 12582912.0f /* 1.5 * 2^23: adding and removing it rounds to an integer */
+#define EXP_C1 0.693359375f
+#define EXP_C2 (-2.12194440e-4f)
+#define EXP_POLY(y, x)                                                                        \
+    y = x * 0.0f + 1.9875691500e-4f;                                                          \
+    y = y * x + 1.3981999507e-3f;                                                             \
+    y = y * x + 8.3334519073e-3f;                                                             \
+    y = y * x + 4.1665795894e-2f;                                                             \
+    y = y * x + 1.6666665459e-1f;                                                             \
+    y = y * x + 5.0000001201e-1f
+
+INLINE float exp_neg(float d) {
+    float x = -d;
+    const int under = x < EXP_LO;
+    x = under ? EXP_LO : x;
+    const float n = (x * EXP_LOG2E + EXP_ROUND) - EXP_ROUND;
+    x = x - n * EXP_C1;
+    x = x - n * EXP_C2;
+    float y;
+    EXP_POLY(y, x);
+    y = y * (x * x) + x + 1.0f;
+    union { int32_t i; float f; } s;
+    s.i = ((int32_t)n + 127) << 23;
+    return under ? 0.0f : y * s.f;
+}
+
+/* 16 floats (one AVX-512 register; compilers split it where vectors are narrower); unaligned
+ * loads and stores go through memcpy */
+#define VL 16
+typedef float vf __attribute__((vector_size(4 * VL)));
+typedef int32_t vi __attribute__((vector_size(4 * VL)));
+
+INLINE vf vload(const float *p) {
+    vf v;
+    memcpy(&v, p, sizeof v);
+    return v;
+}
+
+INLINE void vstore(float *p, vf v) { memcpy(p, &v, sizeof v); }
+
+INLINE vf vsplat(float a) { return a - (vf){0}; }
+
+INLINE vf vselect(vi mask, vf a, vf b) { return (vf)(((vi)a & mask) | ((vi)b & ~mask)); }
+
+INLINE vf vexp_neg(vf d) {
+    vf x = -d;
+    const vi under = x < vsplat(EXP_LO);
+    x = vselect(under, vsplat(EXP_LO), x);
+    const vf n = (x * EXP_LOG2E + EXP_ROUND) - EXP_ROUND;
+    x = x - n * EXP_C1;
+    x = x - n * EXP_C2;
+    vf y;
+    EXP_POLY(y, x);
+    y = y * (x * x) + x + 1.0f;
+    const vf s = (vf)((__builtin_convertvector(n, vi) + 127) << 23);
+    return (vf)((vi)(y * s) & ~under);
+}
+
+int torchgi_native_version(void) { return 1; }
+
+float torchgi_exp_neg(float d) { return exp_neg(d); }
+
+/* ------------------------------------------------------------------------------------------
+ * One À-Trous level (atrous._iteration) for rows [y0, y1) of one image.
+ *
+ * c: C planes; f: F = 3 G feature planes (G groups of 3: normal, position), each group's squared
+ * distance times fs[g]; var: C planes or NULL; valid: one plane (0/1) or NULL; cs: colour scale,
+ * NULL (no colour weight), one value (cs_plane = 0) or a plane (cs_plane = 1); h: the 25 tap
+ * weights, row major over (dy, dx) in -2..2; step: the dilation. Writes out (C planes), var_out
+ * (C planes, when var) and den (one plane).
+ *
+ * Pixels whose 25 taps all lie inside the row are filtered VL at a time with the sums in
+ * registers (tap_block); the 2 step columns at either edge tap by tap over the row (tap_row).
+ */
+typedef struct {
+    const float *c, *f, *var, *valid, *cs; /* row y of plane 0 (cs: row y, or the one value) */
+    const float *fs;                       /* scale of each feature group */
+    size_t PS;                             /* plane stride of the inputs and outputs */
+    ptrdiff_t off[25];                     /* offset of each tap's neighbour; skip[t]: row outside */
+    int skip[25];
+    float h[25];
+} level_t;
+
+/* Pixels [x, x + VL) of one row, all taps inside the row: the weighted sums stay in registers. */
+INLINE void tap_block(const int C, const int G, const int CS, const int V, const level_t *L, int x, float *out,
+                      float *var_out, float *den_out) {
+    const size_t PS = L->PS;
+    const float *c = L->c + x, *f = L->f + x;
+    vf cp[8], fp[8], num[8], vnum[8], den = vsplat(0.0f), fs[2];
+    FOR8(k, C, cp[k] = vload(c + k * PS); num[k] = vsplat(0.0f); vnum[k] = vsplat(0.0f));
+    FOR8(k, 3 * G, fp[k] = vload(f + k * PS));
+    FOR8(g, G, fs[g] = vsplat(L->fs[g]));
+    const vf cs = CS == 2 ? vload(L->cs + x) : vsplat(CS ? L->cs[0] : 0.0f);
+    for (int t = 0; t < 25; ++t) {
+        if (L->skip[t]) continue;
+        const ptrdiff_t o = L->off[t];
+        vf cq[8], d = vsplat(0.0f);
+        FOR8(k, C, cq[k] = vload(c + k * PS + o));
+        if (CS) {
+            vf dc = vsplat(0.0f);
+            FOR8(k, C, { const vf u = cp[k] - cq[k]; dc += u * u; });
+            d = dc * cs;
+        }
+        FOR8(g, G, {
+            vf dg = vsplat(0.0f);
+            FOR8(k, 3, { const vf u = fp[3 * g + k] - vload(f + (3 * g + k) * PS + o); dg += u * u; });
+            d += dg * fs[g];
+        });
+        vf w = vsplat(L->h[t]) * vexp_neg(d);
+        if (L->valid) w *= vload(L->valid + x + o);
+        FOR8(k, C, num[k] += w * cq[k]);
+        den += w;
+        if (V) FOR8(k, C, vnum[k] += w * w * vload(L->var + x + k * PS + o));
+    }
+    /* no weight at all keeps the centre pixel (and its variance) */
+    const vi ok = den > vsplat(0.0f);
+    const vf safe = vselect(ok, den, vsplat(1.0f));
+    FOR8(k, C, vstore(out + k * PS + x, vselect(ok, num[k] / safe, cp[k])));
+    if (V) FOR8(k, C, vstore(var_out + k * PS + x, vselect(ok, vnum[k] / (safe * safe), vload(L->var + x + k * PS))));
+    vstore(den_out + x, den);
+}
+
+/* Taps one at a time over pixels [xa, xb) of one row (C, G run-time when not constant). */
+INLINE void tap_row(const int C, const int G, const int CS, const int V, const level_t *L, int t, int xa, int xb,
+                    float *num, float *vnum, float *den, int SW) {
+    const size_t PS = L->PS;
+    const ptrdiff_t o = L->off[t];
+    const float h = L->h[t], *c = L->c, *f = L->f, *valid = L->valid, *var = L->var, *cs = L->cs;
+    for (int x = xa; x < xb; ++x) {
+        float d = 0.0f;
+        if (CS) {
+            float dc = 0.0f;
+            for (int k = 0; k < C; ++k) {
+                const float u = c[k * PS + x] - c[k * PS + x + o];
+                dc += u * u;
+            }
+            d = dc * (CS == 2 ? cs[x] : cs[0]);
+        }
+        for (int g = 0; g < G; ++g) {
+            float dg = 0.0f;
+            for (int k = 3 * g; k < 3 * g + 3; ++k) {
+                const float u = f[k * PS + x] - f[k * PS + x + o];
+                dg += u * u;
+            }
+            d += dg * L->fs[g];
+        }
+        float w = h * exp_neg(d);
+        if (valid) w *= valid[x + o];
+        for (int k = 0; k < C; ++k) num[k * SW + x] += w * c[k * PS + x + o];
+        den[x] += w;
+        if (V)
+            for (int k = 0; k < C; ++k) vnum[k * SW + x] += w * w * var[k * PS + x + o];
+    }
+}
+
+typedef void (*block_fn)(const level_t *, int, float *, float *, float *);
+#define BLOCK(C, G, CS, V) \
+    static void block_##C##_##G##_##CS##_##V(const level_t *L, int x, float *o, float *vo, float *d) { \
+        tap_block(C, G, CS, V, L, x, o, vo, d); }
+#define BLOCKS_CG(C, G) BLOCK(C, G, 0, 0) BLOCK(C, G, 0, 1) BLOCK(C, G, 1, 0) BLOCK(C, G, 1, 1) \
+    BLOCK(C, G, 2, 0) BLOCK(C, G, 2, 1)
+BLOCKS_CG(1, 0) BLOCKS_CG(1, 1) BLOCKS_CG(1, 2) BLOCKS_CG(3, 0) BLOCKS_CG(3, 1) BLOCKS_CG(3, 2)
+
+static block_fn pick_block(int C, int G, int CS, int V) {
+#define PICK(c, g)                                                                             \
+    if (C == c && G == g)                                                                      \
+        return CS == 0 ? (V ? block_##c##_##g##_0_1 : block_##c##_##g##_0_0)                   \
+             : CS == 1 ? (V ? block_##c##_##g##_1_1 : block_##c##_##g##_1_0)                   \
+                       : (V ? block_##c##_##g##_2_1 : block_##c##_##g##_2_0);
+    PICK(1, 0) PICK(1, 1) PICK(1, 2) PICK(3, 0) PICK(3, 1) PICK(3, 2)
+#undef PICK
+    return NULL;
+}
+
+/* Planes of every input and of out / var_out are ps floats apart, rows rs floats apart (padded
+ * layouts keep the row streams of the taps out of one another's cache sets); den is a plain
+ * H x W plane. scratch: (2 C + 1) (W + 16) floats. */
+void torchgi_atrous_level(const float *c, int C, const float *f, int F, const float *fs, const float *var,
+                          const float *valid, const float *cs, int cs_plane, int H, int W, int rs, long long ps,
+                          int step, const float *h25, float *out, float *var_out, float *den_out, int y0, int y1,
+                          float *scratch) {
+    const unsigned csr = ftz_begin();
+    const int G = F / 3, CS = cs == NULL ? 0 : cs_plane ? 2 : 1, V = var != NULL, SW = W + 16;
+    level_t L;
+    L.PS = (size_t)ps, L.fs = fs;
+    float *num = scratch, *vnum = scratch + (size_t)C * SW, *den = scratch + (size_t)2 * C * SW;
+    const block_fn block = pick_block(C, G, CS, V);
+    /* the vector blocks cover [xl, xv); the edges [0, xl) and [xv, W) go tap by tap */
+    const int reach = 2 * step;
+    const int xl = block && reach < W ? reach : W;
+    const int xv = xl + (W - reach > xl ? (W - reach - xl) / VL * VL : 0);
+    for (int y = y0; y < y1; ++y) {
+        const size_t row = (size_t)y * rs;
+        L.c = c + row, L.f = F ? f + row : NULL, L.var = V ? var + row : NULL;
+        L.valid = valid ? valid + row : NULL, L.cs = CS == 2 ? cs + row : cs;
+        for (int t = 0; t < 25; ++t) {
+            const int oy = (t / 5 - 2) * step, ox = (t % 5 - 2) * step;
+            L.skip[t] = y + oy < 0 || y + oy >= H;
+            L.off[t] = (ptrdiff_t)oy * rs + ox;
+            L.h[t] = h25[t];
+        }
+        float *o = out + row, *vo = V ? var_out + row : NULL, *dn = den_out + (size_t)y * W;
+        for (int x = xl; x < xv; x += VL) block(&L, x, o, vo, dn);
+        const int spans[2][2] = {{0, xl}, {xv, W}};
+        for (int e = 0; e < 2; ++e) {
+            const int a = spans[e][0], b = spans[e][1];
+            if (a >= b) continue;
+            for (int k = 0; k < C; ++k) {
+                memset(num + k * SW + a, 0, sizeof(float) * (b - a));
+                memset(vnum + k * SW + a, 0, sizeof(float) * (b - a));
+            }
+            memset(den + a, 0, sizeof(float) * (b - a));
+            for (int t = 0; t < 25; ++t) {
+                if (L.skip[t]) continue;
+                const int ox = (t % 5 - 2) * step;
+                const int xa = a > -ox ? a : -ox, xb = b < W - ox ? b : W - ox;
+                if (xa >= xb) continue;
+                if (C == 3 && G == 2)
+                    tap_row(3, 2, CS, V, &L, t, xa, xb, num, vnum, den, SW);
+                else
+                    tap_row(C, G, CS, V, &L, t, xa, xb, num, vnum, den, SW);
+            }
+            for (int k = 0; k < C; ++k)
+                for (int x = a; x < b; ++x) {
+                    const int ok = den[x] > 0.0f;
+                    const float sd = ok ? den[x] : 1.0f;
+                    o[k * L.PS + x] = ok ? num[k * SW + x] / sd : L.c[k * L.PS + x];
+                    if (V) vo[k * L.PS + x] = ok ? vnum[k * SW + x] / (sd * sd) : L.var[k * L.PS + x];
+                }
+            for (int x = a; x < b; ++x) dn[x] = den[x];
+        }
+    }
+    ftz_end(csr);
+}
+
+/* ------------------------------------------------------------------------------------------
+ * Guided filter (guided._solve / guided._apply) on centred planes, in two passes over bands of
+ * rows: pass 1 box-means the products and solves for the coefficients of every pixel; pass 2
+ * box-means the coefficients and applies them (or returns their box means). Box sums slide
+ * down the rows (double accumulators, one row in and one out per output row) and are prefix-
+ * summed along the row, so the cost does not depend on r; borders are count-normalised.
+ */
+
+/* Row strides of the column sums (doubles) and of the box means (floats): padded so that the
+ * rows read side by side do not share cache sets. */
+#define ACC_STRIDE(W) ((W) + 8)
+#define MEAN_STRIDE(W) ((W) + 16)
+
+/* Row sums of the vertical window: acc[k][x] += sign * value_k(yy, x) for the K planes the
+ * callback-free layout below describes. */
+typedef struct {
+    int n, Cs, K;
+    const float *I, *p;   /* guide (n planes), source (Cs planes) */
+    const float *mI, *mp; /* their per-image means, subtracted before any sum (DESIGN §5) */
+    size_t HW;
+    int W;
+} products_t;
+
+/* value k of row yy, centred: I_i (k < n), p_c, I_i I_j (j <= i), I_i p_c */
+static void add_products(const products_t *P, int yy, double sign, double *acc) {
+    const int n = P->n, Cs = P->Cs, W = P->W;
+    const size_t row = (size_t)yy * W;
+    int k = 0;
+    for (int i = 0; i < n; ++i, ++k) {
+        const float *a = P->I + i * P->HW + row, ma = P->mI[i];
+        double *s = acc + (size_t)k * ACC_STRIDE(W);
+        for (int x = 0; x < W; ++x) s[x] += sign * (a[x] - ma);
+    }
+    for (int c = 0; c < Cs; ++c, ++k) {
+        const float *a = P->p + c * P->HW + row, ma = P->mp[c];
+        double *s = acc + (size_t)k * ACC_STRIDE(W);
+        for (int x = 0; x < W; ++x) s[x] += sign * (a[x] - ma);
+    }
+    for (int i = 0; i < n; ++i)
+        for (int j = 0; j <= i; ++j, ++k) {
+            const float *a = P->I + i * P->HW + row, *b = P->I + j * P->HW + row, ma = P->mI[i], mb = P->mI[j];
+            double *s = acc + (size_t)k * ACC_STRIDE(W);
+            for (int x = 0; x < W; ++x) s[x] += sign * ((double)(a[x] - ma) * (b[x] - mb));
+        }
+    for (int i = 0; i < n; ++i)
+        for (int c = 0; c < Cs; ++c, ++k) {
+            const float *a = P->I + i * P->HW + row, *b = P->p + c * P->HW + row, ma = P->mI[i], mb = P->mp[c];
+            double *s = acc + (size_t)k * ACC_STRIDE(W);
+            for (int x = 0; x < W; ++x) s[x] += sign * ((double)(a[x] - ma) * (b[x] - mb));
+        }
+}
+
+static void add_planes(const float *planes, int K, size_t HW, int W, int yy, double sign, double *acc) {
+    for (int k = 0; k < K; ++k) {
+        const float *a = planes + k * HW + (size_t)yy * W;
+        double *s = acc + (size_t)k * ACC_STRIDE(W);
+        for (int x = 0; x < W; ++x) s[x] += sign * a[x];
+    }
+}
+
+/* 8 doubles, for the prefix sums along a row */
+typedef double vd __attribute__((vector_size(64)));
+typedef int64_t vl __attribute__((vector_size(64)));
+
+/* Inclusive prefix sum within one vector (three shift-and-add steps). */
+INLINE vd vd_scan(vd v) {
+    const vd z = {0};
+    v += __builtin_shuffle(z, v, (vl){0, 8, 9, 10, 11, 12, 13, 14});
+    v += __builtin_shuffle(z, v, (vl){0, 1, 8, 9, 10, 11, 12, 13});
+    v += __builtin_shuffle(z, v, (vl){0, 1, 2, 3, 8, 9, 10, 11});
+    return v;
+}
+
+/* Box means along the row of K rows of column sums (acc) that cover cy image rows: mean[k][x]
+ * = (sum of acc[k] over the window at x) / (pixels in the window), from prefix sums pre (W + 1
+ * doubles) computed eight at a time. */
+static void row_means(const double *acc, int K, int W, int r, int cy, const double *inv_cx, double *pre,
+                      float *mean) {
+    const double inv_cy = 1.0 / cy;
+    /* x in [mid0, mid1) has the whole window inside the row: there hi = x + r + 1, lo = x - r */
+    const int mid0 = r < W ? r : W, mid1 = W - r - 1 > mid0 ? W - r - 1 : mid0;
+    for (int k = 0; k < K; ++k) {
+        const double *a = acc + (size_t)k * ACC_STRIDE(W);
+        float *m = mean + (size_t)k * MEAN_STRIDE(W);
+        vd carry = {0};
+        int x = 0;
+        pre[0] = 0.0;
+        for (; x + 8 <= W; x += 8) {
+            vd v;
+            memcpy(&v, a + x, sizeof v);
+            v = vd_scan(v) + carry;
+            memcpy(pre + x + 1, &v, sizeof v);
+            carry = __builtin_shuffle(v, (vl){7, 7, 7, 7, 7, 7, 7, 7});
+        }
+        for (; x < W; ++x) pre[x + 1] = pre[x] + a[x];
+        for (x = 0; x < mid0; ++x) {
+            const int hi = x + r + 1 < W ? x + r + 1 : W;
+            m[x] = (float)((pre[hi] - pre[0]) * (inv_cx[x] * inv_cy));
+        }
+        for (x = mid0; x < mid1; ++x) m[x] = (float)((pre[x + r + 1] - pre[x - r]) * (inv_cx[x] * inv_cy));
+        for (x = mid1; x < W; ++x) {
+            const int lo = x - r > 0 ? x - r : 0;
+            m[x] = (float)((pre[W] - pre[lo]) * (inv_cx[x] * inv_cy));
+        }
+    }
+}
+
+/* 1 / (columns inside the window) per x. */
+static void column_counts(int W, int r, double *inv_cx) {
+    for (int x = 0; x < W; ++x) {
+        const int hi = x + r < W ? x + r : W - 1, lo = x - r > 0 ? x - r : 0;
+        inv_cx[x] = 1.0 / (hi - lo + 1);
+    }
+}
+
+#define TRI(i, j) ((i) * ((i) + 1) / 2 + (j))
+
+/* Solve one row for source channels [c0, c0 + G): means in m (K x W, the order of
+ * add_products), write a_0..a_{n-1}, b (each Cs planes) into coef at row y. LDLᵀ as in
+ * guided._solve: eps_i raised to unit · E[I_i²] per pixel, variances clamped at 0, pivots at eps. */
+INLINE void solve_row(const int n, const int G, int c0, int Cs, const float *m, int W, const float *eps, float unit,
+                      float *coef, size_t HW, int y) {
+    const int MW = MEAN_STRIDE(W);
+    const float *mI = m, *mp = m + (size_t)n * MW, *mII = m + (size_t)(n + Cs) * MW;
+    const float *mIp = mII + (size_t)(n * (n + 1) / 2) * MW;
+    float *row = coef + (size_t)y * W;
+#pragma GCC ivdep
+    for (int x = 0; x < W; ++x) {
+        float A[4][4], L[4][4], E[4][4], D[4], e[4];
+        FOR8(i, n, FOR8(j, i + 1, {
+            const float mij = mII[(size_t)TRI(i, j) * MW + x];
+            float v = mij - mI[(size_t)i * MW + x] * mI[(size_t)j * MW + x];
+            if (i == j) {
+                e[i] = MAXF(mij * unit, eps[i]);
+                v = MAXF(v, 0.0f) + e[i];
+            }
+            A[i][j] = v;
+        }));
+        FOR8(j, n, {
+            float d = A[j][j];
+            FOR8(q, j, d -= L[j][q] * E[j][q]);
+            D[j] = MAXF(d, e[j]);
+            FOR8(i, n, if (i > j) {
+                float v = A[i][j];
+                FOR8(q, j, v -= L[i][q] * E[j][q]);
+                E[i][j] = v;
+                L[i][j] = v / D[j];
+            });
+        });
+        FOR8(g, G, {
+            const int c = c0 + g;
+            const float mpc = mp[(size_t)c * MW + x];
+            float yv[4], a[4];
+            FOR8(i, n, {
+                float v = mIp[((size_t)i * Cs + c) * MW + x] - mI[(size_t)i * MW + x] * mpc;
+                FOR8(q, i, v -= L[i][q] * yv[q]);
+                yv[i] = v;
+            });
+            FOR8(ri, n, {
+                const int i = n - 1 - ri;
+                float v = yv[i] / D[i];
+                FOR8(q, n, if (q > i) v -= L[q][i] * a[q]);
+                a[i] = v;
+            });
+            float b = mpc;
+            FOR8(i, n, {
+                b -= a[i] * mI[(size_t)i * MW + x];
+                row[((size_t)i * Cs + c) * HW + x] = a[i];
+            });
+            row[((size_t)n * Cs + c) * HW + x] = b;
+        });
+    }
+}
+
+#define SOLVE_NG(N, G) \
+    static void solve_##N##_##G(int c0, int Cs, const float *m, int W, const float *eps, float unit, float *coef, \
+                                size_t HW, int y) { solve_row(N, G, c0, Cs, m, W, eps, unit, coef, HW, y); }
+#define SOLVE_N(N) SOLVE_NG(N, 1) SOLVE_NG(N, 2) SOLVE_NG(N, 3)
+SOLVE_N(1) SOLVE_N(2) SOLVE_N(3) SOLVE_N(4)
+typedef void (*solve_fn)(int, int, const float *, int, const float *, float, float *, size_t, int);
+static const solve_fn SOLVERS[4][3] = {{solve_1_1, solve_1_2, solve_1_3}, {solve_2_1, solve_2_2, solve_2_3},
+                                        {solve_3_1, solve_3_2, solve_3_3}, {solve_4_1, solve_4_2, solve_4_3}};
+
+/* scratch: doubles acc (K ACC_STRIDE(W)) + inv_cx (W) + pre (W + 8), then floats m (K MEAN_STRIDE(W)),
+ * K = n + Cs + n (n + 1) / 2 + n Cs. */
+void torchgi_guided_coefficients(const float *I, const float *meanI, int n, const float *p, const float *meanp, int Cs,
+                                 int H, int W, int r, const float *eps, float unit, float *coef, int y0, int y1,
+                                 void *scratch) {
+    const unsigned csr = ftz_begin();
+    const int K = n + Cs + n * (n + 1) / 2 + n * Cs;
+    const size_t HW = (size_t)H * W;
+    double *acc = (double *)scratch, *inv_cx = acc + (size_t)K * ACC_STRIDE(W), *pre = inv_cx + W;
+    float *m = (float *)(pre + W + 8);
+    column_counts(W, r, inv_cx);
+    const products_t P = {n, Cs, K, I, p, meanI, meanp, HW, W};
+    memset(acc, 0, sizeof(double) * (size_t)K * ACC_STRIDE(W));
+    /* before row y the sums hold rows [y - 1 - r, y - 1 + r] of the image */
+    for (int yy = y0 - r - 1 > 0 ? y0 - r - 1 : 0; yy <= y0 + r - 1 && yy < H; ++yy) add_products(&P, yy, 1.0, acc);
+    for (int y = y0; y < y1; ++y) {
+        /* the window's rows are [y - r, y + r] clipped to the image */
+        if (y + r < H) add_products(&P, y + r, 1.0, acc);
+        if (y - r - 1 >= 0) add_products(&P, y - r - 1, -1.0, acc);
+        const int cy = (y + r < H ? y + r : H - 1) - (y - r > 0 ? y - r : 0) + 1;
+        row_means(acc, K, W, r, cy, inv_cx, pre, m);
+        for (int c0 = 0; c0 < Cs; c0 += 3) /* source channels three at a time */
+            SOLVERS[n - 1][(Cs - c0 < 3 ? Cs - c0 : 3) - 1](c0, Cs, m, W, eps, unit, coef, HW, y);
+    }
+    ftz_end(csr);
+}
+
+/* Box means of the Q = (n + 1) Cs coefficient planes for rows [y0, y1): written to out (Q
+ * planes) when I is NULL, else applied: out_c = mean(b_c) + Σ_i mean(a_ic) (I_i - meanI_i) +
+ * offset_c (Cs planes). scratch: doubles acc (Q ACC_STRIDE(W)) + inv_cx (W) + pre (W + 8), then floats m
+ * (Q MEAN_STRIDE(W)). */
+void torchgi_guided_apply(const float *coef, int n, int Cs, const float *I, const float *meanI, const float *offset,
+                          int H, int W, int r, float *out, int y0, int y1, void *scratch) {
+    const unsigned csr = ftz_begin();
+    const int Q = (n + 1) * Cs;
+    const size_t HW = (size_t)H * W;
+    double *acc = (double *)scratch, *inv_cx = acc + (size_t)Q * ACC_STRIDE(W), *pre = inv_cx + W;
+    float *m = (float *)(pre + W + 8);
+    column_counts(W, r, inv_cx);
+    memset(acc, 0, sizeof(double) * (size_t)Q * ACC_STRIDE(W));
+    for (int yy = y0 - r - 1 > 0 ? y0 - r - 1 : 0; yy <= y0 + r - 1 && yy < H; ++yy)
+        add_planes(coef, Q, HW, W, yy, 1.0, acc);
+    for (int y = y0; y < y1; ++y) {
+        if (y + r < H) add_planes(coef, Q, HW, W, y + r, 1.0, acc);
+        if (y - r - 1 >= 0) add_planes(coef, Q, HW, W, y - r - 1, -1.0, acc);
+        const int cy = (y + r < H ? y + r : H - 1) - (y - r > 0 ? y - r : 0) + 1;
+        row_means(acc, Q, W, r, cy, inv_cx, pre, m);
+        if (!I) {
+            for (int q = 0; q < Q; ++q) memcpy(out + q * HW + (size_t)y * W, m + (size_t)q * MEAN_STRIDE(W), sizeof(float) * W);
+            continue;
+        }
+        for (int c = 0; c < Cs; ++c) {
+            float *o = out + c * HW + (size_t)y * W;
+            const float *mb = m + ((size_t)n * Cs + c) * MEAN_STRIDE(W);
+            const float off = offset[c];
+            for (int x = 0; x < W; ++x) o[x] = mb[x] + off;
+                        for (int i = 0; i < n; ++i) {
+                const float *ma = m + ((size_t)i * Cs + c) * MEAN_STRIDE(W), *g = I + i * HW + (size_t)y * W, mg = meanI[i];
+                for (int x = 0; x < W; ++x) o[x] += ma[x] * (g[x] - mg);
+            }
+        }
+    }
+    ftz_end(csr);
+}
