@@ -1,3 +1,4 @@
+import contextlib
 import math
 
 import numpy as np
@@ -5,7 +6,7 @@ import pytest
 import torch
 
 from torchgi.core import DTypeError, NonFiniteError, RangeError, ShapeError
-from torchgi.filters import ATrous, atrous
+from torchgi.filters import ATrous, atrous, native
 
 from .oracles import atrous_oracle
 
@@ -24,13 +25,16 @@ def rel(out, ref):
     return float(np.abs(out.double().numpy() - ref).max() / np.abs(ref).max())
 
 
+@pytest.mark.parametrize("kernels", ["compiled", "torch"])
 @pytest.mark.parametrize("iterations", [1, 2, 3])
 @pytest.mark.parametrize("weights", ["cnx", "c", "nx", "", "cx"])
-def test_matches_per_pixel_oracle(iterations, weights):
+def test_matches_per_pixel_oracle(iterations, weights, kernels):
+    """The default call (the compiled CPU kernel where it builds) and the float32 torch code."""
     c, n, x = buffers(seed=iterations)
     kw = dict(iterations=iterations, sigma_color=0.5, sigma_normal=0.2 if "n" in weights else None,
               sigma_position=0.3 if "x" in weights else None)
-    out = atrous(c, n, x, color_weight="c" in weights, **kw)
+    with native.disabled() if kernels == "torch" else contextlib.nullcontext():
+        out = atrous(c, n, x, color_weight="c" in weights, **kw)
     want = atrous_oracle(c[0], n[0], x[0], color_weight="c" in weights, **kw)
     assert rel(out[0], want) < 1e-5
 
@@ -187,7 +191,9 @@ def test_pointwise_formulation_matches_oracle():
     real = mod._compiled_iteration
     try:
         mod._compiled_iteration = lambda: mod._iteration  # same code path, no compiler
-        out = atrous(c, n, x, iterations=3, sigma_color=0.5, variance=torch.full_like(c[:, :1], 0.05), fused=True)
+        with native.disabled():  # else the compiled C kernel takes the call
+            out = atrous(c, n, x, iterations=3, sigma_color=0.5, variance=torch.full_like(c[:, :1], 0.05),
+                         fused=True)
     finally:
         mod._compiled_iteration = real
     want = atrous_oracle(c[0], n[0], x[0], iterations=3, sigma_color=0.5, variance=np.full((1, 13, 17), 0.05))
@@ -198,8 +204,10 @@ def test_pointwise_formulation_matches_oracle():
 def test_fused_compiled_path_matches_oracle():
     """torch.compile of the level (about a minute of compiling on 2 cores, once per process)."""
     c, n, x = buffers(H=20, W=23, seed=5)
-    out = atrous(c, n, x, iterations=3, sigma_color=0.5, fused=True)
+    with native.disabled():  # else the compiled C kernel takes the call
+        out = atrous(c, n, x, iterations=3, sigma_color=0.5, fused=True)
+        other = atrous(c[..., :11, :17], n[..., :11, :17], x[..., :11, :17], iterations=3, sigma_color=0.5,
+                       fused=True)
     assert rel(out[0], atrous_oracle(c[0], n[0], x[0], iterations=3, sigma_color=0.5)) < 1e-5
-    other = atrous(c[..., :11, :17], n[..., :11, :17], x[..., :11, :17], iterations=3, sigma_color=0.5, fused=True)
     want = atrous_oracle(c[0, :, :11, :17], n[0, :, :11, :17], x[0, :, :11, :17], iterations=3, sigma_color=0.5)
     assert rel(other[0], want) < 1e-5  # a new size reuses the dynamic-shape graph
