@@ -5,7 +5,8 @@
 
 Times (``torch.utils.benchmark`` medians, CUDA synchronised) the guided filter at 1024x768 with
 1/3/4-channel guides (paper: 16/71/80 ms on a GTX 285), À-Trous with 3 weights at 512² and
-1080p, 5 and 10 iterations (paper: 5.6 ms at 512²; 42.6/86.0 ms at 1080p), eager and fused,
+1080p, 5 and 10 iterations (paper: 5.6 ms at 512²; 42.6/86.0 ms at 1080p): the default call
+(one kernel per level: Triton on CUDA, compiled C on the CPU), the torch code eager and fused,
 and importance map + allocation at 1024x768 with windows 2/4/10 (paper: 8.3/26.2/128.7 ms).
 Writes ``device_<name>.csv/json/md``.
 """
@@ -13,6 +14,7 @@ Writes ``device_<name>.csv/json/md``.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 from pathlib import Path
 
@@ -22,7 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from benchmark_utils import SIZES, markdown_table, metadata, time_ms, write_results
 
-from torchgi.filters import Guided, atrous
+from torchgi.filters import Guided, atrous, native
 from torchgi.sampling import allocate, importance_map
 
 PAPER = {
@@ -105,10 +107,15 @@ def main() -> None:
     for size in sizes:
         c, n, x = inputs(*SIZES[size], device)
         for iterations in (5, 10):
-            for fused in (False,) if args.no_fused else (False, True):
-                timed(f"atrous 3 weights{' fused' if fused else ''}",
-                      lambda: atrous(c, n, x, iterations=iterations, fused=fused), size=size,
-                      param=f"{iterations} it", paper_ms=PAPER.get(("atrous", size, iterations)))
+            for mode in ("kernel", "eager") + (() if args.no_fused else ("fused",)):
+                # kernel: the default call (Triton on CUDA, C on the CPU); eager / fused: the torch code
+                def run(mode=mode, iterations=iterations):
+                    with native.disabled() if mode != "kernel" else contextlib.nullcontext():
+                        return atrous(c, n, x, iterations=iterations, fused=mode == "fused")
+
+                err = float((run() - run("eager")).abs().max()) if mode == "kernel" else None
+                timed(f"atrous 3 weights {mode}", run, size=size, param=f"{iterations} it",
+                      paper_ms=PAPER.get(("atrous", size, iterations)), max_abs_diff_to_eager=err)
     if args.compiled:
         compiled_variants(timed, device)
     for window in (2, 4, 10):
@@ -123,7 +130,7 @@ def main() -> None:
     out = Path(args.out)
     stem = f"device_{device.type}"
     write_results(rows, meta, out, stem)
-    md = markdown_table(rows, ["what", "size", "param", "median_ms", "iqr_ms", "paper_ms"])
+    md = markdown_table(rows, ["what", "size", "param", "median_ms", "iqr_ms", "paper_ms", "max_abs_diff_to_eager"])
     (out / f"{stem}.md").write_text(f"{meta['device']}, torch {meta['torch']}, commit {meta['commit']}\n\n{md}\n")
     print(md)
 

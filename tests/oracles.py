@@ -165,6 +165,36 @@ def atrous_oracle(color, normal=None, position=None, *, iterations, sigma_color=
     return c
 
 
+# Weight subsets of the kernel tests (c colour, n normal, x position), then variance guidance and
+# sub-sampling: a level kernel against atrous_oracle (tests/test_native.py, tests/test_gpu.py).
+ATROUS_CASES = ["cnx", "c", "nx", "cn", "", "variance", "subsample"]
+
+
+def atrous_case(C: int, case: str):
+    """12 x 70 buffers (wide enough for the CPU kernel's vector blocks at steps 1, 2, 4) and the
+    ``atrous`` arguments of ``case``; distances stay where exp(-d) > 0 in float32."""
+    g = torch.Generator().manual_seed(C)
+    H, W = 12, 70
+    c = torch.rand(1, C, H, W, generator=g) * 2
+    n = torch.nn.functional.normalize(torch.randn(1, 3, H, W, generator=g), dim=1)
+    x = torch.rand(1, 3, H, W, generator=g)
+    kw = dict(iterations=3, sigma_color=0.5, sigma_normal=0.2 if "n" in case else None,
+              sigma_position=0.3 if "x" in case else None, color_weight="c" in case)
+    if case == "variance":
+        kw = dict(iterations=3, variance=torch.rand(1, 1, H, W, generator=g) * 0.1)
+    if case == "subsample":
+        kw = dict(iterations=3, sigma_color=1.0, subsample=2)
+    return c, n, x, kw
+
+
+def atrous_error(out: torch.Tensor, c, n, x, kw) -> float:
+    """Max error of image 0 of ``out`` against :func:`atrous_oracle`, relative to its maximum."""
+    import numpy as np
+
+    want = atrous_oracle(c[0], n[0], x[0], **{k: v[0] if torch.is_tensor(v) else v for k, v in kw.items()})
+    return float(np.abs(out[0].double().cpu().numpy() - want).max() / np.abs(want).max())
+
+
 def bilateral_oracle(color, guides, *, radius, sigma_space, sigma_color, sigma_guides):
     """Joint bilateral pixel by pixel in float64 numpy (one image ``(C, H, W)``)."""
     import math

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from tests.oracles import atrous_oracle, guided_oracle
+from tests.oracles import ATROUS_CASES, atrous_case, atrous_error, atrous_oracle, guided_oracle
 from torchgi.filters import atrous, guided, native
 
 pytestmark = pytest.mark.skipif(native._compiler() is None, reason="no C compiler: the kernels cannot be built")
@@ -49,23 +49,12 @@ def rel(out: torch.Tensor, ref) -> float:
 # 70 px wide: at steps 1, 2, 4 the 16-pixel vector blocks cover the middle, the edges go tap by tap.
 # C = 2 has no specialised kernel (the run-time-count path).
 @pytest.mark.parametrize("C", [1, 2, 3])
-@pytest.mark.parametrize("case", ["cnx", "c", "nx", "cn", "", "variance", "subsample"])
+@pytest.mark.parametrize("case", ATROUS_CASES)
 def test_atrous_kernel_matches_oracle(spy, C, case):
-    g = torch.Generator().manual_seed(C)
-    H, W = 12, 70
-    c = torch.rand(1, C, H, W, generator=g) * 2
-    n = torch.nn.functional.normalize(torch.randn(1, 3, H, W, generator=g), dim=1)
-    x = torch.rand(1, 3, H, W, generator=g)  # distances stay in float32 range: exp(-d) > 0
-    kw = dict(iterations=3, sigma_color=0.5, sigma_normal=0.2 if "n" in case else None,
-              sigma_position=0.3 if "x" in case else None, color_weight="c" in case)
-    if case == "variance":
-        kw = dict(iterations=3, variance=torch.rand(1, 1, H, W, generator=g) * 0.1)
-    if case == "subsample":
-        kw = dict(iterations=3, sigma_color=1.0, subsample=2)
+    c, n, x, kw = atrous_case(C, case)
     out = atrous(c, n, x, **kw)
     assert spy["atrous"] == 3
-    want = atrous_oracle(c[0], n[0], x[0], **{k: v[0] if torch.is_tensor(v) else v for k, v in kw.items()})
-    assert rel(out[0], want) < 2e-6
+    assert atrous_error(out, c, n, x, kw) < 2e-6
 
 
 @pytest.fixture

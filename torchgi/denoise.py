@@ -349,10 +349,11 @@ class Denoiser(torch.nn.Module):
         spp = max(float(gb.spp.float().mean()), 1.0)
         if gb.variance is None or gb.color is None:
             return spp
-        surface = surface.expand_as(gb.color)
-        if not bool(surface.any()) or bool((gb.spp.expand_as(gb.color) < 2)[surface].any()):
+        count = int(surface.sum()) * gb.color.shape[1]
+        if count == 0 or bool(((gb.spp < 2) & surface).any()):
             return spp  # some surface pixel has no variance estimate
-        rel = float((gb.variance / (gb.color.square() + 1e-4))[surface].mean())
+        # (masks by where, not by indexing: no gathered copies)
+        rel = float(torch.where(surface, gb.variance / (gb.color.square() + 1e-4), 0.0).sum()) / count
         return max(_REL_VAR_1SPP / max(rel, 1e-12), 0.25)
 
     def _subsample(self, guide: torch.Tensor) -> int:

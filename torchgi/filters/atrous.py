@@ -31,7 +31,7 @@ from torchgi.core.check import (
     is_tracing,
 )
 from torchgi.core.errors import RangeError, ShapeError
-from torchgi.filters import native
+from torchgi.filters import gpu, native
 from torchgi.filters.box import compute_dtype
 from torchgi.filters.taps import Padded, kernel_5x5
 
@@ -136,15 +136,6 @@ def _iteration(
 
 
 _fused_iteration = None
-_taps_f32: torch.Tensor | None = None
-
-
-def _native_taps() -> torch.Tensor:
-    """The 25 tap weights ``h`` as a float32 tensor, in :func:`kernel_5x5`'s order."""
-    global _taps_f32
-    if _taps_f32 is None:
-        _taps_f32 = torch.tensor([h for _, _, h in _TAPS], dtype=torch.float32)
-    return _taps_f32
 
 
 def _compiled_iteration():
@@ -274,9 +265,11 @@ def atrous(
     # by √σ here, normals also by the step s of each level
     guides = ([(n, inv_n.sqrt(), True)] if inv_n is not None else []) + \
         ([(x, inv_x.sqrt(), False)] if inv_x is not None else [])
-    compiled = native.applies(c, n, x, var, inv_c, inv_n, inv_x)  # the compiled CPU kernel
-    if compiled and guides:  # built once: the kernel scales the normals' distances by 1 / s²
-        feat = native.padded(B, 3 * len(guides), *c.shape[-2:])
+    # a whole level in one kernel: compiled C on the CPU, Triton on CUDA; else the torch code
+    kernel = native if native.applies(c, n, x, var, inv_c, inv_n, inv_x) else \
+        gpu if gpu.applies(c, n, x, var, inv_c, inv_n, inv_x) and c.shape[1] <= gpu.MAX_CHANNELS else None
+    if kernel is not None and guides:  # built once: the kernel scales the normals' distances by 1 / s²
+        feat = kernel.empty_planes(c, 3 * len(guides))
         for k, (g, s, _) in enumerate(guides):
             torch.mul(g, s, out=feat[:, 3 * k : 3 * k + 3])
     for i in range(iterations):
@@ -285,10 +278,10 @@ def atrous(
         if color_weight and i >= fill:
             # variance-guided: 1 / (σ² · blurred per-pixel variance summed over channels)
             scale = inv_c * (2.0**i) if var is None else inv_c / (_blur3(var).sum(1, keepdim=True) + 1e-12)
-        if compiled:
-            c_next, var, den = native.atrous_level(
+        if kernel is not None:
+            c_next, var, den = kernel.atrous_level(
                 c, feat if guides else None, [1.0 / step**2 if per_step else 1.0 for _, _, per_step in guides], var,
-                valid, step, _native_taps(), scale)
+                valid, step, scale)
         else:
             feat = torch.cat([g * (s / step if per_step else s) for g, s, per_step in guides], 1) if guides else None
             c_next, var, den = level(c, feat, var, valid, step, scale, fused)

@@ -3,12 +3,14 @@
 Borders are count-normalised: the window shrinks at the image edge, so the output is the
 mean of the pixels that exist. Any ``r >= 0`` works, including ``r`` larger than the image.
 
-Two interchangeable implementations compute the same thing:
+Three interchangeable implementations compute the same thing:
 
 * ``_box_cumsum`` — separable ``torch.cumsum`` + ``index_select``: differentiable, traceable,
   exported to ONNX (``CumSum``/``Gather``), used on CUDA and whenever autograd or tracing
   is involved.
-* :class:`PlaneBoxer` — the CPU fast path: blocked prefix sums (a 16x16 triangular matmul
+* the compiled CPU kernel of :mod:`torchgi.filters.native` (box sums sliding down the rows in
+  double, prefix sums along them) for float32 calls without autograd or tracing;
+* :class:`PlaneBoxer` — the CPU fast path where that kernel is unavailable: blocked prefix sums (a 16x16 triangular matmul
   per block plus a carry), differences of shifted views, one image plane at a time so the
   intermediates stay in the last-level cache, all into reused buffers (no per-op
   allocation).
@@ -24,6 +26,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from torchgi.core.check import check_finite, check_floating, check_int, check_shape, is_tracing
+from torchgi.filters import native
 
 __all__ = ["Box", "PlaneBoxer", "box"]
 
@@ -196,6 +199,8 @@ def box(x: torch.Tensor, radius: int) -> torch.Tensor:
     ct = compute_dtype(x.dtype)
     xc = x.to(ct)
     B, C, H, W = x.shape
+    if x.numel() and native.applies(xc):
+        return native.box(xc, radius).to(x.dtype)
     if not use_fast_path(x) or x.numel() == 0:
         return _box_cumsum(xc, radius).to(x.dtype)
     boxer = PlaneBoxer(H, W, radius, ct)

@@ -382,9 +382,9 @@ def guide_from_gbuffer(
     channels = [(gb.normal + 1) * 0.5]
     if gb.depth is not None:
         if depth_scale is None:
-            valid = gb.depth if gb.hit is None else gb.depth[gb.hit]
+            valid = gb.depth if gb.hit is None else torch.where(gb.hit, gb.depth, -torch.inf)
             depth_scale = float(valid.max()) if valid.numel() else 1.0
-            depth_scale = depth_scale if depth_scale > 0 else 1.0
+            depth_scale = depth_scale if depth_scale > 0 else 1.0  # (-inf: no hit pixel)
         elif not depth_scale > 0:
             raise RangeError(f"depth_scale: expected > 0, got {depth_scale}")
         channels.append(gb.depth / depth_scale)

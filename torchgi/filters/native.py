@@ -41,8 +41,9 @@ from pathlib import Path
 import torch
 
 from torchgi.core.check import is_tracing
+from torchgi.filters.taps import kernel_5x5
 
-__all__ = ["available", "disabled", "library", "padded", "status"]
+__all__ = ["available", "disabled", "enabled", "library", "padded", "status"]
 
 _SOURCE = Path(__file__).with_name("_native.c")
 _FLAGS = ["-O3", "-march=native", "-fno-math-errno", "-fPIC", "-shared"]
@@ -52,6 +53,7 @@ _status = "not built yet"
 _tried = False
 _enabled = os.environ.get("TORCHGI_NATIVE", "1") != "0"
 _pool: ThreadPoolExecutor | None = None
+_taps: torch.Tensor | None = None  # the 25 tap weights, float32
 _pool_size: tuple[int, int] = (0, 0)  # (threads, pid) of _pool
 
 # Rows per band below which a call runs on the calling thread (thread hand-off costs ~50 µs).
@@ -98,7 +100,8 @@ def _build() -> ctypes.CDLL:
         fd, tmp = tempfile.mkstemp(suffix=".so", dir=out.parent)
         os.close(fd)
         try:
-            proc = subprocess.run([cc, *_FLAGS, str(_SOURCE), "-o", tmp, "-lm"], capture_output=True, text=True)
+            proc = subprocess.run([cc, *_FLAGS, str(_SOURCE), "-o", tmp, "-lm"], capture_output=True, text=True,
+                                  check=False)
             if proc.returncode != 0:
                 raise RuntimeError(f"{cc} failed: {proc.stderr.strip()[-500:]}")
             os.replace(tmp, out)  # atomic: concurrent builders each write their own temporary file
@@ -131,7 +134,7 @@ def library() -> ctypes.CDLL | None:
                 try:
                     _lib = _build()
                     _status = f"compiled kernels in use ({_lib._name})"
-                except Exception as err:  # no compiler, a failed build, an unloadable library
+                except Exception as err:  # noqa: BLE001 - no compiler, a failed build, an unloadable library
                     _lib, _status = None, f"compiled kernels unavailable, torch code in use: {err}"
                 _tried = True
     return _lib
@@ -159,9 +162,21 @@ def status() -> str:
     return _status
 
 
+def enabled() -> bool:
+    """False inside :func:`disabled` or with ``TORCHGI_NATIVE=0``: then neither these kernels
+    nor the Triton kernel of :mod:`torchgi.filters.gpu` run.
+
+    Example:
+        >>> enabled() in (True, False)
+        True
+    """
+    return _enabled
+
+
 @contextlib.contextmanager
 def disabled() -> Iterator[None]:
-    """Run the torch code paths inside this block (benchmarks and tests compare the two).
+    """Run the torch code paths inside this block, on the CPU and on CUDA (benchmarks and
+    tests compare the two).
 
     Example:
         >>> with disabled():
@@ -243,15 +258,26 @@ def _as_padded(t: torch.Tensor) -> torch.Tensor:
     return out
 
 
+def empty_planes(like: torch.Tensor, C: int) -> torch.Tensor:
+    """A :func:`padded` ``(B, C, H, W)`` buffer for the planes of ``like`` (the feature planes
+    :func:`atrous_level` reads)."""
+    B, _, H, W = like.shape
+    return padded(B, C, H, W)
+
+
 def atrous_level(
     c: torch.Tensor, feat: torch.Tensor | None, feat_scale: list[float], var: torch.Tensor | None,
-    valid: torch.Tensor | None, step: int, taps: torch.Tensor, colour_scale: torch.Tensor | None,
+    valid: torch.Tensor | None, step: int, colour_scale: torch.Tensor | None,
 ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
     """One À-Trous level with the arguments of ``atrous._iteration``, except that ``feat`` holds
     groups of 3 planes whose squared distances are multiplied by ``feat_scale`` (one per group;
-    the level's ``1 / step²`` for normals), and ``taps``: the 25 weights ``(25,)`` float32.
-    Returns the filtered colour ``(B,C,H,W)`` and the propagated variance, both in
-    :func:`padded` layout (pass them on as they are), and the weight sum ``(B,1,H,W)``."""
+    the level's ``1 / step²`` for normals). Returns the filtered colour ``(B,C,H,W)`` and the
+    propagated variance, both in :func:`padded` layout (pass them on as they are), and the
+    weight sum ``(B,1,H,W)``."""
+    global _taps
+    if _taps is None:
+        _taps = torch.tensor([h for _, _, h in kernel_5x5()], dtype=torch.float32)
+    taps = _taps
     lib = library()
     B, C, H, W = c.shape
     F = 0 if feat is None else feat.shape[1]
@@ -277,6 +303,19 @@ def atrous_level(
              _ptr(None if var_out is None else var_out[b]), den[b].data_ptr(),
              lambda: torch.empty((2 * C + 1) * (W + _PAD), dtype=torch.float32))
     return out, var_out, den
+
+
+def box(x: torch.Tensor, r: int) -> torch.Tensor:
+    """Count-normalised box means over ``(2r+1)²`` windows of float32 ``x (B,C,H,W)`` (the
+    coefficient pass of the guided filter without the apply)."""
+    lib = library()
+    B, C, H, W = x.shape
+    x = x.contiguous()
+    out = torch.empty_like(x)
+    for b in range(B):
+        _run(lib.torchgi_guided_apply, H, W, x[b].data_ptr(), 0, C, None, None, None, H, W, r, out[b].data_ptr(),
+             lambda: torch.empty(2 * (C * (W + 8) + 2 * W + 8) + C * (W + 16), dtype=torch.float32))
+    return out
 
 
 def guided(
