@@ -7,10 +7,13 @@ Iteration ``i = 0..N-1`` with step ``s = 2^i`` over the 25 taps of ``h = b ⊗ b
     w_n = exp(-|n(p)-n(q)|² / (s² σ_n)),  w_x = exp(-|x(p)-x(q)|² / σ_x),  σ_rt,i = 2^-i σ_rt
 
 (the paper's shader form: squared distances over σ). The three exponentials are one
-``exp(-(d_rt + d_n + d_x))``. On the CPU a level runs in a compiled C kernel
-(:mod:`torchgi.filters.native`) where it applies, else in the torch code below. Beyond the paper: sub-sampled input with in-painting, global
+``exp(-(d_rt + d_n + d_x))``. Beyond the paper: sub-sampled input with in-painting, global
 energy post-normalisation (the paper's stated fix), and an SVGF-style variance-guided colour
 weight (Schied et al. 2017) that replaces the tie of σ_rt to the image maximum.
+
+Where it applies a level runs in one kernel — compiled C on the CPU
+(:mod:`torchgi.filters.native`), Triton on CUDA (:mod:`torchgi.filters.gpu`) — else in the
+torch code below (autograd, tracing and export, float64, no compiler).
 """
 
 from __future__ import annotations
@@ -188,10 +191,11 @@ def atrous(
         sanitize: replace NaN/Inf inputs by 0 (with a warning) instead of raising.
         fused: run the torch code of each level through ``torch.compile`` (one fused loop per
             level). The first call in a process compiles (about a minute on 2 cores; inductor
-            caches it on disk for later processes); new sizes and steps reuse it. On the CPU,
-            float32 (and float16/bfloat16) calls without autograd or tracing run each level in
-            the compiled C kernel of :mod:`torchgi.filters.native` instead, whatever ``fused``
-            says (about 2x faster than ``fused`` and 15x than eager at 1024x768).
+            caches it on disk for later processes); new sizes and steps reuse it. float32
+            (and float16/bfloat16) calls without autograd or tracing run each level in one
+            kernel instead, whatever ``fused`` says: on the CPU the compiled C kernel of
+            :mod:`torchgi.filters.native` (1024x768, 5 levels, 3 weights: 93 ms against 202
+            fused and 2180 eager), on CUDA the Triton kernel of :mod:`torchgi.filters.gpu`.
 
     Returns:
         ``(B, C, H, W)`` filtered colour in the input's dtype (float16/bfloat16 computed in

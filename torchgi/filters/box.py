@@ -10,10 +10,10 @@ Three interchangeable implementations compute the same thing:
   is involved.
 * the compiled CPU kernel of :mod:`torchgi.filters.native` (box sums sliding down the rows in
   double, prefix sums along them) for float32 calls without autograd or tracing;
-* :class:`PlaneBoxer` — the CPU fast path where that kernel is unavailable: blocked prefix sums (a 16x16 triangular matmul
-  per block plus a carry), differences of shifted views, one image plane at a time so the
-  intermediates stay in the last-level cache, all into reused buffers (no per-op
-  allocation).
+* :class:`PlaneBoxer` — the CPU fast path where that kernel is unavailable (no C compiler):
+  blocked prefix sums (a 16x16 triangular matmul per block plus a carry), differences of
+  shifted views, one image plane at a time so the intermediates stay in the last-level cache,
+  all into reused buffers (no per-op allocation).
 
 Precision: sums run along one axis at a time over mean-free data where the caller
 centres it (the guided filter does), so float32 keeps ~1e-6 relative accuracy at 4K.
