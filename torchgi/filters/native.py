@@ -151,14 +151,16 @@ def available() -> bool:
 
 
 def status() -> str:
-    """Why the compiled kernels are, or are not, in use (for logs and benchmark metadata).
+    """Whether the compiled kernels are in use, and why not (for logs and benchmark metadata);
+    builds them first if no call has yet.
 
     Example:
-        >>> status().startswith(("compiled", "disabled", "not built"))
+        >>> status().startswith(("compiled kernels in use", "compiled kernels unavailable", "disabled"))
         True
     """
     if not _enabled:
         return "disabled (TORCHGI_NATIVE=0 or native.disabled()), torch code in use"
+    library()
     return _status
 
 
