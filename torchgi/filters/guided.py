@@ -285,8 +285,7 @@ def _guided(
     e = _check_eps(eps, B, n, g)
     fast = use_fast_path(src, guide, e)
     if subsample == 1 and native.applies(g, p, e):
-        e_pos = e.clamp_min(torch.finfo(ct).tiny)
-        return native.guided(g, p, mean_g, mean_p, mean_p, radius, e_pos, holder=_holder).to(src.dtype)
+        return native.guided(g, p, mean_g, mean_p, mean_p, radius, e, holder=_holder).to(src.dtype)
     if subsample == 1:
         if fast:
             return _guided_fast(g, p, mean_g, mean_p, radius, e, _holder).to(src.dtype)
@@ -299,8 +298,8 @@ def _guided(
     r_low = round(radius / subsample)
     if native.applies(low_g, low_p, e):
         zero_g, zero_p = torch.zeros_like(mean_g), torch.zeros_like(mean_p)  # low_g, low_p are centred
-        coeffs = native.guided(low_g, low_p, zero_g, zero_p, zero_p, r_low, e.clamp_min(torch.finfo(ct).tiny),
-                               coefficients_only=True, holder=_holder)
+        coeffs = native.guided(low_g, low_p, zero_g, zero_p, zero_p, r_low, e, coefficients_only=True,
+                               holder=_holder)
     elif fast:
         coeffs = _guided_fast(low_g, low_p, torch.zeros_like(mean_g), torch.zeros_like(mean_p), r_low, e, _holder,
                               coefficients_only=True)

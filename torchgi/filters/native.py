@@ -233,6 +233,11 @@ def _ptr(t: torch.Tensor | None) -> int | None:
 _PAD = 16  # floats (64 bytes) of padding after each row and each plane of a padded tensor
 
 
+def _layout(H: int, W: int) -> tuple[int, int]:
+    """Row and plane strides (floats) of :func:`padded`."""
+    return W + _PAD, H * (W + _PAD) + _PAD
+
+
 def padded(B: int, C: int, H: int, W: int) -> torch.Tensor:
     """An empty float32 ``(B, C, H, W)`` view whose rows are ``W + 16`` and planes ``H (W + 16)
     + 16`` floats apart. With power-of-two widths, plain rows and planes lie a multiple of 4 KB
@@ -243,16 +248,14 @@ def padded(B: int, C: int, H: int, W: int) -> torch.Tensor:
         >>> padded(1, 3, 4, 5).stride()   # rows 5 + 16 apart, planes 4 * 21 + 16
         (300, 100, 21, 1)
     """
-    rs = W + _PAD
-    ps = H * rs + _PAD
+    rs, ps = _layout(H, W)
     return torch.empty(max(B * C * ps, 1), dtype=torch.float32).as_strided((B, C, H, W), (C * ps, ps, rs, 1))
 
 
 def _as_padded(t: torch.Tensor) -> torch.Tensor:
     """``t`` if it already has :func:`padded`'s layout, else a padded copy."""
     B, C, H, W = t.shape
-    rs = W + _PAD
-    ps = H * rs + _PAD
+    rs, ps = _layout(H, W)
     if t.dtype == torch.float32 and t.stride() == (C * ps, ps, rs, 1):
         return t
     out = padded(B, C, H, W)
@@ -286,7 +289,7 @@ def atrous_level(
     if F % 3 or len(feat_scale) != F // 3:
         raise ValueError(f"feat: expected groups of 3 planes with one scale each, got {F} planes, {feat_scale}")
     fs = torch.tensor(list(feat_scale) or [1.0], dtype=torch.float32)
-    rs, ps = W + _PAD, H * (W + _PAD) + _PAD
+    rs, ps = _layout(H, W)
     c = _as_padded(c)
     feat = None if feat is None else _as_padded(feat)
     var = None if var is None else _as_padded(var)
@@ -307,6 +310,13 @@ def atrous_level(
     return out, var_out, den
 
 
+def _box_scratch(K: int, W: int) -> torch.Tensor:
+    """One band's scratch of the box passes in ``_native.c`` over ``K`` planes of width ``W``:
+    doubles for the column sums (rows ``W + 8``), 1 / window columns (``W``) and a row's prefix
+    sums (``W + 8``), then floats for the box means (rows ``W + 16``)."""
+    return torch.empty(2 * (K * (W + 8) + 2 * W + 8) + K * (W + 16), dtype=torch.float32)
+
+
 def box(x: torch.Tensor, r: int) -> torch.Tensor:
     """Count-normalised box means over ``(2r+1)²`` windows of float32 ``x (B,C,H,W)`` (the
     coefficient pass of the guided filter without the apply)."""
@@ -316,7 +326,7 @@ def box(x: torch.Tensor, r: int) -> torch.Tensor:
     out = torch.empty_like(x)
     for b in range(B):
         _run(lib.torchgi_guided_apply, H, W, x[b].data_ptr(), 0, C, None, None, None, H, W, r, out[b].data_ptr(),
-             lambda: torch.empty(2 * (C * (W + 8) + 2 * W + 8) + C * (W + 16), dtype=torch.float32))
+             lambda: _box_scratch(C, W))
     return out
 
 
@@ -325,7 +335,7 @@ def guided(
     eps: torch.Tensor, coefficients_only: bool = False, holder: dict | None = None,
 ) -> torch.Tensor:
     """Guided filter of ``p (B,Cs,H,W)`` by ``I (B,n,H,W)`` (n <= 4), both centred inside by
-    ``mean_p``, ``mean_I`` (``(B,C,1,1)``), ``eps (B,n,1,1)`` (already > 0), radius ``r``;
+    ``mean_p``, ``mean_I`` (``(B,C,1,1)``), ``eps (B,n,1,1)`` (>= 0), radius ``r``;
     ``offset (B,Cs,1,1)`` is added to the output. Returns ``(B,Cs,H,W)``, or the box-filtered
     coefficients ``(B,n+1,Cs,H,W)`` (``a_0..a_{n-1}, b``). ``holder`` keeps the coefficient
     planes between calls of one size (no page faults)."""
@@ -343,7 +353,7 @@ def guided(
         if holder is not None:
             holder["native_key"], holder["native_coef"] = key, coef
     out = torch.empty((B, n + 1, Cs, H, W) if coefficients_only else (B, Cs, H, W), dtype=torch.float32)
-    eps = eps.reshape(B, n).to(torch.float32).contiguous()
+    eps = eps.reshape(B, n).to(torch.float32).clamp_min(torch.finfo(torch.float32).tiny).contiguous()
     offset = offset.reshape(B, Cs).to(torch.float32).contiguous()
     mean_I = mean_I.reshape(B, n).to(torch.float32).contiguous()
     mean_p = mean_p.reshape(B, Cs).to(torch.float32).contiguous()
@@ -352,8 +362,8 @@ def guided(
         _run(lib.torchgi_guided_coefficients, H, W, I[b].data_ptr(), mean_I[b].data_ptr(), n, p[b].data_ptr(),
              mean_p[b].data_ptr(), Cs, H, W, r,
              eps[b].data_ptr(), unit, coef.data_ptr(),
-             lambda: torch.empty(2 * (K * (W + 8) + 2 * W + 8) + K * (W + 16), dtype=torch.float32))
+             lambda: _box_scratch(K, W))
         _run(lib.torchgi_guided_apply, H, W, coef.data_ptr(), n, Cs, None if coefficients_only else I[b].data_ptr(),
              mean_I[b].data_ptr(), offset[b].data_ptr(), H, W, r, out[b].data_ptr(),
-             lambda: torch.empty(2 * (Q * (W + 8) + 2 * W + 8) + Q * (W + 16), dtype=torch.float32))
+             lambda: _box_scratch(Q, W))
     return out
