@@ -3,12 +3,14 @@
     python scripts/bench_device.py --device cuda --out out/bench     # on a GPU machine
     python scripts/bench_device.py --device cpu --quick               # smoke run
 
-Times (``torch.utils.benchmark`` medians, CUDA synchronised) the guided filter at 1024x768 with
-1/3/4-channel guides (paper: 16/71/80 ms on a GTX 285), À-Trous with 3 weights at 512² and
-1080p, 5 and 10 iterations (paper: 5.6 ms at 512²; 42.6/86.0 ms at 1080p): the default call
-(one kernel per level: Triton on CUDA, compiled C on the CPU), the torch code eager and fused,
-and importance map + allocation at 1024x768 with windows 2/4/10 (paper: 8.3/26.2/128.7 ms).
-Writes ``device_<name>.csv/json/md``.
+Times (``torch.utils.benchmark`` medians, CUDA synchronised) the guided filter, r = 32, at
+1024x768 with 1/3/4-channel guides (paper: 16/71/80 ms on a GTX 285) and at 1080p with a
+4-channel guide, À-Trous with 3 weights at 512² and 1080p, 5 and 10 iterations (paper: 5.6 ms at
+512²; 42.6/86.0 ms at 1080p) — each as the default call (the kernels: Triton on CUDA, compiled
+C on the CPU) and as the torch code (À-Trous eager and fused) — and importance map + allocation
+at 1024x768 with windows 2/4/10 (paper: 8.3/26.2/128.7 ms). On CUDA each row also gives the
+GPU's busy time per call and the kernels it launches (torch.profiler), which separates the
+kernels from the host's work (checks, launches). Writes ``device_<name>.csv/json/md``.
 """
 
 from __future__ import annotations
@@ -77,6 +79,23 @@ def compiled_variants(timed, device: torch.device) -> None:
         timed(f"{name} compiled", lambda: compiled(*args), size="1080p", param=f"{mode}, max abs diff {err:.1e}")
 
 
+def device_busy(fn, device: torch.device, reps: int = 20) -> dict:
+    """GPU time per call summed over the kernels ``fn`` launches, and their number (CUDA only)."""
+    if device.type != "cuda":
+        return {}
+    from torch.profiler import ProfilerActivity, profile
+
+    fn()
+    torch.cuda.synchronize()
+    with profile(activities=[ProfilerActivity.CUDA]) as prof:
+        for _ in range(reps):
+            fn()
+        torch.cuda.synchronize()
+    events = [e for e in prof.events() if e.device_type == torch.autograd.DeviceType.CUDA]
+    busy_us = sum(e.device_time for e in events)
+    return {"gpu_busy_ms": busy_us / reps / 1000, "kernels_per_call": len(events) / reps}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
@@ -92,17 +111,25 @@ def main() -> None:
 
     def timed(name: str, fn, **fields) -> None:
         t = time_ms(fn, min_run_time=args.min_time, device=device.type)
-        row = {"what": name, **fields, "median_ms": t["median_ms"], "iqr_ms": t["iqr_ms"]}
+        row = {"what": name, **fields, "median_ms": t["median_ms"], "iqr_ms": t["iqr_ms"], **device_busy(fn, device)}
         rows.append(row)
         print({k: (round(v, 3) if isinstance(v, float) else v) for k, v in row.items()}, flush=True)
 
     H, W = SIZES["1024x768"]
     color, normal, position = inputs(H, W, device)
-    for dim in (1, 3, 4):
-        guide = torch.cat([normal, position[:, :1]], 1)[:, :dim].contiguous()
-        module = Guided(radius=32, eps=0.01).to(device)
-        timed("guided r=32", lambda: module(color, guide), size="1024x768", param=f"dim {dim}",
-              paper_ms=PAPER["guided", dim])
+    for size, dims in (("1024x768", (1, 3, 4)), ("1080p", (4,))):
+        c, n, x = inputs(*SIZES[size], device)
+        for dim in dims:
+            guide = torch.cat([n, x[:, :1]], 1)[:, :dim].contiguous()
+            module = Guided(radius=32, eps=0.01).to(device)
+            for mode in ("kernel", "torch"):
+                def run(mode=mode, guide=guide, module=module, c=c):
+                    with native.disabled() if mode != "kernel" else contextlib.nullcontext():
+                        return module(c, guide)
+
+                err = float((run() - run("torch")).abs().max()) if mode == "kernel" else None
+                timed(f"guided r=32 {mode}", run, size=size, param=f"dim {dim}",
+                      paper_ms=PAPER["guided", dim] if size == "1024x768" else None, max_abs_diff_to_torch=err)
     sizes = ("512²",) if args.quick else ("512²", "1080p")
     for size in sizes:
         c, n, x = inputs(*SIZES[size], device)
@@ -115,7 +142,7 @@ def main() -> None:
 
                 err = float((run() - run("eager")).abs().max()) if mode == "kernel" else None
                 timed(f"atrous 3 weights {mode}", run, size=size, param=f"{iterations} it",
-                      paper_ms=PAPER.get(("atrous", size, iterations)), max_abs_diff_to_eager=err)
+                      paper_ms=PAPER.get(("atrous", size, iterations)), max_abs_diff_to_torch=err)
     if args.compiled:
         compiled_variants(timed, device)
     for window in (2, 4, 10):
@@ -130,7 +157,8 @@ def main() -> None:
     out = Path(args.out)
     stem = f"device_{device.type}"
     write_results(rows, meta, out, stem)
-    md = markdown_table(rows, ["what", "size", "param", "median_ms", "iqr_ms", "paper_ms", "max_abs_diff_to_eager"])
+    md = markdown_table(rows, ["what", "size", "param", "median_ms", "iqr_ms", "gpu_busy_ms", "kernels_per_call",
+                               "paper_ms", "max_abs_diff_to_torch"])
     (out / f"{stem}.md").write_text(f"{meta['device']}, torch {meta['torch']}, commit {meta['commit']}\n\n{md}\n")
     print(md)
 

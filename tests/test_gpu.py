@@ -1,6 +1,9 @@
-"""The Triton kernel of an À-Trous level (torchgi.filters.gpu) against the float64 oracle: on
-CUDA when the device is asked for (``--device cuda``), and on the CPU through Triton's
-interpreter (a subprocess with ``TRITON_INTERPRET=1``) where Triton is installed."""
+"""The Triton kernels (torchgi.filters.gpu: an À-Trous level, the guided filter, the box filter)
+against the float64 oracles: on CUDA when the device is asked for (``--device cuda``), and on
+the CPU through Triton's interpreter (a subprocess with ``TRITON_INTERPRET=1``) where Triton is
+installed. The interpreter runs the kernels as Python, so a third check compiles every kernel
+for an sm_90 GPU offline (Triton's own ptxas, no GPU needed): what the GPU compiler accepts,
+and that no variant spills registers."""
 
 from __future__ import annotations
 
@@ -12,8 +15,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from tests.oracles import ATROUS_CASES, atrous_case, atrous_error
-from torchgi.filters import atrous, gpu, native
+from tests.oracles import ATROUS_CASES, atrous_case, atrous_error, box_oracle, fast_guided_oracle, guided_oracle, scene
+from torchgi.filters import atrous, box, gpu, guided, native
 
 
 @pytest.mark.parametrize("C", [1, 2, 3])
@@ -47,19 +50,129 @@ print(worst)
 """
 
 
-def test_triton_kernel_matches_oracle_in_the_interpreter():
+_INTERPRETED_GUIDED = """
+import sys, torch
+sys.path.insert(0, {root!r})
+from tests.oracles import box_oracle, fast_guided_oracle, guided_oracle, scene
+from torchgi.filters import box, gpu, guided
+calls = []
+real = gpu.guided
+gpu.guided = lambda *a, **k: calls.append(1) or real(*a, **k)
+worst = 0.0
+def rel(out, ref):
+    return float((out.double() - ref).abs().max() / (ref.max() - ref.min()))
+# guide channels 1-4, source channels 1/3, r = 0, windows past the image, one pixel, offset guides
+for B, H, W, n, Cs, r, offset in [(2, 9, 13, 4, 3, 2, 0.0), (1, 20, 30, 2, 1, 40, 0.0), (1, 7, 11, 1, 3, 0, 0.0),
+                                  (1, 12, 10, 3, 1, 3, 1e3), (1, 1, 1, 2, 1, 3, 0.0)]:
+    p, I = scene(B, H, W, n, seed=H)
+    p, I = p[:, :Cs], I + offset
+    want = guided_oracle(p, I, r, 0.01)
+    got = guided(p, I, radius=r, eps=0.01)
+    worst = max(worst, rel(got, want) if H * W > 1 else float((got - p).abs().max()))
+p, I = scene(1, 13, 17, 4, seed=9)
+worst = max(worst, rel(guided(p, I, radius=4, eps=0.01, subsample=2), fast_guided_oracle(p, I, 4, 0.01, 2)))
+assert len(calls) == 6, calls
+x = torch.rand(2, 3, 11, 140) + 5  # absolute errors: r = 200 averages the whole image
+box_err = max(float((box(x, r).double() - box_oracle(x.double(), r)).abs().max()) for r in (0, 5, 200))
+print(worst, box_err)
+"""
+
+
+def _interpret(code: str) -> list[float]:
+    """Run ``code`` (formatted with the repository root) with the Triton interpreter on and the C
+    kernels off (they would take CPU calls first); returns the numbers of the last line it prints."""
     pytest.importorskip("triton")
     root = str(Path(__file__).resolve().parents[1])
     env = dict(os.environ, TRITON_INTERPRET="1", TORCHGI_NATIVE="1")
-    # the C kernels would take CPU calls first: the interpreted run switches them off by hand
-    code = _INTERPRETED.replace("from torchgi.filters import atrous, gpu",
-                                "from torchgi.filters import atrous, gpu, native\nnative.library = lambda: None")
-    proc = subprocess.run([sys.executable, "-c", code.format(root=root)], capture_output=True, text=True, env=env,
-                          cwd=root, timeout=600, check=False)
+    code = code.format(root=root).replace("from torchgi.filters import",
+                                          "from torchgi.filters import native\nnative.library = lambda: None\n"
+                                          "from torchgi.filters import", 1)
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=root,
+                          timeout=600, check=False)
     assert proc.returncode == 0, proc.stderr[-2000:]
-    assert float(proc.stdout.split()[-1]) < 2e-6
+    return [float(v) for v in proc.stdout.splitlines()[-1].split()]
+
+
+def test_triton_kernel_matches_oracle_in_the_interpreter():
+    (worst,) = _interpret(_INTERPRETED)
+    assert worst < 2e-6
+
+
+def test_triton_guided_and_box_match_oracle_in_the_interpreter():
+    guided_err, box_err = _interpret(_INTERPRETED_GUIDED)
+    assert guided_err < 2e-6 and box_err < 1e-6
+
+
+@pytest.mark.parametrize("n", [1, 3, 4])
+@pytest.mark.parametrize("Cs", [1, 3])
+def test_triton_guided_matches_oracle_on_cuda(device, n, Cs, monkeypatch):
+    if device.type != "cuda":
+        pytest.skip("the CUDA run; the CPU checks the same kernels through the interpreter above")
+    if gpu.triton is None:
+        pytest.skip("no Triton")
+    calls = []
+    real = gpu.guided
+    monkeypatch.setattr(gpu, "guided", lambda *a, **k: calls.append(1) or real(*a, **k))
+    for H, W, r, offset in [(37, 53, 5, 0.0), (120, 301, 40, 1e3), (1080, 1920, 24, 1e4)]:
+        p, I = scene(1, H, W, n, seed=n + Cs)
+        p, I = p[:, :Cs].contiguous(), (I + offset).float()
+        want = guided_oracle(p, I, r, 0.01)
+        got = guided(p.to(device), I.to(device), radius=r, eps=0.01).cpu()
+        assert torch.isfinite(got).all()
+        assert float((got.double() - want).abs().max() / (want.max() - want.min())) < 1e-5
+    p, I = scene(2, 37, 53, n, seed=1)
+    got = guided(p[:, :Cs].to(device), I.to(device), radius=6, eps=0.01, subsample=2).cpu()
+    want = fast_guided_oracle(p[:, :Cs], I, 6, 0.01, 2)
+    assert float((got.double() - want).abs().max() / (want.max() - want.min())) < 1e-5
+    assert len(calls) == 4
+    x = torch.rand(2, 3, 70, 90)
+    torch.testing.assert_close(box(x.to(device), 7).cpu().double(), box_oracle(x.double(), 7), rtol=0, atol=1e-6)
 
 
 def test_kernels_off_inside_disabled():
     with native.disabled():
         assert not gpu.applies(torch.zeros(1, device="cuda" if torch.cuda.is_available() else "cpu"))
+
+
+def _variants():
+    """Every Triton kernel with the compile-time arguments it is launched with (the À-Trous
+    level: the common case and the one with every input)."""
+    level = dict(BH=gpu._BH, BW=gpu._BW, UNROLL=gpu._UNROLL)
+    return [
+        (gpu._level, dict(C=3, F=6, CS=1, V=False, VALID=False, **level), gpu._WARPS),
+        (gpu._level, dict(C=4, F=6, CS=2, V=True, VALID=True, **level), gpu._WARPS),
+        (gpu._level, dict(C=1, F=0, CS=0, V=False, VALID=False, **level), gpu._WARPS),
+        (gpu._column_sums, dict(BW=gpu._COL_BW), 4),
+        (gpu._row_means, dict(BH=gpu._ROW_BH, BW=gpu._ROW_BW), 4),
+    ] + [(k, dict(N=n, BLOCK=gpu._PIX), 4) for k in (gpu._solve, gpu._apply) for n in (1, 2, 3, 4)]
+
+
+def test_kernels_compile_for_a_gpu_without_register_spills():
+    """Triton compiles each kernel for sm_90 (an H100/H200) here, without a GPU; ptxas' resource
+    report must show no spills (stack or local memory): the fully unrolled À-Trous tap loop
+    used 255 registers and spilled."""
+    triton = pytest.importorskip("triton")
+    try:
+        from triton.backends.compiler import GPUTarget
+        from triton.compiler.compiler import ASTSource
+    except ImportError:
+        pytest.skip("this Triton has no ASTSource / GPUTarget")
+    cuobjdump = Path(triton.__file__).parent / "backends" / "nvidia" / "bin" / "cuobjdump"
+    if not cuobjdump.exists():
+        pytest.skip("this Triton ships no cuobjdump")
+    floats = {"fs0", "fs1", "unit", "tiny"}
+    for fn, constants, warps in _variants():
+        signature = {a: "constexpr" if a in constants else "*i32" if a == "tab_ptr" else "*fp32" if a.endswith("_ptr")
+                     else "fp32" if a in floats else "i32" for a in fn.arg_names}
+        kernel = triton.compile(ASTSource(fn, signature, constants), target=GPUTarget("cuda", 90, 32),
+                                options={"num_warps": warps})
+        cubin = Path(os.environ.get("TMPDIR", "/tmp")) / f"torchgi_{os.getpid()}.cubin"
+        cubin.write_bytes(kernel.asm["cubin"])
+        try:
+            report = subprocess.run([str(cuobjdump), "-res-usage", str(cubin)], capture_output=True, text=True,
+                                    check=True).stdout
+        finally:
+            cubin.unlink()
+        usage = dict(item.split(":") for line in report.splitlines() if "REG:" in line for item in line.split())
+        assert usage["STACK"] == "0" and usage["LOCAL"] == "0", (fn.__name__, constants, usage)
+        assert int(usage["REG"]) <= 128, (fn.__name__, constants, usage)

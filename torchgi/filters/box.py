@@ -3,13 +3,14 @@
 Borders are count-normalised: the window shrinks at the image edge, so the output is the
 mean of the pixels that exist. Any ``r >= 0`` works, including ``r`` larger than the image.
 
-Three interchangeable implementations compute the same thing:
+Four interchangeable implementations compute the same thing:
 
 * ``_box_cumsum`` — separable ``torch.cumsum`` + ``index_select``: differentiable, traceable,
-  exported to ONNX (``CumSum``/``Gather``), used on CUDA and whenever autograd or tracing
-  is involved.
+  exported to ONNX (``CumSum``/``Gather``), used whenever autograd or tracing is involved,
+  for float64 and where no kernel applies.
 * the compiled CPU kernel of :mod:`torchgi.filters.native` (box sums sliding down the rows in
-  double, prefix sums along them) for float32 calls without autograd or tracing;
+  double, prefix sums along them) for float32 CPU calls without autograd or tracing;
+* the Triton kernels of :mod:`torchgi.filters.gpu` (the same sums in double) for such CUDA calls;
 * :class:`PlaneBoxer` — the CPU fast path where that kernel is unavailable (no C compiler):
   blocked prefix sums (a 16x16 triangular matmul per block plus a carry), differences of
   shifted views, one image plane at a time so the intermediates stay in the last-level cache,
@@ -26,7 +27,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from torchgi.core.check import check_finite, check_floating, check_int, check_shape, is_tracing
-from torchgi.filters import native
+from torchgi.filters import gpu, native
 
 __all__ = ["Box", "PlaneBoxer", "box"]
 
@@ -201,6 +202,8 @@ def box(x: torch.Tensor, radius: int) -> torch.Tensor:
     B, C, H, W = x.shape
     if x.numel() and native.applies(xc):
         return native.box(xc, radius).to(x.dtype)
+    if x.numel() and gpu.applies(xc):
+        return gpu.box(xc, radius).to(x.dtype)
     if not use_fast_path(x) or x.numel() == 0:
         return _box_cumsum(xc, radius).to(x.dtype)
     boxer = PlaneBoxer(H, W, radius, ct)

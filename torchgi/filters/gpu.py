@@ -1,13 +1,22 @@
-"""Triton kernel of one À-Trous level for CUDA tensors (float32, without autograd or tracing).
+"""Triton kernels for CUDA tensors (float32, without autograd or tracing): an À-Trous level and
+the guided filter (with the box filter it is built from).
 
-The torch code of a level launches about ten kernels per tap (250 per level); this kernel does
-a level in one launch: each program filters a tile of pixels, walks the 25 taps with the
-weighted sums in registers and writes the level's colour, variance and weight sum. Same maths
-as ``atrous._iteration`` and the CPU kernel of :mod:`torchgi.filters.native`. Triton comes
-with CUDA builds of torch; without it (or on the CPU) the filters run their torch code. With
-``TRITON_INTERPRET=1`` set before torchgi is imported, the same kernel runs on CPU tensors
-through Triton's interpreter (the tests check it there against the float64 oracle).
-:func:`torchgi.filters.native.disabled` (or ``TORCHGI_NATIVE=0``) switches it off too.
+The torch code of an À-Trous level launches about ten kernels per tap (250 per level); the
+level kernel does a level in one launch: each program filters a tile of pixels, walks the 25
+taps with the weighted sums in registers and writes the level's colour, variance and weight
+sum. Same maths as ``atrous._iteration`` and the CPU kernel of :mod:`torchgi.filters.native`.
+
+The guided filter's torch code launches some 200 small kernels; here it is six launches:
+products of the centred guide and source summed down the columns (sliding windows, double
+accumulators), those sums summed along the rows (a running difference and a prefix sum,
+double), the per-pixel LDLᵀ solve of ``guided._solve`` (written once for four guide channels;
+absent channels enter as exact zeros), the two box passes again over the coefficients, and
+the apply. Cost does not depend on the radius beyond one window per tile.
+
+Triton comes with CUDA builds of torch; without it (or on the CPU) the filters run their torch
+code. With ``TRITON_INTERPRET=1`` set before torchgi is imported, the same kernels run on CPU
+tensors through Triton's interpreter (the tests check them there against float64 oracles).
+:func:`torchgi.filters.native.disabled` (or ``TORCHGI_NATIVE=0``) switches them off too.
 
 Example:
     >>> from torchgi.filters import gpu
@@ -31,13 +40,17 @@ try:  # shipped with CUDA builds of torch
 except ImportError:  # pragma: no cover - CPU-only installs
     triton = None
 
-__all__ = ["applies", "atrous_level", "empty_planes"]
+__all__ = ["applies", "atrous_level", "box", "empty_planes", "guided"]
 
 _INTERPRET = os.environ.get("TRITON_INTERPRET") == "1"
 # pixels of a tile (rows x columns, coalesced along the row) and warps per program: on an H200 at
-# 1080p, 5 levels (scripts/sweep_gpu_tiles.py): 4x64 / 4 warps 2.35 ms, 8x64 / 8 warps 2.33,
-# 8x32 / 4 warps 2.62, 16x32 and 8x64 with 4 warps 14 (register spills)
+# 1080p, 5 levels, with the 25 taps unrolled (scripts/sweep_gpu_tiles.py): 4x64 / 4 warps 2.35
+# ms, 8x64 / 8 warps 2.33, 8x32 / 4 warps 2.62, 16x32 and 8x64 with 4 warps 14 (register spills)
 _BH, _BW, _WARPS = 4, 64, 4
+# taps unrolled per loop step: the fully unrolled loop (25) compiles for sm_90 to 255 registers
+# and spills (2 blocks of 4 warps per SM); 1: 64 registers, no spills, 8 blocks (compiled
+# offline with ptxas, tests/test_gpu.py); 5: 154
+_UNROLL = 1
 MAX_CHANNELS = 4  # colour channels the kernel takes
 _taps: dict[torch.device, torch.Tensor] = {}
 
@@ -65,7 +78,7 @@ if triton is not None:
                H, W, step, fs0, fs1, s_b, s_c, s_h, f_b, f_c, f_h, v_b, v_c, v_h, a_b, a_h, k_b, k_h,
                o_b, o_c, o_h, d_b, d_h,
                C: tl.constexpr, F: tl.constexpr, CS: tl.constexpr, V: tl.constexpr, VALID: tl.constexpr,
-               BH: tl.constexpr, BW: tl.constexpr):
+               BH: tl.constexpr, BW: tl.constexpr, UNROLL: tl.constexpr):
         # Channels are separate 2-D tiles (c0..c3, f0..f5) under compile-time guards: a channel
         # axis in one 3-D tile is spread over threads and every tap's sum over it goes through
         # shared memory (measured: 9.4 ms for 5 levels at 1080p on an H200).
@@ -104,7 +117,7 @@ if triton is not None:
         v2 = zero
         v3 = zero
         den = zero
-        for t in tl.static_range(25):
+        for t in tl.range(0, 25, loop_unroll_factor=UNROLL):
             oy = (t // 5 - 2) * step
             ox = (t % 5 - 2) * step
             ok = inside & (y + oy >= 0) & (y + oy < H) & (x + ox >= 0) & (x + ox < W)
@@ -234,6 +247,251 @@ def atrous_level(
         H, W, step, fs[0], fs[1], *c.stride()[:3], *f_s[:3], *v_s[:3], a_s[0], a_s[2], k_s[0], k_s[2],
         *out.stride()[:3], den.stride(0), den.stride(2),
         C=C, F=F, CS=0 if cs is None else 2 if plane else 1, V=var is not None, VALID=valid is not None, BH=_BH, BW=_BW,
-        num_warps=_WARPS,
+        UNROLL=_UNROLL, num_warps=_WARPS,
     )
     return out, vout, den
+
+
+# guided filter: pixels per program of the column pass (columns) / row pass (rows x columns) /
+# solve and apply; rows per program of the column pass (each starts with a full window)
+_COL_BW, _COL_ROWS = 128, 64
+_ROW_BH, _ROW_BW = 4, 128
+_PIX = 256
+
+if triton is not None:
+
+    @triton.jit
+    def _column_sums(x_ptr, tab_ptr, s_ptr, K, H, W, r, n_x, n_y, sx_b, sx_c, ss_b, ss_k, ROWS, BW: tl.constexpr):
+        # s[b, k] = Σ over the rows y-r..y+r of x[b, tab[k, 0]] · x[b, tab[k, 1]] (1 for -1):
+        # a window slid down ROWS rows from a full sum at the chunk's first row, in double
+        pid = tl.program_id(0)
+        k = pid % K
+        t = pid // K
+        xb = t % n_x
+        t = t // n_x
+        y0 = (t % n_y) * ROWS
+        b = (t // n_y).to(tl.int64)
+        ia = tl.load(tab_ptr + 2 * k)
+        ib = tl.load(tab_ptr + 2 * k + 1)
+        x = xb * BW + tl.arange(0, BW)
+        m = x < W
+        two = x * 0 + ib >= 0  # a second factor
+        pa = x_ptr + b * sx_b + ia * sx_c + x
+        pb = x_ptr + b * sx_b + tl.maximum(ib, 0) * sx_c + x
+        acc = tl.zeros([BW], dtype=tl.float64)
+        for yy in range(tl.maximum(y0 - r, 0), tl.minimum(y0 + r + 1, H)):
+            u = tl.load(pa + yy * W, mask=m, other=0.0) * tl.load(pb + yy * W, mask=m & two, other=1.0)
+            acc += u.to(tl.float64)
+        ps = s_ptr + b * ss_b + k * ss_k + x
+        tl.store(ps + y0 * W, acc.to(tl.float32), mask=m)
+        for y in range(y0 + 1, tl.minimum(y0 + ROWS, H)):
+            yi = y + r
+            yo = y - r - 1
+            mi = m & (x * 0 + yi < H)  # (masks built from tensors: the interpreter's loop counters are ints)
+            mo = m & (x * 0 + yo >= 0)
+            u = tl.load(pa + yi * W, mask=mi, other=0.0) * tl.load(pb + yi * W, mask=mi & two, other=1.0)
+            v = tl.load(pa + yo * W, mask=mo, other=0.0) * tl.load(pb + yo * W, mask=mo & two, other=1.0)
+            acc += u.to(tl.float64) - v.to(tl.float64)
+            tl.store(ps + y * W, acc.to(tl.float32), mask=m)
+
+    @triton.jit
+    def _row_means(s_ptr, m_ptr, K, H, W, r, n_x, n_y, ss_b, ss_k, BH: tl.constexpr, BW: tl.constexpr):
+        # m = (Σ over the columns x-r..x+r of s) / window size: the window of the tile's left
+        # neighbour column summed once, then a prefix sum of what enters minus what leaves
+        pid = tl.program_id(0)
+        k = pid % K
+        t = pid // K
+        xb = t % n_x
+        t = t // n_x
+        yb = t % n_y
+        b = (t // n_y).to(tl.int64)
+        x0 = xb * BW
+        y = (yb * BH + tl.arange(0, BH))[:, None]
+        x = (x0 + tl.arange(0, BW))[None, :]
+        my = y < H
+        base = s_ptr + b * ss_b + k * ss_k + y * W
+        hi = tl.minimum(x0 + r, W)
+        left = tl.zeros([BH], dtype=tl.float64)
+        for j0 in range(tl.maximum(x0 - 1 - r, 0), hi, BW):
+            j = j0 + tl.arange(0, BW)[None, :]
+            left += tl.sum(tl.load(base + j, mask=my & (j < hi), other=0.0).to(tl.float64), axis=1)
+        d = tl.load(base + x + r, mask=my & (x + r < W), other=0.0).to(tl.float64) \
+            - tl.load(base + x - r - 1, mask=my & (x - r - 1 >= 0), other=0.0).to(tl.float64)
+        win = left[:, None] + tl.cumsum(d, axis=1)
+        count = (tl.minimum(x + r, W - 1) - tl.maximum(x - r, 0) + 1) * (tl.minimum(y + r, H - 1) - tl.maximum(y - r, 0) + 1)
+        ok = my & (x < W)
+        tl.store(m_ptr + b * ss_b + k * ss_k + y * W + x, (win / tl.where(ok, count, 1).to(tl.float64)).to(tl.float32),
+                 mask=ok)
+
+    @triton.jit
+    def _plane(base, k, HW, m):
+        return tl.load(base + k * HW, mask=m, other=0.0)
+
+    @triton.jit
+    def _solve(m_ptr, eps_ptr, a_ptr, HW, Cs, n_blk, sm_b, sa_b, unit, tiny, N: tl.constexpr, BLOCK: tl.constexpr):
+        # a = (Σ + diag(ε))^-1 cov, b = mean(p) - aᵀ mean(I) for source channel g: guided._solve
+        # written out for four guide channels; channels past N are 0 with ε = 1, so they give a = 0
+        pid = tl.program_id(0)
+        blk = pid % n_blk
+        t = pid // n_blk
+        g = t % Cs
+        b = (t // Cs).to(tl.int64)
+        i = blk * BLOCK + tl.arange(0, BLOCK)
+        m = i < HW
+        base = m_ptr + b * sm_b + i
+        P = N * (N + 1) // 2
+        zero = tl.zeros([BLOCK], dtype=tl.float32)
+        mp = _plane(base, N + g, HW, m)
+        mi0 = _plane(base, 0, HW, m)
+        c0 = _plane(base, N + Cs + P + g, HW, m) - mi0 * mp
+        s00 = _plane(base, N + Cs, HW, m)
+        e0 = tl.maximum(s00 * unit, tl.maximum(tl.load(eps_ptr + b * N), tiny))
+        a00 = tl.maximum(s00 - mi0 * mi0, 0.0) + e0
+        mi1, mi2, mi3 = zero, zero, zero
+        c1, c2, c3 = zero, zero, zero
+        a10, a20, a21, a30, a31, a32 = zero, zero, zero, zero, zero, zero
+        e1, e2, e3 = zero + 1.0, zero + 1.0, zero + 1.0
+        a11, a22, a33 = e1, e2, e3
+        if N > 1:
+            mi1 = _plane(base, 1, HW, m)
+            c1 = _plane(base, N + Cs + P + Cs + g, HW, m) - mi1 * mp
+            a10 = _plane(base, N + Cs + 1, HW, m) - mi1 * mi0
+            s11 = _plane(base, N + Cs + 2, HW, m)
+            e1 = tl.maximum(s11 * unit, tl.maximum(tl.load(eps_ptr + b * N + 1), tiny))
+            a11 = tl.maximum(s11 - mi1 * mi1, 0.0) + e1
+        if N > 2:
+            mi2 = _plane(base, 2, HW, m)
+            c2 = _plane(base, N + Cs + P + 2 * Cs + g, HW, m) - mi2 * mp
+            a20 = _plane(base, N + Cs + 3, HW, m) - mi2 * mi0
+            a21 = _plane(base, N + Cs + 4, HW, m) - mi2 * mi1
+            s22 = _plane(base, N + Cs + 5, HW, m)
+            e2 = tl.maximum(s22 * unit, tl.maximum(tl.load(eps_ptr + b * N + 2), tiny))
+            a22 = tl.maximum(s22 - mi2 * mi2, 0.0) + e2
+        if N > 3:
+            mi3 = _plane(base, 3, HW, m)
+            c3 = _plane(base, N + Cs + P + 3 * Cs + g, HW, m) - mi3 * mp
+            a30 = _plane(base, N + Cs + 6, HW, m) - mi3 * mi0
+            a31 = _plane(base, N + Cs + 7, HW, m) - mi3 * mi1
+            a32 = _plane(base, N + Cs + 8, HW, m) - mi3 * mi2
+            s33 = _plane(base, N + Cs + 9, HW, m)
+            e3 = tl.maximum(s33 * unit, tl.maximum(tl.load(eps_ptr + b * N + 3), tiny))
+            a33 = tl.maximum(s33 - mi3 * mi3, 0.0) + e3
+        # LDLᵀ with E = L·D (guided._solve's order of operations)
+        d0 = tl.maximum(a00, e0)
+        l10 = a10 / d0
+        l20 = a20 / d0
+        l30 = a30 / d0
+        d1 = tl.maximum(a11 - l10 * a10, e1)
+        e21 = a21 - l20 * a10
+        l21 = e21 / d1
+        e31 = a31 - l30 * a10
+        l31 = e31 / d1
+        d2 = tl.maximum(a22 - l20 * a20 - l21 * e21, e2)
+        e32 = a32 - l30 * a20 - l31 * e21
+        l32 = e32 / d2
+        d3 = tl.maximum(a33 - l30 * a30 - l31 * e31 - l32 * e32, e3)
+        y1 = c1 - l10 * c0
+        y2 = c2 - l20 * c0 - l21 * y1
+        y3 = c3 - l30 * c0 - l31 * y1 - l32 * y2
+        q3 = y3 / d3
+        q2 = y2 / d2 - l32 * q3
+        q1 = y1 / d1 - l21 * q2 - l31 * q3
+        q0 = c0 / d0 - l10 * q1 - l20 * q2 - l30 * q3
+        pa = a_ptr + b * sa_b + i
+        tl.store(pa + g * HW, q0, mask=m)
+        if N > 1:
+            tl.store(pa + (Cs + g) * HW, q1, mask=m)
+        if N > 2:
+            tl.store(pa + (2 * Cs + g) * HW, q2, mask=m)
+        if N > 3:
+            tl.store(pa + (3 * Cs + g) * HW, q3, mask=m)
+        tl.store(pa + (N * Cs + g) * HW, mp - q0 * mi0 - q1 * mi1 - q2 * mi2 - q3 * mi3, mask=m)
+
+    @triton.jit
+    def _apply(ma_ptr, x_ptr, off_ptr, out_ptr, HW, Cs, n_blk, sma_b, sx_b, so_b, N: tl.constexpr,
+               BLOCK: tl.constexpr):
+        # out = mean(b) + offset + Σ_i mean(a_i) I_i (centred guide)
+        pid = tl.program_id(0)
+        blk = pid % n_blk
+        t = pid // n_blk
+        g = t % Cs
+        b = (t // Cs).to(tl.int64)
+        i = blk * BLOCK + tl.arange(0, BLOCK)
+        m = i < HW
+        pa = ma_ptr + b * sma_b + i
+        acc = _plane(pa, N * Cs + g, HW, m) + tl.load(off_ptr + b * Cs + g)
+        for c in tl.static_range(N):
+            acc += _plane(pa, c * Cs + g, HW, m) * _plane(x_ptr + b * sx_b + i, c, HW, m)
+        tl.store(out_ptr + b * so_b + g * HW + i, acc, mask=m)
+
+
+_tables: dict[tuple, torch.Tensor] = {}
+
+
+def _table(pairs: list[tuple[int, int]], device: torch.device) -> torch.Tensor:
+    """The ``(K, 2)`` int32 factor table of :func:`_box_products` on ``device`` (cached)."""
+    key = (tuple(pairs), device)
+    if key not in _tables:
+        _tables[key] = torch.tensor(pairs, dtype=torch.int32, device=device).reshape(-1, 2)
+    return _tables[key]
+
+
+def _box_products(x: torch.Tensor, pairs: list[tuple[int, int]], r: int) -> torch.Tensor:
+    """Box means ``(B, K, H, W)`` of the products ``x[:, i] · x[:, j]`` (``x[:, i]`` for
+    ``j = -1``) of a contiguous float32 ``x (B, C, H, W)``; windows of radius ``r`` shrink at
+    the borders (count-normalised). Sums in double."""
+    B, _, H, W = x.shape
+    K = len(pairs)
+    sums = torch.empty(B, K, H, W, dtype=torch.float32, device=x.device)
+    means = torch.empty_like(sums)
+    if sums.numel() == 0:
+        return means
+    n_x, n_y = triton.cdiv(W, _COL_BW), triton.cdiv(H, _COL_ROWS)
+    _column_sums[(K * n_x * n_y * B,)](x, _table(pairs, x.device), sums, K, H, W, r, n_x, n_y, x.stride(0),
+                                       x.stride(1), sums.stride(0), sums.stride(1), _COL_ROWS, BW=_COL_BW)
+    n_x, n_y = triton.cdiv(W, _ROW_BW), triton.cdiv(H, _ROW_BH)
+    _row_means[(K * n_x * n_y * B,)](sums, means, K, H, W, r, n_x, n_y, sums.stride(0), sums.stride(1),
+                                     BH=_ROW_BH, BW=_ROW_BW)
+    return means
+
+
+def box(x: torch.Tensor, r: int) -> torch.Tensor:
+    """Count-normalised box mean ``(B, C, H, W)`` of radius ``r`` over each plane of a float32
+    ``x (B, C, H, W)`` (what :func:`torchgi.filters.box` computes), in two kernels."""
+    x = x.contiguous()
+    return _box_products(x, [(c, -1) for c in range(x.shape[1])], r)
+
+
+def guided(
+    I: torch.Tensor, p: torch.Tensor, mean_I: torch.Tensor, mean_p: torch.Tensor, offset: torch.Tensor, r: int,
+    eps: torch.Tensor, coefficients_only: bool = False,
+) -> torch.Tensor:
+    """Guided filter with the arguments of :func:`torchgi.filters.native.guided`: ``p
+    (B,Cs,H,W)`` by ``I (B,n,H,W)`` (n <= 4), centred by ``mean_p``, ``mean_I`` (``(B,C,1,1)``),
+    ``eps (B,n,1,1)``, radius ``r``, ``offset (B,Cs,1,1)`` added to the output. Returns
+    ``(B,Cs,H,W)`` float32, or the box-filtered coefficients ``(B,n+1,Cs,H,W)``."""
+    B, n, H, W = I.shape
+    Cs = p.shape[1]
+    if not 1 <= n <= 4:
+        raise ValueError(f"guided: expected 1 to 4 guide channels, got {n}")
+    x = torch.cat([I - mean_I, p - mean_p], 1)  # centred guide and source, one contiguous stack
+    pairs = [(i, -1) for i in range(n + Cs)] + [(i, j) for i in range(n) for j in range(i + 1)] + \
+        [(i, n + c) for i in range(n) for c in range(Cs)]  # the order of guided._product_specs
+    means = _box_products(x, pairs, r)
+    Q, HW = (n + 1) * Cs, H * W
+    coef = torch.empty(B, Q, H, W, dtype=torch.float32, device=I.device)
+    n_blk = triton.cdiv(HW, _PIX)
+    if coef.numel():
+        e = eps.reshape(B, n).to(torch.float32).contiguous()
+        _solve[(n_blk * Cs * B,)](means, e, coef, HW, Cs, n_blk, means.stride(0), coef.stride(0),
+                                  16 * torch.finfo(torch.float32).eps, torch.finfo(torch.float32).tiny, N=n,
+                                  BLOCK=_PIX)
+    coef = _box_products(coef, [(q, -1) for q in range(Q)], r)
+    if coefficients_only:
+        return coef.unflatten(1, (n + 1, Cs))
+    out = torch.empty(B, Cs, H, W, dtype=torch.float32, device=I.device)
+    if out.numel():
+        off = offset.reshape(B, Cs).to(torch.float32).contiguous()
+        _apply[(n_blk * Cs * B,)](coef, x, off, out, HW, Cs, n_blk, coef.stride(0), x.stride(0), out.stride(0),
+                                  N=n, BLOCK=_PIX)
+    return out

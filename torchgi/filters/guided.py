@@ -8,9 +8,9 @@ with every mean a count-normalised box filter (:mod:`torchgi.filters.box`), so c
 depend on ``r``. The per-pixel ``C x C`` solve is a closed-form LDLᵀ written with
 elementwise ops (ONNX-exportable, half-safe), not ``torch.linalg.solve``.
 
-On the CPU the whole filter runs in a compiled C kernel (:mod:`torchgi.filters.native`: box
-sums sliding down the rows in double, the same solve) where it applies, else in the torch code
-below.
+Where it applies the whole filter runs in compiled kernels — C on the CPU
+(:mod:`torchgi.filters.native`), Triton on CUDA (:mod:`torchgi.filters.gpu`): box sums
+sliding down the rows in double, the same solve — else in the torch code below.
 
 Numerics: guide and source are centred by their per-image means before any sum (the filter
 is invariant to constant offsets), variances are clamped at 0, and ε is raised per pixel to
@@ -35,7 +35,7 @@ from torchgi.core.check import (
     finite_or_sanitized,
 )
 from torchgi.core.errors import RangeError, ShapeError
-from torchgi.filters import native
+from torchgi.filters import gpu, native
 from torchgi.filters.box import PlaneBoxer, _box_cumsum, compute_dtype, use_fast_path
 
 __all__ = ["Guided", "guide_from_gbuffer", "guided"]
@@ -286,6 +286,8 @@ def _guided(
     fast = use_fast_path(src, guide, e)
     if subsample == 1 and native.applies(g, p, e):
         return native.guided(g, p, mean_g, mean_p, mean_p, radius, e, holder=_holder).to(src.dtype)
+    if subsample == 1 and gpu.applies(g, p, e):
+        return gpu.guided(g, p, mean_g, mean_p, mean_p, radius, e).to(src.dtype)
     if subsample == 1:
         if fast:
             return _guided_fast(g, p, mean_g, mean_p, radius, e, _holder).to(src.dtype)
@@ -296,13 +298,14 @@ def _guided(
     low_g = F.avg_pool2d(gc, subsample, ceil_mode=True)
     low_p = F.avg_pool2d(p - mean_p, subsample, ceil_mode=True)
     r_low = round(radius / subsample)
+    zero_g, zero_p = torch.zeros_like(mean_g), torch.zeros_like(mean_p)  # low_g, low_p are centred
     if native.applies(low_g, low_p, e):
-        zero_g, zero_p = torch.zeros_like(mean_g), torch.zeros_like(mean_p)  # low_g, low_p are centred
         coeffs = native.guided(low_g, low_p, zero_g, zero_p, zero_p, r_low, e, coefficients_only=True,
                                holder=_holder)
+    elif gpu.applies(low_g, low_p, e):
+        coeffs = gpu.guided(low_g, low_p, zero_g, zero_p, zero_p, r_low, e, coefficients_only=True)
     elif fast:
-        coeffs = _guided_fast(low_g, low_p, torch.zeros_like(mean_g), torch.zeros_like(mean_p), r_low, e, _holder,
-                              coefficients_only=True)
+        coeffs = _guided_fast(low_g, low_p, zero_g, zero_p, r_low, e, _holder, coefficients_only=True)
     else:
         coeffs = _guided_reference(low_g, low_p, r_low, e, coefficients_only=True)
     coeffs = F.interpolate(coeffs.flatten(1, 2), size=(H, W), mode="bilinear", align_corners=False)
