@@ -80,12 +80,23 @@ def compiled_variants(timed, device: torch.device) -> None:
 
 
 def device_busy(fn, device: torch.device, reps: int = 20) -> dict:
-    """GPU time per call summed over the kernels ``fn`` launches, and their number (CUDA only)."""
+    """GPU time per call summed over the kernels ``fn`` launches, their number and the host's
+    waits on the GPU (``torch.cuda.set_sync_debug_mode`` warnings) per call (CUDA only)."""
     if device.type != "cuda":
         return {}
+    import warnings
+
     from torch.profiler import ProfilerActivity, profile
 
-    fn()
+    torch.cuda.synchronize()
+    torch.cuda.set_sync_debug_mode("warn")
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            fn()
+    finally:
+        torch.cuda.set_sync_debug_mode(0)
+    syncs = sum("synchroniz" in str(w.message) for w in caught)
     torch.cuda.synchronize()
     with profile(activities=[ProfilerActivity.CUDA]) as prof:
         for _ in range(reps):
@@ -93,7 +104,7 @@ def device_busy(fn, device: torch.device, reps: int = 20) -> dict:
         torch.cuda.synchronize()
     events = [e for e in prof.events() if e.device_type == torch.autograd.DeviceType.CUDA]
     busy_us = sum(e.device_time for e in events)
-    return {"gpu_busy_ms": busy_us / reps / 1000, "kernels_per_call": len(events) / reps}
+    return {"gpu_busy_ms": busy_us / reps / 1000, "kernels_per_call": len(events) / reps, "syncs_per_call": syncs}
 
 
 def main() -> None:
@@ -158,7 +169,7 @@ def main() -> None:
     stem = f"device_{device.type}"
     write_results(rows, meta, out, stem)
     md = markdown_table(rows, ["what", "size", "param", "median_ms", "iqr_ms", "gpu_busy_ms", "kernels_per_call",
-                               "paper_ms", "max_abs_diff_to_torch"])
+                               "syncs_per_call", "paper_ms", "max_abs_diff_to_torch"])
     (out / f"{stem}.md").write_text(f"{meta['device']}, torch {meta['torch']}, commit {meta['commit']}\n\n{md}\n")
     print(md)
 

@@ -157,6 +157,9 @@ def test_bad_inputs():
         atrous(c, subsample=3)
     with pytest.raises(RangeError, match="sigma_normal: expected finite values > 0"):
         atrous(c, n, sigma_normal=0.0)
+    for bad_sigma in (float("inf"), float("nan"), torch.tensor([float("nan")]), torch.tensor(-1.0), "0.1", True):
+        with pytest.raises(RangeError, match="sigma_position: expected finite values > 0"):
+            atrous(c, n, x, sigma_position=bad_sigma)
     with pytest.raises(ShapeError, match=r"sigma_color: expected a float or shape \(1,\)"):
         atrous(c, sigma_color=torch.ones(3))
     with pytest.raises(RangeError, match="variance: expected values >= 0"):

@@ -16,6 +16,7 @@ from torchgi.core import (
     check_range,
     check_same_device,
     check_shape,
+    finite_or_sanitized_all,
     require,
 )
 
@@ -55,6 +56,21 @@ def test_check_finite_counts():
     with pytest.raises(NonFiniteError, match="color: expected finite values, found 2 NaN and 2 "):
         check_finite(x, "color")
     check_finite(torch.arange(3), "ints")  # integers are always finite
+
+
+def test_finite_or_sanitized_all_names_the_bad_tensor():
+    ok = torch.ones(2, 3)
+    bad = torch.tensor([[1.0, float("inf")], [float("nan"), 0.0]])
+    with pytest.raises(NonFiniteError, match="normal: expected finite values, found 1 NaN and 1 "):
+        finite_or_sanitized_all({"color": ok, "normal": bad, "position": None}, False)
+    # sums that overflow are no false alarm: float32 3e38 + 3e38 is inf, every term finite
+    big = torch.full((2,), 3e38)
+    half = torch.full((4,), 6e4, dtype=torch.float16)  # 2.4e5 > float16's 65504
+    a, none, b = finite_or_sanitized_all({"big": big, "none": None, "half": half}, False)
+    assert a is big and none is None and b is half
+    with pytest.warns(UserWarning, match="normal: replaced 2 non-finite values by 0"):
+        c, n = finite_or_sanitized_all({"color": ok, "normal": bad}, True)
+    assert c is ok and torch.equal(n, torch.tensor([[1.0, 0.0], [0.0, 0.0]]))
 
 
 def test_check_range_and_option():

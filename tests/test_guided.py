@@ -149,8 +149,9 @@ def test_bad_inputs():
         guided(p, I, radius=-2)
     with pytest.raises(RangeError, match="eps: expected a finite float >= 0"):
         guided(p, I, eps=-0.1)
-    with pytest.raises(RangeError, match="eps: expected values >= 0.0"):
-        guided(p, I, eps=torch.tensor([0.1, -0.1, 0.1, 0.1]))
+    for bad_eps in ([0.1, -0.1, 0.1, 0.1], [0.1, float("nan"), 0.1, 0.1], [float("inf")] * 4):
+        with pytest.raises(RangeError, match="eps: expected finite values >= 0"):
+            guided(p, I, eps=torch.tensor(bad_eps))
     with pytest.raises(ShapeError, match=r"eps: expected a float, shape \(4,\) or \(1, 4\); got \(3,\)"):
         guided(p, I, eps=torch.ones(3))
     bad = p.clone()

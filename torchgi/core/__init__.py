@@ -12,6 +12,7 @@ from torchgi.core.check import (
     check_shape,
     check_tensor,
     finite_or_sanitized,
+    finite_or_sanitized_all,
     is_tracing,
     require,
 )
@@ -42,6 +43,7 @@ __all__ = [
     "check_shape",
     "check_tensor",
     "finite_or_sanitized",
+    "finite_or_sanitized_all",
     "is_tracing",
     "require",
     "Registry",

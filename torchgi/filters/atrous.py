@@ -30,7 +30,7 @@ from torchgi.core.check import (
     check_same_device,
     check_same_floating,
     check_shape,
-    finite_or_sanitized,
+    finite_or_sanitized_all,
     is_tracing,
 )
 from torchgi.core.errors import RangeError, ShapeError
@@ -38,13 +38,14 @@ from torchgi.filters import gpu, native
 from torchgi.filters.box import compute_dtype
 from torchgi.filters.taps import Padded, kernel_5x5
 
-__all__ = ["atrous", "ATrous"]
+__all__ = ["ATrous", "atrous"]
 
 _TAPS = kernel_5x5()
 
 
 def _per_batch(value: float | torch.Tensor | None, name: str, B: int, like: torch.Tensor) -> torch.Tensor | None:
-    """A float or ``(B,)`` tensor parameter as ``(B, 1, 1, 1)`` in ``like``'s dtype/device."""
+    """A float or ``(B,)`` tensor parameter as ``(B, 1, 1, 1)`` in ``like``'s dtype/device.
+    A float is checked on the host and filled in on the device (no synchronisation)."""
     if value is None:
         return None
     if isinstance(value, torch.Tensor):
@@ -53,14 +54,13 @@ def _per_batch(value: float | torch.Tensor | None, name: str, B: int, like: torc
         if value.shape not in ((), (1,), (B,)):
             raise ShapeError(f"{name}: expected a float or shape ({B},), got {tuple(value.shape)}")
         t = value.to(like.dtype)
-    else:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise RangeError(f"{name}: expected a float > 0 or a (B,) tensor, got {value!r}")
-        t = torch.tensor(float(value), dtype=like.dtype, device=like.device)
-    if not is_tracing():
-        if not bool(torch.isfinite(t).all()) or bool((t <= 0).any()):
-            raise RangeError(f"{name}: expected finite values > 0, got {t.flatten().tolist()[:4]}")
-    return t.reshape(-1, 1, 1, 1).expand(B, 1, 1, 1)
+        if not is_tracing() and bool((~torch.isfinite(t) | (t <= 0)).any()):
+            raise RangeError(f"{name}: expected finite values > 0 (a float or a ({B},) tensor), got "
+                             f"{t.flatten().tolist()[:4]}")
+        return t.reshape(-1, 1, 1, 1).expand(B, 1, 1, 1)
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < math.inf:
+        raise RangeError(f"{name}: expected finite values > 0 (a float or a ({B},) tensor), got {value!r}")
+    return torch.full((B, 1, 1, 1), float(value), dtype=like.dtype, device=like.device)
 
 
 def _blur3(v: torch.Tensor) -> torch.Tensor:
@@ -226,10 +226,7 @@ def atrous(
         raise ValueError(f"subsample: expected a power of two >= 1, got {subsample!r}")
     ct = compute_dtype(color.dtype)
     B = color.shape[0]
-    c = finite_or_sanitized(color, "color", sanitize).to(ct)
-    n = finite_or_sanitized(normal, "normal", sanitize).to(ct) if normal is not None else None
-    x = finite_or_sanitized(position, "position", sanitize).to(ct) if position is not None else None
-    var = finite_or_sanitized(variance, "variance", sanitize).to(ct) if variance is not None else None
+    c, n, x, var = (None if t is None else t.to(ct) for t in finite_or_sanitized_all(named, sanitize))
     if var is not None:
         check_range(var, "variance", 0.0)
     if x is not None:

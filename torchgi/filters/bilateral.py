@@ -14,13 +14,13 @@ from torchgi.core.check import (
     check_same_device,
     check_same_floating,
     check_shape,
-    finite_or_sanitized,
+    finite_or_sanitized_all,
 )
 from torchgi.filters.atrous import _planes, _sqdist
 from torchgi.filters.box import compute_dtype
 from torchgi.filters.taps import Padded
 
-__all__ = ["cross_bilateral", "CrossBilateral"]
+__all__ = ["CrossBilateral", "cross_bilateral"]
 
 
 def cross_bilateral(
@@ -72,8 +72,7 @@ def cross_bilateral(
         if v is not None:
             check_positive(v, name)
     ct = compute_dtype(color.dtype)
-    c = finite_or_sanitized(color, "color", sanitize).to(ct)
-    gs = [finite_or_sanitized(g, f"guides[{k}]", sanitize).to(ct) for k, g in enumerate(guides)]
+    c, *gs = (t.to(ct) for t in finite_or_sanitized_all(named, sanitize))
     pc = Padded(c, radius)
     pv = Padded(torch.ones_like(c[:, :1]), radius)
     pg = [Padded(g, radius) for g in gs]

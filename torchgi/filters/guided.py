@@ -25,14 +25,13 @@ from torch import nn
 
 from torchgi.buffers import GBuffer
 from torchgi.core.check import (
-    check_finite,
     check_floating,
     check_int,
-    check_range,
     check_same_device,
     check_same_floating,
     check_shape,
-    finite_or_sanitized,
+    finite_or_sanitized_all,
+    is_tracing,
 )
 from torchgi.core.errors import RangeError, ShapeError
 from torchgi.filters import gpu, native
@@ -53,8 +52,8 @@ def _check_eps(eps: float | torch.Tensor, B: int, n: int, like: torch.Tensor) ->
         check_floating(eps, "eps")
         if eps.shape not in ((), (n,), (B, n)):
             raise ShapeError(f"eps: expected a float, shape ({n},) or ({B}, {n}); got {tuple(eps.shape)}")
-        check_finite(eps, "eps")
-        check_range(eps, "eps", 0.0)
+        if not is_tracing() and bool((~torch.isfinite(eps) | (eps < 0)).any()):  # one read back, not two
+            raise RangeError(f"eps: expected finite values >= 0, got {eps.flatten().tolist()[:8]}")
         e = eps.to(like.dtype)
     else:
         if not isinstance(eps, (int, float)) or isinstance(eps, bool) or not eps >= 0 or eps == float("inf"):
@@ -274,8 +273,7 @@ def _guided(
         raise ShapeError(f"guide: expected 1 to 4 channels, got {n} (shape {tuple(guide.shape)})")
     check_int(radius, "radius")
     check_int(subsample, "subsample", 1)
-    src = finite_or_sanitized(src, "src", sanitize)
-    guide = finite_or_sanitized(guide, "guide", sanitize)
+    src, guide = finite_or_sanitized_all({"src": src, "guide": guide}, sanitize)
     ct = compute_dtype(src.dtype)
     B, Cs, H, W = src.shape
     if src.numel() == 0:
