@@ -19,16 +19,22 @@ from tests.oracles import ATROUS_CASES, atrous_case, atrous_error, box_oracle, f
 from torchgi.filters import atrous, box, gpu, guided, native
 
 
+def _spy_on_cuda(device: torch.device, monkeypatch, name: str) -> list:
+    """Skip unless the run is on CUDA with Triton; else record the calls of ``gpu.<name>``."""
+    if device.type != "cuda":
+        pytest.skip("the CUDA run; the CPU checks the same kernels through the interpreter below")
+    if gpu.triton is None:
+        pytest.skip("no Triton")
+    calls: list = []
+    real = getattr(gpu, name)
+    monkeypatch.setattr(gpu, name, lambda *a, **k: calls.append(1) or real(*a, **k))
+    return calls
+
+
 @pytest.mark.parametrize("C", [1, 2, 3])
 @pytest.mark.parametrize("case", ATROUS_CASES)
 def test_triton_kernel_matches_oracle_on_cuda(device, C, case, monkeypatch):
-    if device.type != "cuda":
-        pytest.skip("the CUDA run; the CPU checks the same kernel through the interpreter below")
-    if gpu.triton is None:
-        pytest.skip("no Triton")
-    calls = []
-    real = gpu.atrous_level
-    monkeypatch.setattr(gpu, "atrous_level", lambda *a, **k: calls.append(1) or real(*a, **k))
+    calls = _spy_on_cuda(device, monkeypatch, "atrous_level")
     c, n, x, kw = atrous_case(C, case)
     out = atrous(c.to(device), n.to(device), x.to(device),
                  **{k: v.to(device) if torch.is_tensor(v) else v for k, v in kw.items()})
@@ -106,13 +112,7 @@ def test_triton_guided_and_box_match_oracle_in_the_interpreter():
 @pytest.mark.parametrize("n", [1, 3, 4])
 @pytest.mark.parametrize("Cs", [1, 3])
 def test_triton_guided_matches_oracle_on_cuda(device, n, Cs, monkeypatch):
-    if device.type != "cuda":
-        pytest.skip("the CUDA run; the CPU checks the same kernels through the interpreter above")
-    if gpu.triton is None:
-        pytest.skip("no Triton")
-    calls = []
-    real = gpu.guided
-    monkeypatch.setattr(gpu, "guided", lambda *a, **k: calls.append(1) or real(*a, **k))
+    calls = _spy_on_cuda(device, monkeypatch, "guided")
     for H, W, r, offset in [(37, 53, 5, 0.0), (120, 301, 40, 1e3), (1080, 1920, 24, 1e4)]:
         p, I = scene(1, H, W, n, seed=n + Cs)
         p, I = p[:, :Cs].contiguous(), (I + offset).float()

@@ -261,16 +261,19 @@ _PIX = 256
 if triton is not None:
 
     @triton.jit
+    def _split(i, n):
+        # a flat program index as (i mod n, i div n): grids are 1-D (no 65535 limit on y and z)
+        return i % n, i // n
+
+    @triton.jit
     def _column_sums(x_ptr, tab_ptr, s_ptr, K, H, W, r, n_x, n_y, sx_b, sx_c, ss_b, ss_k, ROWS, BW: tl.constexpr):
         # s[b, k] = Σ over the rows y-r..y+r of x[b, tab[k, 0]] · x[b, tab[k, 1]] (1 for -1):
         # a window slid down ROWS rows from a full sum at the chunk's first row, in double
-        pid = tl.program_id(0)
-        k = pid % K
-        t = pid // K
-        xb = t % n_x
-        t = t // n_x
-        y0 = (t % n_y) * ROWS
-        b = (t // n_y).to(tl.int64)
+        k, t = _split(tl.program_id(0), K)
+        xb, t = _split(t, n_x)
+        yb, b = _split(t, n_y)
+        y0 = yb * ROWS
+        b = b.to(tl.int64)
         ia = tl.load(tab_ptr + 2 * k)
         ib = tl.load(tab_ptr + 2 * k + 1)
         x = xb * BW + tl.arange(0, BW)
@@ -298,13 +301,10 @@ if triton is not None:
     def _row_means(s_ptr, m_ptr, K, H, W, r, n_x, n_y, ss_b, ss_k, BH: tl.constexpr, BW: tl.constexpr):
         # m = (Σ over the columns x-r..x+r of s) / window size: the window of the tile's left
         # neighbour column summed once, then a prefix sum of what enters minus what leaves
-        pid = tl.program_id(0)
-        k = pid % K
-        t = pid // K
-        xb = t % n_x
-        t = t // n_x
-        yb = t % n_y
-        b = (t // n_y).to(tl.int64)
+        k, t = _split(tl.program_id(0), K)
+        xb, t = _split(t, n_x)
+        yb, b = _split(t, n_y)
+        b = b.to(tl.int64)
         x0 = xb * BW
         y = (yb * BH + tl.arange(0, BH))[:, None]
         x = (x0 + tl.arange(0, BW))[None, :]
@@ -328,14 +328,18 @@ if triton is not None:
         return tl.load(base + k * HW, mask=m, other=0.0)
 
     @triton.jit
+    def _pivot(mean_sq, mean, eps_ptr, unit, tiny):
+        # ε raised to the rounding level of the variance, and the diagonal Σ_ii + ε (Σ_ii >= 0)
+        e = tl.maximum(mean_sq * unit, tl.maximum(tl.load(eps_ptr), tiny))
+        return e, tl.maximum(mean_sq - mean * mean, 0.0) + e
+
+    @triton.jit
     def _solve(m_ptr, eps_ptr, a_ptr, HW, Cs, n_blk, sm_b, sa_b, unit, tiny, N: tl.constexpr, BLOCK: tl.constexpr):
         # a = (Σ + diag(ε))^-1 cov, b = mean(p) - aᵀ mean(I) for source channel g: guided._solve
         # written out for four guide channels; channels past N are 0 with ε = 1, so they give a = 0
-        pid = tl.program_id(0)
-        blk = pid % n_blk
-        t = pid // n_blk
-        g = t % Cs
-        b = (t // Cs).to(tl.int64)
+        blk, t = _split(tl.program_id(0), n_blk)
+        g, b = _split(t, Cs)
+        b = b.to(tl.int64)
         i = blk * BLOCK + tl.arange(0, BLOCK)
         m = i < HW
         base = m_ptr + b * sm_b + i
@@ -344,9 +348,7 @@ if triton is not None:
         mp = _plane(base, N + g, HW, m)
         mi0 = _plane(base, 0, HW, m)
         c0 = _plane(base, N + Cs + P + g, HW, m) - mi0 * mp
-        s00 = _plane(base, N + Cs, HW, m)
-        e0 = tl.maximum(s00 * unit, tl.maximum(tl.load(eps_ptr + b * N), tiny))
-        a00 = tl.maximum(s00 - mi0 * mi0, 0.0) + e0
+        e0, a00 = _pivot(_plane(base, N + Cs, HW, m), mi0, eps_ptr + b * N, unit, tiny)
         mi1, mi2, mi3 = zero, zero, zero
         c1, c2, c3 = zero, zero, zero
         a10, a20, a21, a30, a31, a32 = zero, zero, zero, zero, zero, zero
@@ -356,26 +358,20 @@ if triton is not None:
             mi1 = _plane(base, 1, HW, m)
             c1 = _plane(base, N + Cs + P + Cs + g, HW, m) - mi1 * mp
             a10 = _plane(base, N + Cs + 1, HW, m) - mi1 * mi0
-            s11 = _plane(base, N + Cs + 2, HW, m)
-            e1 = tl.maximum(s11 * unit, tl.maximum(tl.load(eps_ptr + b * N + 1), tiny))
-            a11 = tl.maximum(s11 - mi1 * mi1, 0.0) + e1
+            e1, a11 = _pivot(_plane(base, N + Cs + 2, HW, m), mi1, eps_ptr + b * N + 1, unit, tiny)
         if N > 2:
             mi2 = _plane(base, 2, HW, m)
             c2 = _plane(base, N + Cs + P + 2 * Cs + g, HW, m) - mi2 * mp
             a20 = _plane(base, N + Cs + 3, HW, m) - mi2 * mi0
             a21 = _plane(base, N + Cs + 4, HW, m) - mi2 * mi1
-            s22 = _plane(base, N + Cs + 5, HW, m)
-            e2 = tl.maximum(s22 * unit, tl.maximum(tl.load(eps_ptr + b * N + 2), tiny))
-            a22 = tl.maximum(s22 - mi2 * mi2, 0.0) + e2
+            e2, a22 = _pivot(_plane(base, N + Cs + 5, HW, m), mi2, eps_ptr + b * N + 2, unit, tiny)
         if N > 3:
             mi3 = _plane(base, 3, HW, m)
             c3 = _plane(base, N + Cs + P + 3 * Cs + g, HW, m) - mi3 * mp
             a30 = _plane(base, N + Cs + 6, HW, m) - mi3 * mi0
             a31 = _plane(base, N + Cs + 7, HW, m) - mi3 * mi1
             a32 = _plane(base, N + Cs + 8, HW, m) - mi3 * mi2
-            s33 = _plane(base, N + Cs + 9, HW, m)
-            e3 = tl.maximum(s33 * unit, tl.maximum(tl.load(eps_ptr + b * N + 3), tiny))
-            a33 = tl.maximum(s33 - mi3 * mi3, 0.0) + e3
+            e3, a33 = _pivot(_plane(base, N + Cs + 9, HW, m), mi3, eps_ptr + b * N + 3, unit, tiny)
         # LDLᵀ with E = L·D (guided._solve's order of operations)
         d0 = tl.maximum(a00, e0)
         l10 = a10 / d0
@@ -411,11 +407,9 @@ if triton is not None:
     def _apply(ma_ptr, x_ptr, off_ptr, out_ptr, HW, Cs, n_blk, sma_b, sx_b, so_b, N: tl.constexpr,
                BLOCK: tl.constexpr):
         # out = mean(b) + offset + Σ_i mean(a_i) I_i (centred guide)
-        pid = tl.program_id(0)
-        blk = pid % n_blk
-        t = pid // n_blk
-        g = t % Cs
-        b = (t // Cs).to(tl.int64)
+        blk, t = _split(tl.program_id(0), n_blk)
+        g, b = _split(t, Cs)
+        b = b.to(tl.int64)
         i = blk * BLOCK + tl.arange(0, BLOCK)
         m = i < HW
         pa = ma_ptr + b * sma_b + i
