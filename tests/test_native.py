@@ -9,6 +9,7 @@ import torch
 
 from tests.oracles import ATROUS_CASES, atrous_case, atrous_error, atrous_oracle, guided_oracle
 from torchgi.filters import atrous, guided, native
+from torchgi.sampling import importance_map
 
 pytestmark = pytest.mark.skipif(native._compiler() is None, reason="no C compiler: the kernels cannot be built")
 
@@ -132,3 +133,29 @@ def test_disabled_and_unbuildable_fall_back(monkeypatch, tmp_path):
     assert "unavailable" in native.status() and "false" in native.status()
     assert float((guided(p, I, radius=4).double() - ref).abs().max()) < 1e-5
     assert list(tmp_path.iterdir()) == []  # the failed build left no file behind
+
+
+def _importance_in_child(queue) -> None:
+    torch.set_num_threads(1)  # as the renderer's and data generation's forked workers do
+    g = torch.Generator().manual_seed(3)
+    n = torch.nn.functional.normalize(torch.randn(1, 3, 40, 300, generator=g), dim=1)
+    queue.put(importance_map(n, torch.rand(1, 3, 40, 300, generator=g), window=4).numpy())  # pickled, not shared
+
+
+def test_forked_child_with_one_thread_runs_the_kernels(two_bands):
+    """A parent that ran the kernels on OpenMP threads forks; the child (one torch thread) runs
+    them on its calling thread (libgomp's pool does not survive a fork) and gets the parent's
+    result."""
+    import multiprocessing
+
+    g = torch.Generator().manual_seed(3)
+    n = torch.nn.functional.normalize(torch.randn(1, 3, 40, 300, generator=g), dim=1)
+    want = importance_map(n, torch.rand(1, 3, 40, 300, generator=g), window=4)  # two bands in the parent
+    ctx = multiprocessing.get_context("fork")
+    queue = ctx.Queue()
+    child = ctx.Process(target=_importance_in_child, args=(queue,))
+    child.start()
+    got = queue.get(timeout=60)
+    child.join(timeout=60)
+    assert child.exitcode == 0
+    np.testing.assert_array_equal(got, want.numpy())

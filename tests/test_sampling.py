@@ -1,3 +1,4 @@
+import contextlib
 import math
 
 import numpy as np
@@ -5,6 +6,7 @@ import pytest
 import torch
 
 from torchgi.core import NonFiniteError, RangeError
+from torchgi.filters import native
 from torchgi.sampling import allocate, exclusive_scan, importance_map
 
 
@@ -40,12 +42,18 @@ def importance_oracle(n, x, hit, window, sn, sx):
 
 
 @pytest.mark.parametrize("window", [2, 3, 4, 7, 10])
-def test_importance_matches_oracle(window):
-    n, x, hit = geometry(seed=window)
-    got = importance_map(n, x, window=window, sigma_normal=0.2, sigma_position=0.5, hit=hit)
+@pytest.mark.parametrize("W", [11, 45])  # 45: the compiled kernel's vector blocks run as well as its edges
+def test_importance_matches_oracle(window, W):
+    n, x, hit = geometry(H=7, W=W, seed=window)
     want = importance_oracle(n, x, hit, window, 0.2, 0.5)
-    np.testing.assert_allclose(got.double().numpy(), want, atol=2e-6)
-    assert (got[~hit] == 0).all()
+    everywhere = importance_oracle(n, x, torch.ones_like(hit), window, 0.2, 0.5)
+    for kernel in (True, False):  # the compiled CPU kernel (where it builds) and the torch code
+        with contextlib.nullcontext() if kernel else native.disabled():
+            got = importance_map(n, x, window=window, sigma_normal=0.2, sigma_position=0.5, hit=hit)
+            np.testing.assert_allclose(got.double().numpy(), want, atol=2e-6)
+            assert (got[~hit] == 0).all()
+            got = importance_map(n, x, window=window, sigma_normal=0.2, sigma_position=0.5)
+            np.testing.assert_allclose(got.double().numpy(), everywhere, atol=2e-6)
 
 
 def test_allocation_invariants():
@@ -70,6 +78,37 @@ def test_allocation_invariants():
             e = share[m] * spare
             chi2 = (((got[m] - 1) - e) ** 2 / np.maximum(e, 1e-9))[e > 1].sum()
             assert chi2 < 0.05 * (e > 1).sum()
+
+
+def hamilton_oracle(q: np.ndarray, eligible: np.ndarray, budget: int, min_samples: int) -> np.ndarray:
+    """Largest-remainder apportionment in float64, remainders to the lowest index on ties."""
+    q = np.where(eligible, q, 0.0)
+    spare = budget - min_samples * eligible.sum()
+    share = q / q.sum() if q.sum() > 0 else eligible / eligible.sum()
+    exact = share * spare
+    n = np.floor(exact)
+    left = int(round(spare - n.sum()))
+    order = np.lexsort((np.arange(q.size), -np.where(eligible, exact - n, -1.0)))  # remainder desc, index asc
+    n[order[:left]] += 1
+    return np.where(eligible, n + min_samples, 0).astype(np.int64)
+
+
+@pytest.mark.parametrize("qtype", [torch.float32, torch.float64])
+def test_allocation_matches_hamilton_oracle(qtype):
+    """Eighths sum exactly in any order, so both code paths and the oracle see the same shares;
+    many pixels share a value, so the remainders tie in long runs."""
+    g = torch.Generator().manual_seed(7)
+    q = torch.randint(0, 9, (3, 1, 61, 89), generator=g).to(qtype) / 8
+    q[1] = 0.0
+    mask = torch.rand(3, 1, 61, 89, generator=g) > 0.25
+    mask[2] = True
+    for budget, min_samples in ((3 * 61 * 89 + 7, 1), (10 * 61 * 89 - 1, 2), (61 * 89, 0)):
+        for kernel in (True, False):  # the compiled CPU kernel (where it builds) and the torch code
+            with contextlib.nullcontext() if kernel else native.disabled():
+                counts = allocate(q, budget, min_samples=min_samples, mask=mask)
+            for b in range(3):
+                want = hamilton_oracle(q[b].flatten().double().numpy(), mask[b].flatten().numpy(), budget, min_samples)
+                np.testing.assert_array_equal(counts[b].flatten().numpy(), want)
 
 
 def test_ties_are_deterministic():
@@ -134,8 +173,9 @@ def test_accumulate_is_a_per_pixel_sum():
 def test_importance_fused_matches_eager():
     n, x, _ = geometry()
     hit = torch.rand(n.shape[0], 1, *n.shape[2:], generator=torch.Generator().manual_seed(2)) > 0.2
-    eager = importance_map(n, x, window=3, hit=hit)
-    fused = importance_map(n, x, window=3, hit=hit, fused=True)
+    with native.disabled():  # the compiled CPU kernel would take both calls
+        eager = importance_map(n, x, window=3, hit=hit)
+        fused = importance_map(n, x, window=3, hit=hit, fused=True)
     torch.testing.assert_close(fused, eager, rtol=1e-5, atol=1e-6)
 
 

@@ -1,7 +1,8 @@
-/* CPU kernels of the two hot filters, float32, one image and a band of rows per call.
+/* CPU kernels of the two hot filters and of the sampling importance, float32, one image per call.
  *
- * Compiled at first use by torchgi/filters/native.py (gcc/cc, -O3 -march=native) and called
- * through ctypes, which releases the GIL: the Python side runs one band per thread. The maths
+ * Compiled at first use by torchgi/filters/native.py (gcc/cc, -O3 -march=native, -fopenmp where
+ * the compiler has it) and called through ctypes, which releases the GIL; each entry point runs
+ * its rows in bands, one per thread (OVER_BANDS, at the end). The maths
  * is exactly that of the torch code paths (atrous._iteration, guided._solve); only the order
  * of the sums differs (box sums accumulate in double here, so they are more accurate).
  *
@@ -10,9 +11,13 @@
 #include <math.h>
 #include <stddef.h>
 #include <stdint.h>
+#include <stdlib.h>
 #include <string.h>
 #if defined(__SSE__)
 #include <xmmintrin.h>
+#endif
+#if defined(_OPENMP)
+#include <omp.h>
 #endif
 
 #define INLINE static inline __attribute__((always_inline))
@@ -110,9 +115,90 @@ INLINE vf vexp_neg(vf d) {
     return (vf)((vi)(y * s) & ~under);
 }
 
-int torchgi_native_version(void) { return 1; }
+int torchgi_native_version(void) { return 2; }
 
 float torchgi_exp_neg(float d) { return exp_neg(d); }
+
+/* ------------------------------------------------------------------------------------------
+ * Sampling importance (sampling.importance._core) for rows [y0, y1) of one image:
+ *
+ *   out = clamp(1 - Σ_q v_q exp(-d(p,q)) / max(Σ_q v_q, 1), 0, 1) · v_p,
+ *   d(p,q) = sn · |n_p - n_q|² + sx · |x_p - x_q|²
+ *
+ * over the taps q = p + (oy, ox), lo <= oy, ox <= hi, inside the image. n, x: the normal and
+ * position, 3 plain H x W planes each (no centring needed: the differences of nearby float32
+ * positions are exact); sn, sx: 1 / σ_n, 1 / σ_x; hit: an H x W plane of 0/1 (floats: GCC
+ * turns a vector conversion from bytes into scalar code), or NULL for all 1; out: an H x W
+ * plane. Pixels whose taps all lie inside the row go VL at a time, the edges one by one.
+ */
+
+INLINE float importance_of(float total, float count, float v) {
+    const float q = 1.0f - total / (count > 1.0f ? count : 1.0f);
+    return (q < 0.0f ? 0.0f : q > 1.0f ? 1.0f : q) * v;
+}
+
+static void importance_rows(const float *n, const float *x, float sn, float sx, const float *hit, int H, int W,
+                            int lo, int hi, float *out, int y0, int y1) {
+    const unsigned csr = ftz_begin();
+    const size_t HW = (size_t)H * W;
+    const int xl = -lo < W ? -lo : W;
+    const int xv = xl + (W - hi > xl ? (W - hi - xl) / VL * VL : 0);
+    const vf one = vsplat(1.0f), zero = vsplat(0.0f), vsn = vsplat(sn), vsx = vsplat(sx);
+    for (int y = y0; y < y1; ++y) {
+        const int ya = y + lo < 0 ? -y : lo, yb = y + hi >= H ? H - 1 - y : hi; /* rows inside */
+        const size_t row = (size_t)y * W;
+        const float *nr = n + row, *xr = x + row;
+        const float *hr = hit ? hit + row : NULL;
+        float *o = out + row;
+        for (int i = xl; i < xv; i += VL) {
+            vf np[3], xp[3], total = zero, count = zero;
+            FOR8(k, 3, { np[k] = vload(nr + k * HW + i); xp[k] = vload(xr + k * HW + i); });
+            for (int oy = ya; oy <= yb; ++oy)
+                for (int ox = lo; ox <= hi; ++ox) {
+                    const ptrdiff_t off = (ptrdiff_t)oy * W + ox + i;
+                    vf dn = zero, dx = zero;
+                    FOR8(k, 3, {
+                        const vf u = np[k] - vload(nr + k * HW + off), v = xp[k] - vload(xr + k * HW + off);
+                        dn += u * u;
+                        dx += v * v;
+                    });
+                    const vf w = vexp_neg(dn * vsn + dx * vsx);
+                    if (hr) {
+                        const vf v = vload(hr + off);
+                        total += v * w;
+                        count += v;
+                    } else {
+                        total += w;
+                        count += one;
+                    }
+                }
+            vf r = one - total / vselect(count > one, count, one);
+            r = vselect(r < zero, zero, vselect(r > one, one, r));
+            vstore(o + i, hr ? r * vload(hr + i) : r);
+        }
+        const int spans[2][2] = {{0, xl}, {xv, W}};
+        for (int e = 0; e < 2; ++e)
+            for (int i = spans[e][0]; i < spans[e][1]; ++i) {
+                float total = 0.0f, count = 0.0f;
+                for (int oy = ya; oy <= yb; ++oy)
+                    for (int ox = lo; ox <= hi; ++ox) {
+                        if (i + ox < 0 || i + ox >= W) continue;
+                        const ptrdiff_t off = (ptrdiff_t)oy * W + ox + i;
+                        float dn = 0.0f, dx = 0.0f;
+                        for (int k = 0; k < 3; ++k) {
+                            const float u = nr[k * HW + i] - nr[k * HW + off], v = xr[k * HW + i] - xr[k * HW + off];
+                            dn += u * u;
+                            dx += v * v;
+                        }
+                        const float v = hr ? hr[off] : 1.0f;
+                        total += v * exp_neg(dn * sn + dx * sx);
+                        count += v;
+                    }
+                o[i] = importance_of(total, count, hr ? hr[i] : 1.0f);
+            }
+    }
+    ftz_end(csr);
+}
 
 /* ------------------------------------------------------------------------------------------
  * One À-Trous level (atrous._iteration) for rows [y0, y1) of one image.
@@ -229,10 +315,10 @@ static block_fn pick_block(int C, int G, int CS, int V) {
 /* Planes of every input and of out / var_out are ps floats apart, rows rs floats apart (padded
  * layouts keep the row streams of the taps out of one another's cache sets); den is a plain
  * H x W plane. scratch: (2 C + 1) (W + 16) floats. */
-void torchgi_atrous_level(const float *c, int C, const float *f, int F, const float *fs, const float *var,
-                          const float *valid, const float *cs, int cs_plane, int H, int W, int rs, long long ps,
-                          int step, const float *h25, float *out, float *var_out, float *den_out, int y0, int y1,
-                          float *scratch) {
+static void atrous_rows(const float *c, int C, const float *f, int F, const float *fs, const float *var,
+                        const float *valid, const float *cs, int cs_plane, int H, int W, int rs, long long ps,
+                        int step, const float *h25, float *out, float *var_out, float *den_out, int y0, int y1,
+                        float *scratch) {
     const unsigned csr = ftz_begin();
     const int G = F / 3, CS = cs == NULL ? 0 : cs_plane ? 2 : 1, V = var != NULL, SW = W + 16;
     level_t L;
@@ -472,9 +558,9 @@ static const solve_fn SOLVERS[4][3] = {{solve_1_1, solve_1_2, solve_1_3}, {solve
 
 /* scratch: doubles acc (K ACC_STRIDE(W)) + inv_cx (W) + pre (W + 8), then floats m (K MEAN_STRIDE(W)),
  * K = n + Cs + n (n + 1) / 2 + n Cs. */
-void torchgi_guided_coefficients(const float *I, const float *meanI, int n, const float *p, const float *meanp, int Cs,
-                                 int H, int W, int r, const float *eps, float unit, float *coef, int y0, int y1,
-                                 void *scratch) {
+static void coefficients_rows(const float *I, const float *meanI, int n, const float *p, const float *meanp, int Cs,
+                              int H, int W, int r, const float *eps, float unit, float *coef, int y0, int y1,
+                              void *scratch) {
     const unsigned csr = ftz_begin();
     const int K = n + Cs + n * (n + 1) / 2 + n * Cs;
     const size_t HW = (size_t)H * W;
@@ -501,8 +587,8 @@ void torchgi_guided_coefficients(const float *I, const float *meanI, int n, cons
  * planes) when I is NULL, else applied: out_c = mean(b_c) + Σ_i mean(a_ic) (I_i - meanI_i) +
  * offset_c (Cs planes). scratch: doubles acc (Q ACC_STRIDE(W)) + inv_cx (W) + pre (W + 8), then floats m
  * (Q MEAN_STRIDE(W)). */
-void torchgi_guided_apply(const float *coef, int n, int Cs, const float *I, const float *meanI, const float *offset,
-                          int H, int W, int r, float *out, int y0, int y1, void *scratch) {
+static void apply_rows(const float *coef, int n, int Cs, const float *I, const float *meanI, const float *offset,
+                       int H, int W, int r, float *out, int y0, int y1, void *scratch) {
     const unsigned csr = ftz_begin();
     const int Q = (n + 1) * Cs;
     const size_t HW = (size_t)H * W;
@@ -533,4 +619,177 @@ void torchgi_guided_apply(const float *coef, int n, int Cs, const float *I, cons
         }
     }
     ftz_end(csr);
+}
+
+/* ------------------------------------------------------------------------------------------
+ * Sample allocation (sampling.allocate) of one image: n_p = floor(q_p / Q · spare) plus one for
+ * the `left` largest remainders (ties to the lowest index), plus min_samples; 0 off `eligible`
+ * (NULL: every pixel). q: float32, or float64 with q_double. The torch code's double
+ * arithmetic; Q is summed in CHUNKS fixed chunks of 8 interleaved partial sums, so the result
+ * does not depend on the thread count. The remainders r in [0, 1) are ranked by the bucket
+ * floor(r · 2^16) (exact and monotonic), then, within the one bucket that holds the cut, by
+ * sorting its few members. Scratch: bucket, N uint16; hist, nt x 65536 uint32. Passes run on
+ * nt OpenMP threads (see OVER_BANDS). Returns 0, or -1 when memory runs out.
+ */
+#define BUCKETS 65536
+#define CHUNKS 64
+
+typedef struct {
+    double r;
+    int32_t p;
+} ranked_t;
+
+static int by_remainder_then_index(const void *a, const void *b) {
+    const ranked_t *x = a, *y = b;
+    return x->r != y->r ? (x->r < y->r ? 1 : -1) : (x->p > y->p) - (x->p < y->p);
+}
+
+typedef struct {
+    const float *qf;
+    const double *qd;
+    const uint8_t *eligible;
+    double Q, uniform, spare;
+} alloc_t;
+
+/* q_p, or -1 off eligible */
+INLINE double q_at(const alloc_t *A, long long p) {
+    if (A->eligible && !A->eligible[p]) return -1.0;
+    return A->qd ? A->qd[p] : (double)A->qf[p];
+}
+
+/* the exact share q_p / Q · spare (uniform when Q = 0) of an eligible pixel */
+INLINE double exact_at(const alloc_t *A, double q) { return (A->Q > 0.0 ? q / A->Q : A->uniform) * A->spare; }
+
+int torchgi_allocate(const void *q, int q_double, const uint8_t *eligible, long long N, long long n_eligible,
+                     long long spare, int min_samples, int64_t *counts, uint16_t *bucket, uint32_t *hist, int nt) {
+    alloc_t A = {q_double ? NULL : (const float *)q, q_double ? (const double *)q : NULL, eligible, 0.0,
+                 n_eligible > 0 ? 1.0 / (double)n_eligible : 0.0, (double)spare};
+    double chunk_q[CHUNKS];
+    long long chunk_total[CHUNKS];
+#define CHUNK_RANGE(c) const long long pa = N * (c) / CHUNKS, pb = N * ((c) + 1) / CHUNKS
+#pragma omp parallel for num_threads(nt) schedule(static) if (nt > 1)
+    for (int c = 0; c < CHUNKS; ++c) {
+        CHUNK_RANGE(c);
+        double lane[8] = {0};
+        for (long long p = pa; p < pb; ++p) {
+            const double v = q_at(&A, p);
+            lane[(p - pa) & 7] += v > 0.0 ? v : 0.0;
+        }
+        chunk_q[c] = ((lane[0] + lane[1]) + (lane[2] + lane[3])) + ((lane[4] + lane[5]) + (lane[6] + lane[7]));
+    }
+    for (int c = 0; c < CHUNKS; ++c) A.Q += chunk_q[c];
+    /* floor of each share (-1 marks pixels off eligible), its remainder's bucket, histograms */
+#pragma omp parallel num_threads(nt) if (nt > 1)
+    {
+#if defined(_OPENMP)
+        uint32_t *h = hist + (size_t)omp_get_thread_num() * BUCKETS;
+#else
+        uint32_t *h = hist;
+#endif
+        memset(h, 0, sizeof(uint32_t) * BUCKETS);
+#pragma omp for schedule(static)
+        for (int c = 0; c < CHUNKS; ++c) {
+            CHUNK_RANGE(c);
+            long long total = 0;
+            for (long long p = pa; p < pb; ++p) {
+                const double v = q_at(&A, p);
+                if (v < 0.0) {
+                    counts[p] = -1;
+                    continue;
+                }
+                const double e = exact_at(&A, v), whole = floor(e);
+                const int b = (int)((e - whole) * BUCKETS);
+                counts[p] = (int64_t)whole;
+                bucket[p] = (uint16_t)b;
+                ++h[b];
+                total += (long long)whole;
+            }
+            chunk_total[c] = total;
+        }
+    }
+    long long need = spare; /* remainders to hand out, fewer than the eligible pixels */
+    for (int c = 0; c < CHUNKS; ++c) need -= chunk_total[c];
+    int cut = BUCKETS; /* buckets above the cut get one more, and `need` members of the cut's */
+    if (need > 0) {
+        for (int t = 1; t < nt; ++t)
+            for (int b = 0; b < BUCKETS; ++b) hist[b] += hist[(size_t)t * BUCKETS + b];
+        for (cut = BUCKETS - 1; cut > 0 && hist[cut] < need; --cut) need -= hist[cut];
+    }
+#pragma omp parallel for num_threads(nt) schedule(static) if (nt > 1)
+    for (int c = 0; c < CHUNKS; ++c) {
+        CHUNK_RANGE(c);
+        for (long long p = pa; p < pb; ++p)
+            counts[p] = counts[p] < 0 ? 0 : counts[p] + min_samples + (cut < BUCKETS && bucket[p] > cut);
+    }
+    if (cut < BUCKETS) { /* the cut's bucket, sorted by remainder then index */
+        ranked_t *tie = malloc(sizeof(ranked_t) * (hist[cut] + 1));
+        if (!tie) return -1;
+        long long m = 0;
+        for (long long p = 0; p < N; ++p)
+            if (bucket[p] == cut && q_at(&A, p) >= 0.0) {
+                const double e = exact_at(&A, q_at(&A, p));
+                tie[m].r = e - floor(e), tie[m++].p = (int32_t)p;
+            }
+        qsort(tie, (size_t)m, sizeof(ranked_t), by_remainder_then_index);
+        for (long long i = 0; i < need; ++i) ++counts[tie[i].p];
+        free(tie);
+    }
+#undef CHUNK_RANGE
+    return 0;
+}
+
+/* ------------------------------------------------------------------------------------------
+ * Entry points: rows [0, H) in nt bands, one per thread. Built with -fopenmp the bands run on
+ * OpenMP threads — the libgomp that torch has loaded, so torch's own worker threads (which spin
+ * for a while after each torch op) take the bands instead of competing with them for the cores.
+ * nt = 1 (or a build without OpenMP) runs the bands on the calling thread and never enters
+ * OpenMP, so a forked child with one torch thread is safe. scratch: nt blocks of stride bytes.
+ */
+#define OVER_BANDS(H, CALL)                                                                     \
+    do {                                                                                        \
+        if (nt > 1) {                                                                           \
+            _Pragma("omp parallel for num_threads(nt) schedule(static, 1)")                     \
+            for (int band = 0; band < nt; ++band) {                                             \
+                const int y0 = (int)((long long)(H) * band / nt);                               \
+                const int y1 = (int)((long long)(H) * (band + 1) / nt);                         \
+                void *scr = scratch ? (char *)scratch + (size_t)band * (size_t)stride : NULL;   \
+                CALL;                                                                           \
+            }                                                                                   \
+        } else {                                                                                \
+            const int y0 = 0, y1 = (H);                                                         \
+            void *scr = scratch;                                                                \
+            CALL;                                                                               \
+        }                                                                                       \
+    } while (0)
+
+int torchgi_openmp(void) {
+#if defined(_OPENMP)
+    return 1;
+#else
+    return 0;
+#endif
+}
+
+void torchgi_importance(const float *n, const float *x, float sn, float sx, const float *hit, int H, int W, int lo,
+                        int hi, float *out, int nt, void *scratch, long long stride) {
+    OVER_BANDS(H, ((void)scr, importance_rows(n, x, sn, sx, hit, H, W, lo, hi, out, y0, y1)));
+}
+
+void torchgi_atrous_level(const float *c, int C, const float *f, int F, const float *fs, const float *var,
+                          const float *valid, const float *cs, int cs_plane, int H, int W, int rs, long long ps,
+                          int step, const float *h25, float *out, float *var_out, float *den_out, int nt,
+                          void *scratch, long long stride) {
+    OVER_BANDS(H, atrous_rows(c, C, f, F, fs, var, valid, cs, cs_plane, H, W, rs, ps, step, h25, out, var_out, den_out,
+                              y0, y1, (float *)scr));
+}
+
+void torchgi_guided_coefficients(const float *I, const float *meanI, int n, const float *p, const float *meanp, int Cs,
+                                 int H, int W, int r, const float *eps, float unit, float *coef, int nt, void *scratch,
+                                 long long stride) {
+    OVER_BANDS(H, coefficients_rows(I, meanI, n, p, meanp, Cs, H, W, r, eps, unit, coef, y0, y1, scr));
+}
+
+void torchgi_guided_apply(const float *coef, int n, int Cs, const float *I, const float *meanI, const float *offset,
+                          int H, int W, int r, float *out, int nt, void *scratch, long long stride) {
+    OVER_BANDS(H, apply_rows(coef, n, Cs, I, meanI, offset, H, W, r, out, y0, y1, scr));
 }

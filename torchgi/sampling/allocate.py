@@ -4,7 +4,9 @@
 
 then the remainders go to the largest fractional parts (Hamilton's method), so the total is
 exactly ``S`` — the paper drops them. Ties are broken by pixel index, so the result is
-deterministic.
+deterministic. On the CPU the compiled kernel of :mod:`torchgi.filters.native` does the same
+arithmetic in one pass per step (the remainders chosen by a radix select instead of
+``kthvalue``); without it, the torch code below.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ import torch
 
 from torchgi.core.check import check_finite, check_floating, check_int, check_range, check_shape
 from torchgi.core.errors import DTypeError, RangeError
+from torchgi.filters import native
 
 __all__ = ["allocate", "exclusive_scan"]
 
@@ -45,22 +48,30 @@ def allocate(
     check_int(budget, "budget")
     check_int(min_samples, "min_samples")
     B = importance.shape[0]
-    q = importance.flatten(1).to(torch.float64)
+    q = importance.flatten(1)
+    eligible = None
     if mask is not None:
         check_shape(mask, "B 1 H W", "mask", {"B": B, "H": importance.shape[2], "W": importance.shape[3]})
         if mask.dtype != torch.bool:
             raise DTypeError(f"mask: expected a bool tensor, got {mask.dtype}")
         eligible = mask.flatten(1)
-    else:
-        eligible = torch.ones_like(q, dtype=torch.bool)
-    q = torch.where(eligible, q, torch.zeros_like(q))
-    n_eligible = eligible.sum(1)
+    n_eligible = eligible.sum(1) if eligible is not None else torch.full((B,), q.shape[1], dtype=torch.int64)
     need = int(n_eligible.max()) * min_samples
     if budget < need:
         raise RangeError(
             f"budget: {budget} samples cannot give min_samples={min_samples} to {int(n_eligible.max())} pixels "
             f"(needs at least {need})"
         )
+    if importance.device.type == "cpu" and q.dtype in (torch.float32, torch.float64) and q.shape[1] < 2**31 \
+            and native.library() is not None:
+        # the compiled kernel: the same arithmetic, the remainders chosen by a radix select
+        counts = native.allocate(q, eligible, n_eligible.tolist(), (budget - min_samples * n_eligible).tolist(),
+                                 min_samples)
+        return counts.view_as(importance)
+    if eligible is None:
+        eligible = torch.ones_like(q, dtype=torch.bool)
+    q = q.to(torch.float64)
+    q = torch.where(eligible, q, torch.zeros_like(q))
     spare = (budget - min_samples * n_eligible).to(torch.float64)  # (B,)
     Q = q.sum(1)
     uniform = eligible.to(torch.float64) / n_eligible.clamp_min(1)[:, None]

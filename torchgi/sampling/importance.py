@@ -4,6 +4,8 @@
 
 with ``G_n = exp(-|n_p - n_q|² / σ_n)`` and ``G_x = exp(-|x_p - x_q|² / σ_x)``, the À-Trous
 geometry weights at step 1, read through the same shifted-view taps (:mod:`torchgi.filters.taps`).
+Eager float32 CPU calls without autograd run the compiled kernel of
+:mod:`torchgi.filters.native` (one walk over each band of rows, vectorised) instead.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from torchgi.core.check import (
     check_shape,
 )
 from torchgi.core.errors import DTypeError, RangeError
+from torchgi.filters import native
 from torchgi.filters.box import compute_dtype
 from torchgi.filters.taps import Padded
 
@@ -74,6 +77,8 @@ def importance_map(
     ct = compute_dtype(normal.dtype)
     n = normal.to(ct)
     x = position.to(ct)
+    if native.applies(n, x):  # the compiled CPU kernel, straight from the inputs
+        return native.importance(n, x, sigma_normal, sigma_position, hit, window).to(normal.dtype)
     x = x - x.mean(dim=(2, 3), keepdim=True)
     # one feature vector per pixel: G_n · G_x = exp(-|f_p - f_q|²)
     f = torch.cat([n / sigma_normal**0.5, x / sigma_position**0.5], 1)
