@@ -87,7 +87,7 @@ def hamilton_oracle(q: np.ndarray, eligible: np.ndarray, budget: int, min_sample
     share = q / q.sum() if q.sum() > 0 else eligible / eligible.sum()
     exact = share * spare
     n = np.floor(exact)
-    left = int(round(spare - n.sum()))
+    left = int(np.rint(spare - n.sum()))
     order = np.lexsort((np.arange(q.size), -np.where(eligible, exact - n, -1.0)))  # remainder desc, index asc
     n[order[:left]] += 1
     return np.where(eligible, n + min_samples, 0).astype(np.int64)
