@@ -156,6 +156,12 @@ static void importance_rows(const float *n, const float *x, float sn, float sx, 
             for (int oy = ya; oy <= yb; ++oy)
                 for (int ox = lo; ox <= hi; ++ox) {
                     const ptrdiff_t off = (ptrdiff_t)oy * W + ox + i;
+                    if (oy == 0 && ox == 0) { /* the pixel itself: weight exp(0) = 1 */
+                        const vf v = hr ? vload(hr + i) : one;
+                        total += v;
+                        count += v;
+                        continue;
+                    }
                     vf dn = zero, dx = zero;
                     FOR8(k, 3, {
                         const vf u = np[k] - vload(nr + k * HW + off), v = xp[k] - vload(xr + k * HW + off);
