@@ -113,7 +113,8 @@ def test_triton_guided_and_box_match_oracle_in_the_interpreter():
 @pytest.mark.parametrize("Cs", [1, 3])
 def test_triton_guided_matches_oracle_on_cuda(device, n, Cs, monkeypatch):
     calls = _spy_on_cuda(device, monkeypatch, "guided")
-    for H, W, r, offset in [(37, 53, 5, 0.0), (120, 301, 40, 1e3), (1080, 1920, 24, 1e4)]:
+    full_hd = [(1080, 1920, 24, 1e4)] if n == 4 else []  # the float64 oracle takes seconds there
+    for H, W, r, offset in [(37, 53, 5, 0.0), (120, 301, 40, 1e3)] + full_hd:
         p, I = scene(1, H, W, n, seed=n + Cs)
         p, I = p[:, :Cs].contiguous(), (I + offset).float()
         want = guided_oracle(p, I, r, 0.01)
