@@ -1,5 +1,5 @@
-"""Compiled CPU kernels of the two hot filters (one À-Trous level, the guided filter) and of the
-sampling importance map, float32.
+"""Compiled CPU kernels of the two hot filters (one À-Trous level, the guided filter) and of
+adaptive sampling (the importance map, the sample allocation), float32.
 
 The torch code of :mod:`torchgi.filters.atrous` and :mod:`torchgi.filters.guided` walks the
 image once per elementwise op; these kernels (``_native.c``) do a level, or a guided-filter
