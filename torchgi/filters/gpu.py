@@ -216,7 +216,14 @@ def atrous_level(
     """One À-Trous level with the arguments of :func:`torchgi.filters.native.atrous_level`
     (``feat``: groups of 3 planes, at most 2, whose squared distances are multiplied by
     ``feat_scale``; ``c`` up to 4 channels). Returns the colour ``(B,C,H,W)``, the propagated
-    variance and the weight sum ``(B,1,H,W)``."""
+    variance and the weight sum ``(B,1,H,W)``.
+
+    Example (CUDA; :func:`torchgi.filters.atrous` calls it once per level):
+        >>> c = torch.rand(1, 3, 32, 32, device="cuda")            # doctest: +SKIP
+        >>> out, var, den = atrous_level(c, None, [], None, None, 1, None)  # doctest: +SKIP
+        >>> out.shape, var is None, den.shape                         # doctest: +SKIP
+        (torch.Size([1, 3, 32, 32]), True, torch.Size([1, 1, 32, 32]))
+    """
     B, C, H, W = c.shape
     F = 0 if feat is None else feat.shape[1]
     if C > MAX_CHANNELS or F not in (0, 3, 6) or len(feat_scale) != F // 3:
@@ -451,7 +458,15 @@ def _box_products(x: torch.Tensor, pairs: list[tuple[int, int]], r: int) -> torc
 
 def box(x: torch.Tensor, r: int) -> torch.Tensor:
     """Count-normalised box mean ``(B, C, H, W)`` of radius ``r`` over each plane of a float32
-    ``x (B, C, H, W)`` (what :func:`torchgi.filters.box` computes), in two kernels."""
+    ``x (B, C, H, W)`` (what :func:`torchgi.filters.box` computes), in two kernels (sums in
+    double).
+
+    Example (CUDA; :func:`torchgi.filters.box` calls it for such tensors):
+        >>> from torchgi import filters
+        >>> x = torch.rand(1, 3, 64, 64, device="cuda")             # doctest: +SKIP
+        >>> torch.allclose(box(x, 4).cpu(), filters.box(x.cpu(), 4), atol=1e-6)  # doctest: +SKIP
+        True
+    """
     x = x.contiguous()
     return _box_products(x, [(c, -1) for c in range(x.shape[1])], r)
 
@@ -463,7 +478,14 @@ def guided(
     """Guided filter with the arguments of :func:`torchgi.filters.native.guided`: ``p
     (B,Cs,H,W)`` by ``I (B,n,H,W)`` (n <= 4), centred by ``mean_p``, ``mean_I`` (``(B,C,1,1)``),
     ``eps (B,n,1,1)``, radius ``r``, ``offset (B,Cs,1,1)`` added to the output. Returns
-    ``(B,Cs,H,W)`` float32, or the box-filtered coefficients ``(B,n+1,Cs,H,W)``."""
+    ``(B,Cs,H,W)`` float32, or the box-filtered coefficients ``(B,n+1,Cs,H,W)``.
+
+    Example (CUDA; :func:`torchgi.filters.guided` calls it for such tensors):
+        >>> I, p = torch.rand(1, 4, 64, 64, device="cuda"), torch.rand(1, 3, 64, 64, device="cuda")  # doctest: +SKIP
+        >>> mI, mp = I.mean((2, 3), keepdim=True), p.mean((2, 3), keepdim=True)  # doctest: +SKIP
+        >>> guided(I, p, mI, mp, mp, 8, torch.full((1, 4, 1, 1), 0.01, device="cuda")).shape  # doctest: +SKIP
+        torch.Size([1, 3, 64, 64])
+    """
     B, n, H, W = I.shape
     Cs = p.shape[1]
     if not 1 <= n <= 4:
