@@ -30,7 +30,7 @@ from typing import Any
 import torch
 
 from torchgi.buffers import GBuffer
-from torchgi.core.check import check_finite, check_option, is_tracing
+from torchgi.core.check import check_finite, check_option, is_recording
 from torchgi.core.errors import ShapeError
 from torchgi.core.registry import Registry
 from torchgi.supersample import EyeSamples
@@ -106,7 +106,7 @@ def _light_sources(emission: torch.Tensor, threshold: torch.Tensor) -> torch.Ten
     from torchgi.filters import box
 
     bright = emission.amax(1, keepdim=True) > threshold
-    if not is_tracing() and not bool(bright.any()):
+    if not is_recording() and not bool(bright.any()):
         return bright  # no light source in view: nothing to open
     core = box(bright.to(emission.dtype), 1) > 1 - 1e-3  # erosion: the whole 3x3 window is bright
     return bright & (box(core.to(emission.dtype), 1) > 0)  # dilation back

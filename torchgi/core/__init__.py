@@ -13,6 +13,7 @@ from torchgi.core.check import (
     check_tensor,
     finite_or_sanitized,
     finite_or_sanitized_all,
+    is_recording,
     is_tracing,
     require,
 )
@@ -44,6 +45,7 @@ __all__ = [
     "check_tensor",
     "finite_or_sanitized",
     "finite_or_sanitized_all",
+    "is_recording",
     "is_tracing",
     "require",
     "Registry",

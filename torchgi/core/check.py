@@ -39,15 +39,15 @@ __all__ = [
     "finite_or_sanitized",
     "finite_or_sanitized_all",
     "is_tracing",
+    "is_recording",
     "require",
 ]
 
 
 def is_tracing() -> bool:
-    """True while torch.jit tracing, torch.compile or torch.export / ONNX export records code.
-
-    Value checks (NaN/Inf, ranges) read tensor data, which a traced graph cannot branch on:
-    they are skipped while tracing; shape, dtype and device checks still run.
+    """True while torch.jit tracing, torch.compile or torch.export / ONNX export records code
+    (the kernels of :mod:`torchgi.filters.native` / ``gpu`` step aside then: the recorded graph
+    needs torch ops).
 
     Example:
         >>> is_tracing()
@@ -55,6 +55,23 @@ def is_tracing() -> bool:
     """
     exporting = getattr(torch.compiler, "is_exporting", lambda: False)
     return bool(torch.jit.is_tracing() or torch.compiler.is_compiling() or exporting())
+
+
+def is_recording() -> bool:
+    """True while tracing (:func:`is_tracing`) or while the current CUDA stream is captured
+    into a CUDA graph: then nothing may read tensor values on the host.
+
+    Value checks (NaN/Inf, ranges) and data-dependent shortcuts read tensor data, which a
+    recorded graph cannot branch on (a captured graph replays on data no host check sees): they
+    are skipped while recording; shape, dtype and device checks still run.
+
+    Example:
+        >>> is_recording()
+        False
+    """
+    if is_tracing():
+        return True
+    return torch.cuda.is_available() and torch.cuda.is_current_stream_capturing()
 
 
 def check_tensor(x: Any, name: str) -> torch.Tensor:
@@ -184,7 +201,7 @@ def check_finite(x: torch.Tensor, name: str) -> None:
     Example:
         >>> check_finite(torch.tensor([0.0, 1e6]), "color")
     """
-    if not x.is_floating_point() or x.numel() == 0 or is_tracing():
+    if not x.is_floating_point() or x.numel() == 0 or is_recording():
         return
     # One reduction decides the common case: a sum is finite iff every term is finite, unless
     # it overflows (|sum| > 3e38 in float32); only a non-finite sum leads to the exact count.
@@ -225,7 +242,7 @@ def finite_or_sanitized_all(named: Mapping[str, torch.Tensor | None], sanitize: 
     """
     present = [(k, v) for k, v in named.items() if v is not None and v.is_floating_point() and v.numel()]
     if not sanitize:
-        if present and not is_tracing() and len({v.device for _, v in present}) == 1:
+        if present and not is_recording() and len({v.device for _, v in present}) == 1:
             # a sum is finite iff every term is, unless it overflows: then the exact check decides
             totals = [v.sum(dtype=torch.float32) if v.dtype in (torch.float16, torch.bfloat16) else v.sum()
                       for _, v in present]
@@ -238,7 +255,7 @@ def finite_or_sanitized_all(named: Mapping[str, torch.Tensor | None], sanitize: 
     for name, x in named.items():
         if x is not None and x.is_floating_point():
             bad = ~torch.isfinite(x)
-            if is_tracing():
+            if is_recording():
                 x = torch.where(bad, torch.zeros((), dtype=x.dtype, device=x.device), x)
             elif bool(bad.any()):
                 warnings.warn(f"{name}: replaced {int(bad.sum())} non-finite values by 0 (sanitize=True)", stacklevel=3)
@@ -255,7 +272,7 @@ def check_range(
     Example:
         >>> check_range(torch.tensor([0.0, 0.5]), "albedo", 0.0, 1.0)
     """
-    if x.numel() == 0 or is_tracing():
+    if x.numel() == 0 or is_recording():
         return
     if low is not None and bool((x < low).any()):
         raise RangeError(f"{name}: expected values >= {low}, found min {float(x.min()):g}")

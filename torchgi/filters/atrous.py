@@ -31,7 +31,7 @@ from torchgi.core.check import (
     check_same_floating,
     check_shape,
     finite_or_sanitized_all,
-    is_tracing,
+    is_recording,
 )
 from torchgi.core.errors import RangeError, ShapeError
 from torchgi.filters import gpu, native
@@ -54,7 +54,7 @@ def _per_batch(value: float | torch.Tensor | None, name: str, B: int, like: torc
         if value.shape not in ((), (1,), (B,)):
             raise ShapeError(f"{name}: expected a float or shape ({B},), got {tuple(value.shape)}")
         t = value.to(like.dtype)
-        if not is_tracing() and bool((~torch.isfinite(t) | (t <= 0)).any()):
+        if not is_recording() and bool((~torch.isfinite(t) | (t <= 0)).any()):
             raise RangeError(f"{name}: expected finite values > 0 (a float or a ({B},) tensor), got "
                              f"{t.flatten().tolist()[:4]}")
         return t.reshape(-1, 1, 1, 1).expand(B, 1, 1, 1)

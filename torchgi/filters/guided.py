@@ -31,7 +31,7 @@ from torchgi.core.check import (
     check_same_floating,
     check_shape,
     finite_or_sanitized_all,
-    is_tracing,
+    is_recording,
 )
 from torchgi.core.errors import RangeError, ShapeError
 from torchgi.filters import gpu, native
@@ -52,7 +52,7 @@ def _check_eps(eps: float | torch.Tensor, B: int, n: int, like: torch.Tensor) ->
         check_floating(eps, "eps")
         if eps.shape not in ((), (n,), (B, n)):
             raise ShapeError(f"eps: expected a float, shape ({n},) or ({B}, {n}); got {tuple(eps.shape)}")
-        if not is_tracing() and bool((~torch.isfinite(eps) | (eps < 0)).any()):  # one read back, not two
+        if not is_recording() and bool((~torch.isfinite(eps) | (eps < 0)).any()):  # one read back, not two
             raise RangeError(f"eps: expected finite values >= 0, got {eps.flatten().tolist()[:8]}")
         e = eps.to(like.dtype)
     else:
