@@ -77,12 +77,17 @@ for B, H, W, n, Cs, r, offset in [(2, 9, 13, 4, 3, 2, 0.0), (1, 20, 30, 2, 1, 40
     worst = max(worst, rel(got, want) if H * W > 1 else float((got - p).abs().max()))
 p, I = scene(1, 13, 17, 4, seed=9)
 worst = max(worst, rel(guided(p, I, radius=4, eps=0.01, subsample=2), fast_guided_oracle(p, I, 4, 0.01, 2)))
+# per-image, per-channel eps
+p2, I2 = scene(2, 9, 13, 4, seed=3)
+eps_b = torch.tensor([[0.01, 0.02, 0.01, 0.03], [0.1, 0.1, 0.2, 0.05]])
+got = guided(p2, I2, radius=2, eps=eps_b)
+worst = max([worst] + [rel(got[b : b + 1], guided_oracle(p2[b : b + 1], I2[b : b + 1], 2, eps_b[b])) for b in range(2)])
 # hostile: a constant guide at eps = 0 (a = 0, q = box(box(p))), a constant source stays constant
 flat = torch.full((1, 2, 13, 17), 1e4)
 worst = max(worst, rel(guided(p, flat, radius=3, eps=0.0), box_oracle(box_oracle(p.double(), 3), 3)))
 const = guided(torch.full((1, 3, 13, 17), 7.5), I, radius=3, eps=0.0)
 worst = max(worst, float((const - 7.5).abs().max()) / 7.5)
-assert len(calls) == 8, calls
+assert len(calls) == 9, calls
 x = torch.rand(2, 3, 11, 140) + 5  # absolute errors: r = 200 averages the whole image
 box_err = max(float((box(x, r).double() - box_oracle(x.double(), r)).abs().max()) for r in (0, 5, 200))
 print(worst, box_err)
