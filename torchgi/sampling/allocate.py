@@ -5,8 +5,8 @@
 then the remainders go to the largest fractional parts (Hamilton's method), so the total is
 exactly ``S`` — the paper drops them. Ties are broken by pixel index, so the result is
 deterministic. On the CPU the compiled kernel of :mod:`torchgi.filters.native` does the same
-arithmetic in one pass per step (the remainders chosen by a radix select instead of
-``kthvalue``); without it, the torch code below.
+arithmetic in a few passes (the remainders ranked by 2^16 buckets, then the bucket holding the
+cut sorted, instead of ``kthvalue``); without it, the torch code below.
 """
 
 from __future__ import annotations
@@ -64,7 +64,7 @@ def allocate(
         )
     if importance.device.type == "cpu" and q.dtype in (torch.float32, torch.float64) and q.shape[1] < 2**31 \
             and native.library() is not None:
-        # the compiled kernel: the same arithmetic, the remainders chosen by a radix select
+        # the compiled kernel: the same arithmetic, the remainders ranked by buckets
         counts = native.allocate(q, eligible, n_eligible.tolist(), (budget - min_samples * n_eligible).tolist(),
                                  min_samples)
         return counts.view_as(importance)
