@@ -6,6 +6,7 @@ import os
 import tempfile
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -113,7 +114,7 @@ def export_denoiser(
     quality: str = "balanced",
     sigma_position: float | None = None,
     overwrite: bool = False,
-    **filter_params,
+    **filter_params: Any,
 ) -> Path:
     """Export ``torchgi.Denoiser(method, quality, **filter_params)`` fixed for ``spp`` to ONNX.
 

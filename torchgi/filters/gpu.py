@@ -56,8 +56,13 @@ _taps: dict[torch.device, torch.Tensor] = {}
 
 
 def applies(*tensors: torch.Tensor | None) -> bool:
-    """The kernel takes eager float32 CUDA tensors without autograd (CPU ones under the
-    interpreter)."""
+    """The kernels take eager float32 CUDA tensors without autograd or tracing (CPU ones under
+    the interpreter).
+
+    Example:
+        >>> applies(torch.zeros(1, dtype=torch.float64))   # float64: the torch code
+        False
+    """
     ts = [t for t in tensors if t is not None]
     if triton is None or not native.enabled() or is_tracing() or not ts:
         return False
@@ -199,7 +204,12 @@ if triton is not None:
 
 def empty_planes(like: torch.Tensor, C: int) -> torch.Tensor:
     """A ``(B, C, H, W)`` float32 buffer on ``like``'s device (the feature planes
-    :func:`atrous_level` reads)."""
+    :func:`atrous_level` reads).
+
+    Example:
+        >>> empty_planes(torch.zeros(2, 3, 4, 5), 6).shape
+        torch.Size([2, 6, 4, 5])
+    """
     B, _, H, W = like.shape
     return torch.empty(B, C, H, W, dtype=torch.float32, device=like.device)
 

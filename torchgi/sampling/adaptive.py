@@ -14,6 +14,9 @@ paper's stated future work) by the caller (see ``scripts/repro_adaptive.py``).
 
 from __future__ import annotations
 
+import os
+from typing import TYPE_CHECKING, Any
+
 import torch
 
 from torchgi.buffers import GBuffer
@@ -22,6 +25,9 @@ from torchgi.core.errors import RangeError
 from torchgi.filters.box import box
 from torchgi.sampling.allocate import allocate
 from torchgi.sampling.importance import importance_map
+
+if TYPE_CHECKING:  # the renderer imports its scene types lazily (embree is an extra)
+    from torchgi.render.scene import Scene
 
 __all__ = ["pixel_footprint", "adaptive_counts", "adaptive_render"]
 
@@ -81,7 +87,7 @@ def adaptive_counts(
 
 
 def adaptive_render(
-    scene,
+    scene: Scene | str | os.PathLike,
     rate: float = 4.0,
     bounces: int = 1,
     seed: int = 0,
@@ -91,7 +97,7 @@ def adaptive_render(
     sigma_position: float | None = None,
     min_samples: int = 1,
     variance_share: float = 0.0,
-    **render_kwargs,
+    **render_kwargs: Any,
 ) -> tuple[GBuffer, torch.Tensor]:
     """Render ``scene`` with adaptively apportioned indirect samples.
 
