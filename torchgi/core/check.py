@@ -201,13 +201,12 @@ def check_finite(x: torch.Tensor, name: str) -> None:
     Example:
         >>> check_finite(torch.tensor([0.0, 1e6]), "color")
     """
-    if not x.is_floating_point() or x.numel() == 0 or is_recording():
-        return
-    # One reduction decides the common case: a sum is finite iff every term is finite, unless
-    # it overflows (|sum| > 3e38 in float32); only a non-finite sum leads to the exact count.
-    total = x.sum(dtype=torch.float32) if x.dtype in (torch.float16, torch.bfloat16) else x.sum()
-    if bool(torch.isfinite(total)):
-        return
+    finite_or_sanitized_all({name: x}, False)
+
+
+def _count_non_finite(x: torch.Tensor, name: str) -> None:
+    """The exact check behind a non-finite sum: raise with the counts, or return when the sum
+    merely overflowed."""
     finite = torch.isfinite(x)
     if bool(finite.all()):
         return
@@ -242,14 +241,19 @@ def finite_or_sanitized_all(named: Mapping[str, torch.Tensor | None], sanitize: 
     """
     present = [(k, v) for k, v in named.items() if v is not None and v.is_floating_point() and v.numel()]
     if not sanitize:
-        if present and not is_recording() and len({v.device for _, v in present}) == 1:
-            # a sum is finite iff every term is, unless it overflows: then the exact check decides
+        if present and not is_recording():
+            # One reduction per tensor decides the common case: a sum is finite iff every term
+            # is, unless it overflows (|sum| > 3e38 in float32); only a non-finite sum leads to
+            # the exact count. The sums are read back together where they share a device.
             totals = [v.sum(dtype=torch.float32) if v.dtype in (torch.float16, torch.bfloat16) else v.sum()
                       for _, v in present]
-            if bool(torch.isfinite(torch.stack([t.to(torch.float64) for t in totals])).all()):
-                return list(named.values())
-        for k, v in present:
-            check_finite(v, k)
+            if len({t.device for t in totals}) == 1:
+                finite = torch.isfinite(torch.stack([t.to(torch.float64) for t in totals])).tolist()
+            else:
+                finite = [bool(torch.isfinite(t)) for t in totals]
+            for (k, v), ok in zip(present, finite):
+                if not ok:
+                    _count_non_finite(v, k)
         return list(named.values())
     out = []
     for name, x in named.items():
