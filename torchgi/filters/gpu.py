@@ -74,6 +74,19 @@ def applies(*tensors: torch.Tensor | None) -> bool:
 if triton is not None:
 
     @triton.jit
+    def _channels(p, stride, mask, C: tl.constexpr):
+        # up to four channel planes `stride` apart as tiles; channels past C are zeros (unused)
+        a = tl.load(p, mask=mask, other=0.0)
+        b, c, d = tl.zeros_like(a), tl.zeros_like(a), tl.zeros_like(a)
+        if C > 1:
+            b = tl.load(p + stride, mask=mask, other=0.0)
+        if C > 2:
+            c = tl.load(p + 2 * stride, mask=mask, other=0.0)
+        if C > 3:
+            d = tl.load(p + 3 * stride, mask=mask, other=0.0)
+        return a, b, c, d
+
+    @triton.jit
     def _sq(a, b):
         u = a - b
         return u * u
@@ -92,13 +105,7 @@ if triton is not None:
         x = (tl.program_id(0) * BW + tl.arange(0, BW))[None, :]
         inside = (y < H) & (x < W)
         pc = c_ptr + b * s_b + y * s_h + x
-        c0 = tl.load(pc, mask=inside, other=0.0)
-        if C > 1:
-            c1 = tl.load(pc + s_c, mask=inside, other=0.0)
-        if C > 2:
-            c2 = tl.load(pc + 2 * s_c, mask=inside, other=0.0)
-        if C > 3:
-            c3 = tl.load(pc + 3 * s_c, mask=inside, other=0.0)
+        c0, c1, c2, c3 = _channels(pc, s_c, inside, C)
         if F > 0:
             pf = f_ptr + b * f_b + y * f_h + x
             f0 = tl.load(pf, mask=inside, other=0.0)
@@ -127,13 +134,7 @@ if triton is not None:
             ox = (t % 5 - 2) * step
             ok = inside & (y + oy >= 0) & (y + oy < H) & (x + ox >= 0) & (x + ox < W)
             qc = pc + oy * s_h + ox
-            q0 = tl.load(qc, mask=ok, other=0.0)
-            if C > 1:
-                q1 = tl.load(qc + s_c, mask=ok, other=0.0)
-            if C > 2:
-                q2 = tl.load(qc + 2 * s_c, mask=ok, other=0.0)
-            if C > 3:
-                q3 = tl.load(qc + 3 * s_c, mask=ok, other=0.0)
+            q0, q1, q2, q3 = _channels(qc, s_c, ok, C)
             d = zero
             if CS > 0:
                 dc = _sq(c0, q0)
@@ -167,15 +168,15 @@ if triton is not None:
             if C > 3:
                 n3 += w * q3
             if V:
-                qv = var_ptr + b * v_b + (y + oy) * v_h + x + ox
+                u0, u1, u2, u3 = _channels(var_ptr + b * v_b + (y + oy) * v_h + x + ox, v_c, ok, C)
                 w2 = w * w
-                v0 += w2 * tl.load(qv, mask=ok, other=0.0)
+                v0 += w2 * u0
                 if C > 1:
-                    v1 += w2 * tl.load(qv + v_c, mask=ok, other=0.0)
+                    v1 += w2 * u1
                 if C > 2:
-                    v2 += w2 * tl.load(qv + 2 * v_c, mask=ok, other=0.0)
+                    v2 += w2 * u2
                 if C > 3:
-                    v3 += w2 * tl.load(qv + 3 * v_c, mask=ok, other=0.0)
+                    v3 += w2 * u3
         has = den > 0
         safe = tl.where(has, den, 1.0)
         po = out_ptr + b * o_b + y * o_h + x
@@ -187,18 +188,16 @@ if triton is not None:
         if C > 3:
             tl.store(po + 3 * o_c, tl.where(has, n3 / safe, c3), mask=inside)
         if V:
-            pv = var_ptr + b * v_b + y * v_h + x
+            p0, p1, p2, p3 = _channels(var_ptr + b * v_b + y * v_h + x, v_c, inside, C)
             pvo = vout_ptr + b * o_b + y * o_h + x
             s2 = safe * safe
-            tl.store(pvo, tl.where(has, v0 / s2, tl.load(pv, mask=inside, other=0.0)), mask=inside)
+            tl.store(pvo, tl.where(has, v0 / s2, p0), mask=inside)
             if C > 1:
-                tl.store(pvo + o_c, tl.where(has, v1 / s2, tl.load(pv + v_c, mask=inside, other=0.0)), mask=inside)
+                tl.store(pvo + o_c, tl.where(has, v1 / s2, p1), mask=inside)
             if C > 2:
-                tl.store(pvo + 2 * o_c, tl.where(has, v2 / s2, tl.load(pv + 2 * v_c, mask=inside, other=0.0)),
-                         mask=inside)
+                tl.store(pvo + 2 * o_c, tl.where(has, v2 / s2, p2), mask=inside)
             if C > 3:
-                tl.store(pvo + 3 * o_c, tl.where(has, v3 / s2, tl.load(pv + 3 * v_c, mask=inside, other=0.0)),
-                         mask=inside)
+                tl.store(pvo + 3 * o_c, tl.where(has, v3 / s2, p3), mask=inside)
         tl.store(den_ptr + b * d_b + y * d_h + x, den, mask=inside)
 
 
