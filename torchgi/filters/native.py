@@ -226,11 +226,17 @@ def applies(*tensors: torch.Tensor | None) -> bool:
     return library() is not None
 
 
+def _threads(parts: int, pixels: int) -> int:
+    """Threads for work split ``parts`` ways over ``pixels``: torch's thread count, at most
+    one per part and per ``_MIN_BAND_PIXELS`` pixels, at least one."""
+    return max(1, min(torch.get_num_threads(), parts, pixels // _MIN_BAND_PIXELS))
+
+
 def _run(fn, H: int, W: int, *args) -> None:
     """``fn(*args, threads, scratch, scratch_bytes)``: the C side runs rows ``[0, H)`` in one band
     per thread; ``args[-1]`` is the number of float32 scratch values one band needs (0: none)."""
     *args, scratch = args
-    threads = max(1, min(torch.get_num_threads(), H, (H * W) // _MIN_BAND_PIXELS))
+    threads = _threads(H, H * W)
     bufs = torch.empty(threads * scratch, dtype=torch.float32) if scratch else None  # held until the call returns
     fn(*args, threads, None if bufs is None else bufs.data_ptr(), 4 * scratch)
 
@@ -349,7 +355,7 @@ def allocate(q: torch.Tensor, eligible: torch.Tensor | None, n_eligible: list[in
         raise ValueError(f"q: expected float32/float64 with at most 2^31 - 1 pixels per image, got {q.dtype}, {N}")
     q = q.contiguous()
     eligible = None if eligible is None else eligible.to(torch.bool).contiguous()
-    threads = max(1, min(torch.get_num_threads(), N // _MIN_BAND_PIXELS))
+    threads = _threads(N, N)
     counts = torch.empty(B, N, dtype=torch.int64)
     bucket, hist = torch.empty(N, dtype=torch.int16), torch.empty(threads * 65536, dtype=torch.int32)
     for b in range(B):
