@@ -9,7 +9,7 @@ import torch
 
 from tests.oracles import ATROUS_CASES, atrous_case, atrous_error, atrous_oracle, guided_oracle
 from torchgi.filters import atrous, guided, native
-from torchgi.sampling import importance_map
+from torchgi.sampling import allocate, importance_map
 
 pytestmark = pytest.mark.skipif(native._compiler() is None, reason="no C compiler: the kernels cannot be built")
 
@@ -139,7 +139,8 @@ def _importance_in_child(queue) -> None:
     torch.set_num_threads(1)  # as the renderer's and data generation's forked workers do
     g = torch.Generator().manual_seed(3)
     n = torch.nn.functional.normalize(torch.randn(1, 3, 40, 300, generator=g), dim=1)
-    queue.put(importance_map(n, torch.rand(1, 3, 40, 300, generator=g), window=4).numpy())  # pickled, not shared
+    imp = importance_map(n, torch.rand(1, 3, 40, 300, generator=g), window=4)
+    queue.put((imp.numpy(), allocate(imp, 3 * imp.numel()).numpy()))  # pickled, not shared
 
 
 def test_forked_child_with_one_thread_runs_the_kernels(two_bands):
@@ -151,11 +152,13 @@ def test_forked_child_with_one_thread_runs_the_kernels(two_bands):
     g = torch.Generator().manual_seed(3)
     n = torch.nn.functional.normalize(torch.randn(1, 3, 40, 300, generator=g), dim=1)
     want = importance_map(n, torch.rand(1, 3, 40, 300, generator=g), window=4)  # two bands in the parent
+    counts = allocate(want, 3 * want.numel())
     ctx = multiprocessing.get_context("fork")
     queue = ctx.Queue()
     child = ctx.Process(target=_importance_in_child, args=(queue,))
     child.start()
-    got = queue.get(timeout=60)
+    got, got_counts = queue.get(timeout=60)
     child.join(timeout=60)
     assert child.exitcode == 0
     np.testing.assert_array_equal(got, want.numpy())
+    np.testing.assert_array_equal(got_counts, counts.numpy())
