@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import json
 import sys
 from pathlib import Path
 
@@ -27,7 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from benchmark_utils import SIZES, markdown_table, metadata, time_ms, write_results
 
-from torchgi.filters import Guided, atrous, guided, native
+from torchgi.filters import Guided, atrous, gpu, guided, native
 from torchgi.sampling import allocate, importance_map
 
 PAPER = {
@@ -138,6 +139,17 @@ def graph_replays(timed, device: torch.device) -> None:
         timed(f"{name} CUDA graph replay", graph.replay, size="1080p", param=f"max abs diff {err:.1e}")
 
 
+def apply_knobs(path: str | None) -> dict:
+    """Sets the tile knobs of :mod:`torchgi.filters.gpu` from a ``knobs.json`` of
+    ``sweep_gpu_tiles.py`` (None: nothing); returns them."""
+    knobs = json.loads(Path(path).read_text()) if path else {}
+    for k, v in knobs.items():
+        if not hasattr(gpu, k):
+            raise KeyError(f"{path}: torchgi.filters.gpu has no knob {k}")
+        setattr(gpu, k, v)
+    return knobs
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
@@ -147,8 +159,11 @@ def main() -> None:
     ap.add_argument("--no-fused", action="store_true", help="skip torch.compile'd À-Trous")
     ap.add_argument("--compiled", action="store_true",
                     help="also time whole-filter torch.compile variants at 1080p (static shapes; CUDA graphs on CUDA)")
+    ap.add_argument("--knobs", default=None,
+                    help="a knobs.json of sweep_gpu_tiles.py: tile settings of the Triton kernels to time with")
     args = ap.parse_args()
     device = torch.device(args.device)
+    knobs = apply_knobs(args.knobs)
     rows: list[dict] = []
 
     def timed(name: str, fn, **fields) -> None:
@@ -198,12 +213,14 @@ def main() -> None:
               paper_ms=PAPER["importance", window])
     meta = metadata(torch.get_num_threads())
     meta["device"] = torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu"
+    meta["knobs"] = {k: getattr(gpu, k) for k in knobs}
     out = Path(args.out)
     stem = f"device_{device.type}"
     write_results(rows, meta, out, stem)
     md = markdown_table(rows, ["what", "size", "param", "median_ms", "iqr_ms", "gpu_busy_ms", "kernels_per_call",
                                "syncs_per_call", "paper_ms", "max_abs_diff_to_torch"])
-    (out / f"{stem}.md").write_text(f"{meta['device']}, torch {meta['torch']}, commit {meta['commit']}\n\n{md}\n")
+    (out / f"{stem}.md").write_text(f"{meta['device']}, torch {meta['torch']}, commit {meta['commit']}, "
+                                    f"tiles {meta['knobs'] or 'default'}\n\n{md}\n")
     print(md)
 
 

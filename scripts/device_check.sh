@@ -1,18 +1,33 @@
 #!/usr/bin/env bash
-# The prepared GPU check, one call on a lent CUDA machine (the device tool's `run`); about 8 min.
+# The prepared GPU check on a lent CUDA machine (the device tool's `run`), in two parts that fit
+# separate calls: `tune` (about 2 min) and `check` (about 3 min); no argument runs both.
 #
-#   bash scripts/device_check.sh            # writes test / benchmark / sweep output under $OUT
+#   bash scripts/device_check.sh tune     # the tile sweep -> $OUT/knobs.json, a profile with those tiles
+#   bash scripts/device_check.sh check    # CUDA tests, profile and bench_device with the defaults
 #
-# 1. the CUDA tests of the Triton kernels against the float64 oracles (the interpreter and the
-#    offline compile checks already ran on the CPU: skipped here), 2. bench_device (kernels vs
-#    torch code, GPU busy time, kernels and host syncs per call), 3. the tile sweep.
+# tune: sweep_gpu_tiles.py (each setting's call time, GPU busy time and difference to the torch
+#   code; the fastest to knobs.json), then where the time of a 1080p call goes with them.
+# check: the CUDA tests of the Triton kernels and of the importance map / allocation against the
+#   float64 oracles (the interpreter and the offline compile checks already ran on the CPU:
+#   skipped here), where the time of a 1080p call goes (host, Python, kernels), and
+#   bench_device (kernels vs torch code, GPU busy time, kernels and host syncs per call).
 set -u
 OUT=${OUT:-out/device}
 mkdir -p "$OUT"
 export PYTHONPATH=$PWD
+part=${1:-all}
 nvidia-smi --query-gpu=name,driver_version --format=csv,noheader | tee "$OUT/gpu.txt"
 python -c "import torch, triton; print('torch', torch.__version__, 'triton', triton.__version__)" | tee -a "$OUT/gpu.txt"
-timeout 300 python -m pytest -q -x tests/test_gpu.py --device cuda -k "not interpreter and not spills" 2>&1 \
-    | tail -25 | tee "$OUT/test_gpu.txt"
-timeout 150 python scripts/bench_device.py --device cuda --no-fused --min-time 0.3 --out "$OUT" 2>&1 | tail -30
-timeout 120 python scripts/sweep_gpu_tiles.py 2>&1 | tee "$OUT/sweep.txt"
+if [ "$part" != check ]; then
+    timeout 100 python scripts/sweep_gpu_tiles.py --out "$OUT" > "$OUT/sweep.txt" 2>&1
+    grep "^  \|fastest\|failed" "$OUT/sweep.txt"
+    knobs=$OUT/knobs.json; [ -f "$knobs" ] || knobs=
+    timeout 30 python scripts/profile_gpu_call.py ${knobs:+--knobs "$knobs"} > "$OUT/profile_tuned.txt" 2>&1
+    grep "^==" "$OUT/profile_tuned.txt"
+fi
+if [ "$part" != tune ]; then
+    timeout 60 python -m pytest -q tests/test_gpu.py tests/test_sampling.py --device cuda \
+        -k "not interpreter and not spills and (gpu or importance_matches or hamilton)" 2>&1 | tail -25 | tee "$OUT/test_gpu.txt"
+    timeout 30 python scripts/profile_gpu_call.py > "$OUT/profile.txt" 2>&1; grep "^==" "$OUT/profile.txt"
+    timeout 90 python scripts/bench_device.py --device cuda --no-fused --min-time 0.3 --out "$OUT" 2>&1 | tail -22
+fi

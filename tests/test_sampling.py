@@ -43,16 +43,17 @@ def importance_oracle(n, x, hit, window, sn, sx):
 
 @pytest.mark.parametrize("window", [2, 3, 4, 7, 10])
 @pytest.mark.parametrize("W", [11, 45])  # 45: the compiled kernel's vector blocks run as well as its edges
-def test_importance_matches_oracle(window, W):
+def test_importance_matches_oracle(window, W, device):
     n, x, hit = geometry(H=7, W=W, seed=window)
     want = importance_oracle(n, x, hit, window, 0.2, 0.5)
     everywhere = importance_oracle(n, x, torch.ones_like(hit), window, 0.2, 0.5)
+    n, x, hit_d = n.to(device), x.to(device), hit.to(device)
     for kernel in (True, False):  # the compiled CPU kernel (where it builds) and the torch code
         with contextlib.nullcontext() if kernel else native.disabled():
-            got = importance_map(n, x, window=window, sigma_normal=0.2, sigma_position=0.5, hit=hit)
+            got = importance_map(n, x, window=window, sigma_normal=0.2, sigma_position=0.5, hit=hit_d).cpu()
             np.testing.assert_allclose(got.double().numpy(), want, atol=2e-6)
             assert (got[~hit] == 0).all()
-            got = importance_map(n, x, window=window, sigma_normal=0.2, sigma_position=0.5)
+            got = importance_map(n, x, window=window, sigma_normal=0.2, sigma_position=0.5).cpu()
             np.testing.assert_allclose(got.double().numpy(), everywhere, atol=2e-6)
 
 
@@ -94,7 +95,7 @@ def hamilton_oracle(q: np.ndarray, eligible: np.ndarray, budget: int, min_sample
 
 
 @pytest.mark.parametrize("qtype", [torch.float32, torch.float64])
-def test_allocation_matches_hamilton_oracle(qtype):
+def test_allocation_matches_hamilton_oracle(qtype, device):
     """Eighths sum exactly in any order, so both code paths and the oracle see the same shares;
     many pixels share a value, so the remainders tie in long runs."""
     g = torch.Generator().manual_seed(7)
@@ -102,12 +103,15 @@ def test_allocation_matches_hamilton_oracle(qtype):
     q[1] = 0.0
     mask = torch.rand(3, 1, 61, 89, generator=g) > 0.25
     mask[2] = True
-    for budget, min_samples in ((3 * 61 * 89 + 7, 1), (10 * 61 * 89 - 1, 2), (61 * 89, 0)):
+    cases = [(3 * 61 * 89 + 7, 1, mask), (10 * 61 * 89 - 1, 2, mask), (61 * 89, 0, mask), (2 * 61 * 89 + 5, 1, None)]
+    for budget, min_samples, m in cases:
         for kernel in (True, False):  # the compiled CPU kernel (where it builds) and the torch code
             with contextlib.nullcontext() if kernel else native.disabled():
-                counts = allocate(q, budget, min_samples=min_samples, mask=mask)
+                counts = allocate(q.to(device), budget, min_samples=min_samples,
+                                  mask=None if m is None else m.to(device)).cpu()
             for b in range(3):
-                want = hamilton_oracle(q[b].flatten().double().numpy(), mask[b].flatten().numpy(), budget, min_samples)
+                eligible = np.ones(61 * 89, dtype=bool) if m is None else m[b].flatten().numpy()
+                want = hamilton_oracle(q[b].flatten().double().numpy(), eligible, budget, min_samples)
                 np.testing.assert_array_equal(counts[b].flatten().numpy(), want)
 
 

@@ -43,9 +43,10 @@ __all__ = ["ATrous", "atrous"]
 _TAPS = kernel_5x5()
 
 
-def _per_batch(value: float | torch.Tensor | None, name: str, B: int, like: torch.Tensor) -> torch.Tensor | None:
-    """A float or ``(B,)`` tensor parameter as ``(B, 1, 1, 1)`` in ``like``'s dtype/device.
-    A float is checked on the host and filled in on the device (no synchronisation)."""
+def _inverse(value: float | torch.Tensor | None, name: str, B: int, like: torch.Tensor, power: int = 1) -> torch.Tensor | None:
+    """``value^-power`` of a float or ``(B,)`` tensor parameter as ``(B, 1, 1, 1)`` in ``like``'s
+    dtype/device. A float is checked and inverted on the host and filled in on the device (one
+    launch, no synchronisation)."""
     if value is None:
         return None
     if isinstance(value, torch.Tensor):
@@ -57,10 +58,10 @@ def _per_batch(value: float | torch.Tensor | None, name: str, B: int, like: torc
         if not is_recording() and bool((~torch.isfinite(t) | (t <= 0)).any()):
             raise RangeError(f"{name}: expected finite values > 0 (a float or a ({B},) tensor), got "
                              f"{t.flatten().tolist()[:4]}")
-        return t.reshape(-1, 1, 1, 1).expand(B, 1, 1, 1)
+        return t.pow(-power).reshape(-1, 1, 1, 1).expand(B, 1, 1, 1)
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < math.inf:
         raise RangeError(f"{name}: expected finite values > 0 (a float or a ({B},) tensor), got {value!r}")
-    return torch.full((B, 1, 1, 1), float(value), dtype=like.dtype, device=like.device)
+    return torch.full((B, 1, 1, 1), float(value) ** -power, dtype=like.dtype, device=like.device)
 
 
 def _blur3(v: torch.Tensor) -> torch.Tensor:
@@ -229,8 +230,6 @@ def atrous(
     c, n, x, var = (None if t is None else t.to(ct) for t in finite_or_sanitized_all(named, sanitize))
     if var is not None:
         check_range(var, "variance", 0.0)
-    if x is not None:
-        x = x - x.mean(dim=(2, 3), keepdim=True)  # offsets cancel in differences; keep them small
     if var is not None and var.shape[1] == 1 and c.shape[1] > 1:
         var = var.expand(-1, c.shape[1], -1, -1)
 
@@ -245,32 +244,33 @@ def atrous(
         fill = int(math.log2(subsample))
 
     if var is not None:
-        sc = _per_batch(4.0 if sigma_color is None else sigma_color, "sigma_color", B, c)
-        inv_c = 1.0 / (sc * sc)
+        inv_c = _inverse(4.0 if sigma_color is None else sigma_color, "sigma_color", B, c, power=2)
+    elif sigma_color is None:
+        peak = c.detach().flatten(1).amax(1).clamp_min(torch.finfo(ct).tiny)
+        inv_c = 1.0 / peak.reshape(B, 1, 1, 1)
     else:
-        if sigma_color is None:
-            peak = c.detach().flatten(1).amax(1).clamp_min(torch.finfo(ct).tiny)
-            sc = peak.reshape(B, 1, 1, 1)
-        else:
-            sc = _per_batch(sigma_color, "sigma_color", B, c)
-        inv_c = 1.0 / sc
-    inv_n = 1.0 / _per_batch(sigma_normal, "sigma_normal", B, c) if n is not None and sigma_normal is not None else None
-    inv_x = (
-        1.0 / _per_batch(sigma_position, "sigma_position", B, c) if x is not None and sigma_position is not None else None
-    )
+        inv_c = _inverse(sigma_color, "sigma_color", B, c)
+    inv_n = _inverse(sigma_normal, "sigma_normal", B, c) if n is not None else None
+    inv_x = _inverse(sigma_position, "sigma_position", B, c) if x is not None else None
 
     details = []
     total_in = c.sum(dim=(2, 3), keepdim=True) if energy else None
     level = _compiled_iteration() if fused else _iteration
-    # w_n · w_x = exp(-|f(p) - f(q)|²) with f = (n / (s·√σ_n), x / √σ_x): the guides divided
-    # by √σ here, normals also by the step s of each level
-    guides = ([(n, inv_n.sqrt(), True)] if inv_n is not None else []) + \
-        ([(x, inv_x.sqrt(), False)] if inv_x is not None else [])
     # a whole level in one kernel: compiled C on the CPU, Triton on CUDA; else the torch code
     kernel = native if native.applies(c, n, x, var, inv_c, inv_n, inv_x) else \
         gpu if gpu.applies(c, n, x, var, inv_c, inv_n, inv_x) and c.shape[1] <= gpu.MAX_CHANNELS else None
-    if kernel is not None and guides:  # built once: the kernel scales the normals' distances by 1 / s²
-        feat = kernel.empty_planes(c, 3 * len(guides))
+    if kernel is gpu:  # raw guides and the images' inverse σ's: the kernel scales the distances
+        inv = torch.stack([torch.ones(B, dtype=ct, device=c.device) if t is None else t.reshape(B)
+                           for t in (inv_c, inv_n, inv_x)], 1)
+        n, x = (n if inv_n is not None else None), (x if inv_x is not None else None)
+    elif x is not None:
+        x = x - x.mean(dim=(2, 3), keepdim=True)  # offsets cancel in differences; keep them small
+    # w_n · w_x = exp(-|f(p) - f(q)|²) with f = (n / (s·√σ_n), x / √σ_x): the guides divided
+    # by √σ here, normals also by the step s of each level
+    guides = [] if kernel is gpu else (([(n, inv_n.sqrt(), True)] if inv_n is not None else []) +
+        ([(x, inv_x.sqrt(), False)] if inv_x is not None else []))
+    if kernel is native and guides:  # built once: the kernel scales the normals' distances by 1 / s²
+        feat = native.empty_planes(c, 3 * len(guides))
         for k, (g, s, _) in enumerate(guides):
             torch.mul(g, s, out=feat[:, 3 * k : 3 * k + 3])
     for i in range(iterations):
@@ -278,8 +278,13 @@ def atrous(
         scale = None
         if color_weight and i >= fill:
             # variance-guided: 1 / (σ² · blurred per-pixel variance summed over channels)
-            scale = inv_c * (2.0**i) if var is None else inv_c / (_blur3(var).sum(1, keepdim=True) + 1e-12)
-        if kernel is not None:
+            if var is not None:
+                scale = inv_c / (_blur3(var).sum(1, keepdim=True) + 1e-12)
+            else:  # the Triton kernel takes the factor and multiplies σ_rt's inverse itself
+                scale = 2.0**i if kernel is gpu else inv_c * (2.0**i)
+        if kernel is gpu:
+            c_next, var, den = gpu.atrous_level(c, n, x, inv, var, valid, step, scale)
+        elif kernel is not None:
             c_next, var, den = kernel.atrous_level(
                 c, feat if guides else None, [1.0 / step**2 if per_step else 1.0 for _, _, per_step in guides], var,
                 valid, step, scale)

@@ -40,7 +40,7 @@ try:  # shipped with CUDA builds of torch
 except ImportError:  # pragma: no cover - CPU-only installs
     triton = None
 
-__all__ = ["applies", "atrous_level", "box", "empty_planes", "guided"]
+__all__ = ["applies", "atrous_level", "box", "guided"]
 
 _INTERPRET = os.environ.get("TRITON_INTERPRET") == "1"
 # pixels of a tile (rows x columns, coalesced along the row) and warps per program: on an H200 at
@@ -53,6 +53,11 @@ _BH, _BW, _WARPS = 4, 64, 4
 _UNROLL = 1
 MAX_CHANNELS = 4  # colour channels the kernel takes
 _taps: dict[torch.device, torch.Tensor] = {}
+
+
+def _cdiv(a: int, b: int) -> int:
+    """``ceil(a / b)`` for grid sizes (``triton.cdiv`` goes through Triton's JIT wrapper: 3.5 µs a call here)."""
+    return -(-a // b)
 
 
 def applies(*tensors: torch.Tensor | None) -> bool:
@@ -92,38 +97,41 @@ if triton is not None:
         return u * u
 
     @triton.jit
-    def _level(c_ptr, f_ptr, var_ptr, valid_ptr, cs_ptr, taps_ptr, out_ptr, vout_ptr, den_ptr,
-               H, W, step, fs0, fs1, s_b, s_c, s_h, f_b, f_c, f_h, v_b, v_c, v_h, a_b, a_h, k_b, k_h,
-               o_b, o_c, o_h, d_b, d_h,
-               C: tl.constexpr, F: tl.constexpr, CS: tl.constexpr, V: tl.constexpr, VALID: tl.constexpr,
-               BH: tl.constexpr, BW: tl.constexpr, UNROLL: tl.constexpr):
-        # Channels are separate 2-D tiles (c0..c3, f0..f5) under compile-time guards: a channel
-        # axis in one 3-D tile is spread over threads and every tap's sum over it goes through
-        # shared memory (measured: 9.4 ms for 5 levels at 1080p on an H200).
-        b = tl.program_id(2)
+    def _level(c_ptr, n_ptr, x_ptr, var_ptr, valid_ptr, cs_ptr, inv_ptr, taps_ptr, out_ptr, vout_ptr, den_ptr,
+               H, W, step, cmul, v_b, v_c, a_b,
+               C: tl.constexpr, N: tl.constexpr, X: tl.constexpr, CS: tl.constexpr, V: tl.constexpr,
+               VALID: tl.constexpr, BH: tl.constexpr, BW: tl.constexpr, UNROLL: tl.constexpr):
+        # Channels are separate 2-D tiles (c0..c3, normal, position) under compile-time guards: a
+        # channel axis in one 3-D tile is spread over threads and every tap's sum over it goes
+        # through shared memory (measured: 9.4 ms for 5 levels at 1080p on an H200). Planes are
+        # contiguous (B, C, H, W) except the variance (channel stride v_c: 0 when expanded) and
+        # the valid mask (batch stride a_b). The guides enter raw: differences of nearby float32
+        # values are exact, then scaled by the image's inverse σ (normals also by 1 / step²).
+        b = tl.program_id(2).to(tl.int64)
+        hw = H * W
         y = (tl.program_id(1) * BH + tl.arange(0, BH))[:, None]
         x = (tl.program_id(0) * BW + tl.arange(0, BW))[None, :]
         inside = (y < H) & (x < W)
-        pc = c_ptr + b * s_b + y * s_h + x
-        c0, c1, c2, c3 = _channels(pc, s_c, inside, C)
-        if F > 0:
-            pf = f_ptr + b * f_b + y * f_h + x
-            f0 = tl.load(pf, mask=inside, other=0.0)
-            f1 = tl.load(pf + f_c, mask=inside, other=0.0)
-            f2 = tl.load(pf + 2 * f_c, mask=inside, other=0.0)
-        if F > 3:
-            f3 = tl.load(pf + 3 * f_c, mask=inside, other=0.0)
-            f4 = tl.load(pf + 4 * f_c, mask=inside, other=0.0)
-            f5 = tl.load(pf + 5 * f_c, mask=inside, other=0.0)
+        pix = y * W + x
+        pc = c_ptr + b * C * hw + pix
+        c0, c1, c2, c3 = _channels(pc, hw, inside, C)
+        if N:
+            pn = n_ptr + b * 3 * hw + pix
+            n0, n1, n2, _ = _channels(pn, hw, inside, 3)
+            sn = tl.load(inv_ptr + 3 * b + 1) / (step * step)
+        if X:
+            px = x_ptr + b * 3 * hw + pix
+            x0, x1, x2, _ = _channels(px, hw, inside, 3)
+            sx = tl.load(inv_ptr + 3 * b + 2)
         if CS == 1:
-            cs = tl.load(cs_ptr + b)
+            cs = tl.load(inv_ptr + 3 * b) * cmul
         if CS == 2:
-            cs = tl.load(cs_ptr + b * k_b + y * k_h + x, mask=inside, other=0.0)
+            cs = tl.load(cs_ptr + b * hw + pix, mask=inside, other=0.0)
         zero = tl.zeros([BH, BW], dtype=tl.float32)
-        n0 = zero
-        n1 = zero
-        n2 = zero
-        n3 = zero
+        n_0 = zero
+        n_1 = zero
+        n_2 = zero
+        n_3 = zero
         v0 = zero
         v1 = zero
         v2 = zero
@@ -133,8 +141,8 @@ if triton is not None:
             oy = (t // 5 - 2) * step
             ox = (t % 5 - 2) * step
             ok = inside & (y + oy >= 0) & (y + oy < H) & (x + ox >= 0) & (x + ox < W)
-            qc = pc + oy * s_h + ox
-            q0, q1, q2, q3 = _channels(qc, s_c, ok, C)
+            off = oy * W + ox
+            q0, q1, q2, q3 = _channels(pc + off, hw, ok, C)
             d = zero
             if CS > 0:
                 dc = _sq(c0, q0)
@@ -145,30 +153,26 @@ if triton is not None:
                 if C > 3:
                     dc += _sq(c3, q3)
                 d = dc * cs
-            if F > 0:
-                qf = pf + oy * f_h + ox
-                dn = _sq(f0, tl.load(qf, mask=ok, other=0.0)) + _sq(f1, tl.load(qf + f_c, mask=ok, other=0.0)) \
-                    + _sq(f2, tl.load(qf + 2 * f_c, mask=ok, other=0.0))
-                d += dn * fs0
-            if F > 3:
-                dx = _sq(f3, tl.load(qf + 3 * f_c, mask=ok, other=0.0)) \
-                    + _sq(f4, tl.load(qf + 4 * f_c, mask=ok, other=0.0)) \
-                    + _sq(f5, tl.load(qf + 5 * f_c, mask=ok, other=0.0))
-                d += dx * fs1
+            if N:
+                m0, m1, m2, _ = _channels(pn + off, hw, ok, 3)
+                d += (_sq(n0, m0) + _sq(n1, m1) + _sq(n2, m2)) * sn
+            if X:
+                m0, m1, m2, _ = _channels(px + off, hw, ok, 3)
+                d += (_sq(x0, m0) + _sq(x1, m1) + _sq(x2, m2)) * sx
             w = tl.load(taps_ptr + t) * tl.exp(-d)
             if VALID:
-                w *= tl.load(valid_ptr + b * a_b + (y + oy) * a_h + x + ox, mask=ok, other=0.0)
+                w *= tl.load(valid_ptr + b * a_b + pix + off, mask=ok, other=0.0)
             w = tl.where(ok, w, 0.0)
             den += w
-            n0 += w * q0
+            n_0 += w * q0
             if C > 1:
-                n1 += w * q1
+                n_1 += w * q1
             if C > 2:
-                n2 += w * q2
+                n_2 += w * q2
             if C > 3:
-                n3 += w * q3
+                n_3 += w * q3
             if V:
-                u0, u1, u2, u3 = _channels(var_ptr + b * v_b + (y + oy) * v_h + x + ox, v_c, ok, C)
+                u0, u1, u2, u3 = _channels(var_ptr + b * v_b + pix + off, v_c, ok, C)
                 w2 = w * w
                 v0 += w2 * u0
                 if C > 1:
@@ -179,91 +183,77 @@ if triton is not None:
                     v3 += w2 * u3
         has = den > 0
         safe = tl.where(has, den, 1.0)
-        po = out_ptr + b * o_b + y * o_h + x
-        tl.store(po, tl.where(has, n0 / safe, c0), mask=inside)
+        po = out_ptr + b * C * hw + pix
+        tl.store(po, tl.where(has, n_0 / safe, c0), mask=inside)
         if C > 1:
-            tl.store(po + o_c, tl.where(has, n1 / safe, c1), mask=inside)
+            tl.store(po + hw, tl.where(has, n_1 / safe, c1), mask=inside)
         if C > 2:
-            tl.store(po + 2 * o_c, tl.where(has, n2 / safe, c2), mask=inside)
+            tl.store(po + 2 * hw, tl.where(has, n_2 / safe, c2), mask=inside)
         if C > 3:
-            tl.store(po + 3 * o_c, tl.where(has, n3 / safe, c3), mask=inside)
+            tl.store(po + 3 * hw, tl.where(has, n_3 / safe, c3), mask=inside)
         if V:
-            p0, p1, p2, p3 = _channels(var_ptr + b * v_b + y * v_h + x, v_c, inside, C)
-            pvo = vout_ptr + b * o_b + y * o_h + x
+            p0, p1, p2, p3 = _channels(var_ptr + b * v_b + pix, v_c, inside, C)
             s2 = safe * safe
+            pvo = vout_ptr + b * C * hw + pix
             tl.store(pvo, tl.where(has, v0 / s2, p0), mask=inside)
             if C > 1:
-                tl.store(pvo + o_c, tl.where(has, v1 / s2, p1), mask=inside)
+                tl.store(pvo + hw, tl.where(has, v1 / s2, p1), mask=inside)
             if C > 2:
-                tl.store(pvo + 2 * o_c, tl.where(has, v2 / s2, p2), mask=inside)
+                tl.store(pvo + 2 * hw, tl.where(has, v2 / s2, p2), mask=inside)
             if C > 3:
-                tl.store(pvo + 3 * o_c, tl.where(has, v3 / s2, p3), mask=inside)
-        tl.store(den_ptr + b * d_b + y * d_h + x, den, mask=inside)
-
-
-def empty_planes(like: torch.Tensor, C: int) -> torch.Tensor:
-    """A ``(B, C, H, W)`` float32 buffer on ``like``'s device (the feature planes
-    :func:`atrous_level` reads).
-
-    Example:
-        >>> empty_planes(torch.zeros(2, 3, 4, 5), 6).shape
-        torch.Size([2, 6, 4, 5])
-    """
-    B, _, H, W = like.shape
-    return torch.empty(B, C, H, W, dtype=torch.float32, device=like.device)
-
-
-def _rows(t: torch.Tensor) -> torch.Tensor:
-    """``t`` with unit stride along x (a copy otherwise)."""
-    return t if t.stride(-1) == 1 else t.contiguous()
+                tl.store(pvo + 3 * hw, tl.where(has, v3 / s2, p3), mask=inside)
+        tl.store(den_ptr + b * hw + pix, den, mask=inside)
 
 
 def atrous_level(
-    c: torch.Tensor, feat: torch.Tensor | None, feat_scale: list[float], var: torch.Tensor | None,
-    valid: torch.Tensor | None, step: int, colour_scale: torch.Tensor | None,
+    c: torch.Tensor, normal: torch.Tensor | None, position: torch.Tensor | None, inv: torch.Tensor,
+    var: torch.Tensor | None, valid: torch.Tensor | None, step: int, colour: float | torch.Tensor | None,
 ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
-    """One À-Trous level with the arguments of :func:`torchgi.filters.native.atrous_level`
-    (``feat``: groups of 3 planes, at most 2, whose squared distances are multiplied by
-    ``feat_scale``; ``c`` up to 4 channels). Returns the colour ``(B,C,H,W)``, the propagated
-    variance and the weight sum ``(B,1,H,W)``.
+    """One À-Trous level of :func:`torchgi.filters.atrous` on raw guides: ``c (B,C,H,W)``, up to
+    4 channels; ``normal`` / ``position`` ``(B,3,H,W)`` or None (no such weight); ``inv (B,3)``
+    the images' inverse σ's of colour, normal and position (normal distances are also divided
+    by ``step²`` here); ``var`` ``(B,C or 1,H,W)`` or None; ``valid (B or 1,1,H,W)`` sources or
+    None; ``colour`` the colour weight's scale: None (no colour weight), a float (times
+    ``inv[:, 0]``) or a ``(B,1,H,W)`` plane (variance-guided). Returns the colour
+    ``(B,C,H,W)``, the propagated variance and the weight sum ``(B,1,H,W)``.
 
     Example (CUDA; :func:`torchgi.filters.atrous` calls it once per level):
-        >>> c = torch.rand(1, 3, 32, 32, device="cuda")            # doctest: +SKIP
-        >>> out, var, den = atrous_level(c, None, [], None, None, 1, None)  # doctest: +SKIP
-        >>> out.shape, var is None, den.shape                         # doctest: +SKIP
+        >>> c = torch.rand(1, 3, 32, 32, device="cuda")                              # doctest: +SKIP
+        >>> inv = torch.ones(1, 3, device="cuda")                                   # doctest: +SKIP
+        >>> out, var, den = atrous_level(c, None, None, inv, None, None, 1, 1.0)   # doctest: +SKIP
+        >>> out.shape, var is None, den.shape                                       # doctest: +SKIP
         (torch.Size([1, 3, 32, 32]), True, torch.Size([1, 1, 32, 32]))
     """
     B, C, H, W = c.shape
-    F = 0 if feat is None else feat.shape[1]
-    if C > MAX_CHANNELS or F not in (0, 3, 6) or len(feat_scale) != F // 3:
-        raise ValueError(f"atrous_level: expected <= 4 colour channels and 0, 3 or 6 feature planes with a scale "
-                         f"per 3; got C={C}, F={F}, {feat_scale}")
+    if C > MAX_CHANNELS or inv.shape != (B, 3):
+        raise ValueError(f"atrous_level: expected <= {MAX_CHANNELS} colour channels and inv of shape ({B}, 3); "
+                         f"got C={C}, inv {tuple(inv.shape)}")
     if c.device not in _taps:
         _taps[c.device] = torch.tensor([h for _, _, h in kernel_5x5()], dtype=torch.float32, device=c.device)
-    c = _rows(c)
-    feat = None if feat is None else _rows(feat)
-    var = None if var is None else _rows(var.expand(B, C, H, W))
-    valid = None if valid is None else _rows(valid.to(torch.float32).expand(B, 1, H, W))
-    plane = colour_scale is not None and colour_scale.shape[-2:] == (H, W)
-    cs = None if colour_scale is None else _rows(colour_scale.expand(B, 1, H, W)) if plane else \
-        colour_scale.reshape(B).contiguous()
+    c = c.contiguous()
+    normal = None if normal is None else normal.contiguous()
+    position = None if position is None else position.contiguous()
+    if var is not None:  # one plane for every channel stays one plane (channel stride 0)
+        var = var.contiguous() if var.shape[1] == C or var.stride(1) != 0 else var[:, :1].contiguous()
+    if valid is not None:
+        valid = valid.to(torch.float32)
+        valid = valid.contiguous() if valid.shape[0] == B else valid.reshape(1, 1, H, W).contiguous()
+    plane = isinstance(colour, torch.Tensor)
+    cs = colour.expand(B, 1, H, W).contiguous() if plane else None
     out = torch.empty(B, C, H, W, dtype=torch.float32, device=c.device)
     vout = None if var is None else torch.empty_like(out)
     den = torch.empty(B, 1, H, W, dtype=torch.float32, device=c.device)
     dummy = out  # pointer for absent inputs (never read: their flags are off)
-    fs = list(feat_scale) + [1.0] * (2 - len(feat_scale))
-    f_s = feat.stride() if feat is not None else (0, 0, 0, 1)
-    v_s = var.stride() if var is not None else (0, 0, 0, 1)
-    a_s = valid.stride() if valid is not None else (0, 0, 0, 1)
-    k_s = cs.stride() if plane else (0, 0, 0, 1)
-    grid = (triton.cdiv(W, _BW), triton.cdiv(H, _BH), B)
+    grid = (_cdiv(W, _BW), _cdiv(H, _BH), B)
     _level[grid](
-        c, dummy if feat is None else feat, dummy if var is None else var, dummy if valid is None else valid,
-        dummy if cs is None else cs, _taps[c.device], out, dummy if vout is None else vout, den,
-        H, W, step, fs[0], fs[1], *c.stride()[:3], *f_s[:3], *v_s[:3], a_s[0], a_s[2], k_s[0], k_s[2],
-        *out.stride()[:3], den.stride(0), den.stride(2),
-        C=C, F=F, CS=0 if cs is None else 2 if plane else 1, V=var is not None, VALID=valid is not None, BH=_BH, BW=_BW,
-        UNROLL=_UNROLL, num_warps=_WARPS,
+        c, dummy if normal is None else normal, dummy if position is None else position, dummy if var is None else var,
+        dummy if valid is None else valid, dummy if cs is None else cs, inv.contiguous(), _taps[c.device], out,
+        dummy if vout is None else vout, den,
+        H, W, step, colour if isinstance(colour, float) else 1.0,
+        0 if var is None else var.stride(0), 0 if var is None or var.shape[1] == 1 else H * W,
+        0 if valid is None or valid.shape[0] == 1 else H * W,
+        C=C, N=normal is not None, X=position is not None, CS=0 if colour is None else 2 if plane else 1,
+        V=var is not None, VALID=valid is not None, BH=_BH, BW=_BW, UNROLL=_UNROLL, num_warps=_WARPS,
     )
     return out, vout, den
 
@@ -271,6 +261,7 @@ def atrous_level(
 # guided filter: pixels per program of the column pass (columns) / row pass (rows x columns) /
 # solve and apply; rows per program of the column pass (each starts with a full window)
 _COL_BW, _COL_ROWS = 128, 64
+_COL_UNROLL, _COL_WARPS = 1, 4  # rows per loop step of the column pass, its warps per program
 _ROW_BH, _ROW_BW = 4, 128
 _PIX = 256
 
@@ -282,35 +273,57 @@ if triton is not None:
         return i % n, i // n
 
     @triton.jit
-    def _column_sums(x_ptr, tab_ptr, s_ptr, K, H, W, r, n_x, n_y, sx_b, sx_c, ss_b, ss_k, ROWS, BW: tl.constexpr):
-        # s[b, k] = Σ over the rows y-r..y+r of x[b, tab[k, 0]] · x[b, tab[k, 1]] (1 for -1):
-        # a window slid down ROWS rows from a full sum at the chunk's first row, in double
+    def _source(g_ptr, p_ptr, mg_ptr, mp_ptr, b, i, NG, NP, sg_b, sp_b, HW, CENTRE: tl.constexpr):
+        # plane i of the stack [g (NG planes), p (NP planes)] and the mean it is centred by
+        in_g = i < NG
+        j = tl.where(in_g, i, i - NG)
+        base = tl.where(in_g, g_ptr + b * sg_b, p_ptr + b * sp_b) + j * HW
+        mu = 0.0
+        if CENTRE:
+            mu = tl.load(tl.where(in_g, mg_ptr + b * NG, mp_ptr + b * NP) + j)
+        return base, mu
+
+    @triton.jit
+    def _product(pa, pb, ma, mb, two, mask):
+        # (a - ma)·(b - mb) (b - mb = 1 where there is no second factor), 0 where masked, in double
+        u = tl.load(pa, mask=mask, other=0.0) - ma
+        v = tl.load(pb, mask=mask & two, other=0.0) - mb
+        return tl.where(mask, u * tl.where(two, v, 1.0), 0.0).to(tl.float64)
+
+    @triton.jit
+    def _column_sums(g_ptr, p_ptr, mg_ptr, mp_ptr, tab_ptr, s_ptr, K, H, W, r, n_x, n_y, NG, NP, sg_b, sp_b, ROWS,
+                     CENTRE: tl.constexpr, BW: tl.constexpr, UNROLL: tl.constexpr):
+        # s[b, k] = Σ over the rows y-r..y+r of x[tab[k, 0]] · x[tab[k, 1]] (1 for -1), x the
+        # stack [g, p] of planes centred by their means (CENTRE): a window slid down ROWS rows
+        # from a full sum at the chunk's first row, in double. Rows are loaded UNROLL at a time
+        # (a program is a chain of row steps: its loads' latency is what it waits on).
         k, t = _split(tl.program_id(0), K)
         xb, t = _split(t, n_x)
         yb, b = _split(t, n_y)
         y0 = yb * ROWS
         b = b.to(tl.int64)
+        HW = H * W
         ia = tl.load(tab_ptr + 2 * k)
         ib = tl.load(tab_ptr + 2 * k + 1)
         x = xb * BW + tl.arange(0, BW)
         m = x < W
         two = x * 0 + ib >= 0  # a second factor
-        pa = x_ptr + b * sx_b + ia * sx_c + x
-        pb = x_ptr + b * sx_b + tl.maximum(ib, 0) * sx_c + x
+        pa, ma = _source(g_ptr, p_ptr, mg_ptr, mp_ptr, b, ia, NG, NP, sg_b, sp_b, HW, CENTRE)
+        pb, mb = _source(g_ptr, p_ptr, mg_ptr, mp_ptr, b, tl.maximum(ib, 0), NG, NP, sg_b, sp_b, HW, CENTRE)
+        pa += x
+        pb += x
         acc = tl.zeros([BW], dtype=tl.float64)
-        for yy in range(tl.maximum(y0 - r, 0), tl.minimum(y0 + r + 1, H)):
-            u = tl.load(pa + yy * W, mask=m, other=0.0) * tl.load(pb + yy * W, mask=m & two, other=1.0)
-            acc += u.to(tl.float64)
-        ps = s_ptr + b * ss_b + k * ss_k + x
+        for yy in tl.range(tl.maximum(y0 - r, 0), tl.minimum(y0 + r + 1, H), loop_unroll_factor=UNROLL):
+            acc += _product(pa + yy * W, pb + yy * W, ma, mb, two, m)
+        ps = s_ptr + (b * K + k) * HW + x
         tl.store(ps + y0 * W, acc.to(tl.float32), mask=m)
-        for y in range(y0 + 1, tl.minimum(y0 + ROWS, H)):
+        for y in tl.range(y0 + 1, tl.minimum(y0 + ROWS, H), loop_unroll_factor=UNROLL):
             yi = y + r
             yo = y - r - 1
             mi = m & (x * 0 + yi < H)  # (masks built from tensors: the interpreter's loop counters are ints)
             mo = m & (x * 0 + yo >= 0)
-            u = tl.load(pa + yi * W, mask=mi, other=0.0) * tl.load(pb + yi * W, mask=mi & two, other=1.0)
-            v = tl.load(pa + yo * W, mask=mo, other=0.0) * tl.load(pb + yo * W, mask=mo & two, other=1.0)
-            acc += u.to(tl.float64) - v.to(tl.float64)
+            acc += _product(pa + yi * W, pb + yi * W, ma, mb, two, mi) - _product(pa + yo * W, pb + yo * W, ma, mb,
+                                                                                  two, mo)
             tl.store(ps + y * W, acc.to(tl.float32), mask=m)
 
     @triton.jit
@@ -420,9 +433,9 @@ if triton is not None:
         tl.store(pa + (N * Cs + g) * HW, mp - q0 * mi0 - q1 * mi1 - q2 * mi2 - q3 * mi3, mask=m)
 
     @triton.jit
-    def _apply(ma_ptr, x_ptr, off_ptr, out_ptr, HW, Cs, n_blk, sma_b, sx_b, so_b, N: tl.constexpr,
+    def _apply(ma_ptr, g_ptr, mg_ptr, off_ptr, out_ptr, HW, Cs, n_blk, sma_b, sg_b, so_b, N: tl.constexpr,
                BLOCK: tl.constexpr):
-        # out = mean(b) + offset + Σ_i mean(a_i) I_i (centred guide)
+        # out = mean(b) + offset + Σ_i mean(a_i) (I_i - mean(I_i)) (the guide centred)
         blk, t = _split(tl.program_id(0), n_blk)
         g, b = _split(t, Cs)
         b = b.to(tl.int64)
@@ -431,7 +444,7 @@ if triton is not None:
         pa = ma_ptr + b * sma_b + i
         acc = _plane(pa, N * Cs + g, HW, m) + tl.load(off_ptr + b * Cs + g)
         for c in tl.static_range(N):
-            acc += _plane(pa, c * Cs + g, HW, m) * _plane(x_ptr + b * sx_b + i, c, HW, m)
+            acc += _plane(pa, c * Cs + g, HW, m) * (_plane(g_ptr + b * sg_b + i, c, HW, m) - tl.load(mg_ptr + b * N + c))
         tl.store(out_ptr + b * so_b + g * HW + i, acc, mask=m)
 
 
@@ -446,20 +459,26 @@ def _table(pairs: list[tuple[int, int]], device: torch.device) -> torch.Tensor:
     return _tables[key]
 
 
-def _box_products(x: torch.Tensor, pairs: list[tuple[int, int]], r: int) -> torch.Tensor:
+def _box_products(g: torch.Tensor, p: torch.Tensor | None, mean_g: torch.Tensor | None, mean_p: torch.Tensor | None,
+                  pairs: list[tuple[int, int]], r: int) -> torch.Tensor:
     """Box means ``(B, K, H, W)`` of the products ``x[:, i] · x[:, j]`` (``x[:, i]`` for
-    ``j = -1``) of a contiguous float32 ``x (B, C, H, W)``; windows of radius ``r`` shrink at
-    the borders (count-normalised). Sums in double."""
-    B, _, H, W = x.shape
+    ``j = -1``) of the stack ``x = [g, p]`` of contiguous float32 ``(B, ·, H, W)`` planes (``p``
+    None: ``g`` alone), each centred by its mean ``(B, ·)`` (None: not centred); windows of
+    radius ``r`` shrink at the borders (count-normalised). Sums in double."""
+    B, NG, H, W = g.shape
+    NP = 0 if p is None else p.shape[1]
     K = len(pairs)
-    sums = torch.empty(B, K, H, W, dtype=torch.float32, device=x.device)
+    sums = torch.empty(B, K, H, W, dtype=torch.float32, device=g.device)
     means = torch.empty_like(sums)
     if sums.numel() == 0:
         return means
-    n_x, n_y = triton.cdiv(W, _COL_BW), triton.cdiv(H, _COL_ROWS)
-    _column_sums[(K * n_x * n_y * B,)](x, _table(pairs, x.device), sums, K, H, W, r, n_x, n_y, x.stride(0),
-                                       x.stride(1), sums.stride(0), sums.stride(1), _COL_ROWS, BW=_COL_BW)
-    n_x, n_y = triton.cdiv(W, _ROW_BW), triton.cdiv(H, _ROW_BH)
+    centre = mean_g is not None
+    p = g if p is None else p
+    n_x, n_y = _cdiv(W, _COL_BW), _cdiv(H, _COL_ROWS)
+    _column_sums[(K * n_x * n_y * B,)](g, p, mean_g if centre else g, mean_p if centre else g, _table(pairs, g.device),
+                                       sums, K, H, W, r, n_x, n_y, NG, NP, g.stride(0), p.stride(0), _COL_ROWS,
+                                       CENTRE=centre, BW=_COL_BW, UNROLL=_COL_UNROLL, num_warps=_COL_WARPS)
+    n_x, n_y = _cdiv(W, _ROW_BW), _cdiv(H, _ROW_BH)
     _row_means[(K * n_x * n_y * B,)](sums, means, K, H, W, r, n_x, n_y, sums.stride(0), sums.stride(1),
                                      BH=_ROW_BH, BW=_ROW_BW)
     return means
@@ -477,7 +496,7 @@ def box(x: torch.Tensor, r: int) -> torch.Tensor:
         True
     """
     x = x.contiguous()
-    return _box_products(x, [(c, -1) for c in range(x.shape[1])], r)
+    return _box_products(x, None, None, None, [(c, -1) for c in range(x.shape[1])], r)
 
 
 def guided(
@@ -499,24 +518,25 @@ def guided(
     Cs = p.shape[1]
     if not 1 <= n <= 4:
         raise ValueError(f"guided: expected 1 to 4 guide channels, got {n}")
-    x = torch.cat([I - mean_I, p - mean_p], 1)  # centred guide and source, one contiguous stack
+    I, p = I.contiguous(), p.contiguous()
+    mean_I, mean_p = mean_I.reshape(B, n).to(torch.float32).contiguous(), mean_p.reshape(B, Cs).to(torch.float32).contiguous()
     pairs = [(i, -1) for i in range(n + Cs)] + [(i, j) for i in range(n) for j in range(i + 1)] + \
         [(i, n + c) for i in range(n) for c in range(Cs)]  # the order of guided._product_specs
-    means = _box_products(x, pairs, r)
+    means = _box_products(I, p, mean_I, mean_p, pairs, r)  # of the guide and source centred
     Q, HW = (n + 1) * Cs, H * W
     coef = torch.empty(B, Q, H, W, dtype=torch.float32, device=I.device)
-    n_blk = triton.cdiv(HW, _PIX)
+    n_blk = _cdiv(HW, _PIX)
     if coef.numel():
         e = eps.reshape(B, n).to(torch.float32).contiguous()
         _solve[(n_blk * Cs * B,)](means, e, coef, HW, Cs, n_blk, means.stride(0), coef.stride(0),
                                   16 * torch.finfo(torch.float32).eps, torch.finfo(torch.float32).tiny, N=n,
                                   BLOCK=_PIX)
-    coef = _box_products(coef, [(q, -1) for q in range(Q)], r)
+    coef = _box_products(coef, None, None, None, [(q, -1) for q in range(Q)], r)
     if coefficients_only:
         return coef.unflatten(1, (n + 1, Cs))
     out = torch.empty(B, Cs, H, W, dtype=torch.float32, device=I.device)
     if out.numel():
         off = offset.reshape(B, Cs).to(torch.float32).contiguous()
-        _apply[(n_blk * Cs * B,)](coef, x, off, out, HW, Cs, n_blk, coef.stride(0), x.stride(0), out.stride(0),
+        _apply[(n_blk * Cs * B,)](coef, I, mean_I, off, out, HW, Cs, n_blk, coef.stride(0), I.stride(0), out.stride(0),
                                   N=n, BLOCK=_PIX)
     return out

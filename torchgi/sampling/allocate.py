@@ -55,7 +55,7 @@ def allocate(
         if mask.dtype != torch.bool:
             raise DTypeError(f"mask: expected a bool tensor, got {mask.dtype}")
         eligible = mask.flatten(1)
-    n_eligible = eligible.sum(1) if eligible is not None else torch.full((B,), q.shape[1], dtype=torch.int64)
+    n_eligible = eligible.sum(1) if eligible is not None else torch.full((B,), q.shape[1], dtype=torch.int64, device=q.device)
     need = int(n_eligible.max()) * min_samples
     if budget < need:
         raise RangeError(
