@@ -148,11 +148,14 @@ def test_kernels_off_inside_disabled():
 def _variants():
     """Every Triton kernel with the compile-time arguments it is launched with (the À-Trous
     level: the common case and the one with every input)."""
-    level = dict(BH=gpu._BH, BW=gpu._BW, UNROLL=gpu._UNROLL)
+    level = dict(BH=gpu._BH, BW=gpu._BW)
     return [
-        (gpu._level, dict(C=3, N=True, X=True, CS=1, V=False, VALID=False, **level), gpu._WARPS),
-        (gpu._level, dict(C=4, N=True, X=True, CS=2, V=True, VALID=True, **level), gpu._WARPS),
-        (gpu._level, dict(C=1, N=False, X=False, CS=0, V=False, VALID=False, **level), gpu._WARPS),
+        (gpu._level, dict(C=C, N=True, X=True, CS=CS, V=V, VALID=VALID, UNROLL=gpu.unroll(C, V), **level), gpu._WARPS)
+        for C, CS, V, VALID in ((3, 1, False, False), (3, 1, False, True), (3, 2, True, False), (4, 1, False, True),
+                                (4, 2, True, True))
+    ] + [
+        (gpu._level, dict(C=1, N=False, X=False, CS=0, V=False, VALID=False, UNROLL=gpu.unroll(1, False), **level),
+         gpu._WARPS),
         (gpu._column_sums, dict(CENTRE=True, BW=gpu._COL_BW, UNROLL=gpu._COL_UNROLL), gpu._COL_WARPS),
         (gpu._column_sums, dict(CENTRE=False, BW=gpu._COL_BW, UNROLL=gpu._COL_UNROLL), gpu._COL_WARPS),
         (gpu._row_means, dict(BH=gpu._ROW_BH, BW=gpu._ROW_BW), 4),

@@ -10,7 +10,7 @@ from __future__ import annotations
 import importlib
 import math
 import warnings
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from types import ModuleType
 from typing import Any
 
@@ -39,8 +39,9 @@ __all__ = [
     "check_tensor",
     "finite_or_sanitized",
     "finite_or_sanitized_all",
-    "is_tracing",
+    "finite_or_sanitized_later",
     "is_recording",
+    "is_tracing",
     "require",
 ]
 
@@ -240,23 +241,66 @@ def finite_or_sanitized_all(named: Mapping[str, torch.Tensor | None], sanitize: 
         >>> n is None
         True
     """
+    if sanitize:
+        return _sanitized(named)
+    values, check = finite_or_sanitized_later(named, False)
+    check()
+    return values
+
+
+def finite_or_sanitized_later(
+    named: Mapping[str, torch.Tensor | None], sanitize: bool
+) -> tuple[list[torch.Tensor | None], Callable[[], None]]:
+    """:func:`finite_or_sanitized_all` with the NaN/Inf test split in two: the reductions are
+    launched now, the returned ``check()`` reads them back and raises :class:`NonFiniteError`.
+    A filter calls ``check()`` just before it returns, so on a GPU its kernels are queued
+    behind the reductions instead of waiting for the read back (the GPU idles while the host
+    waits). With ``sanitize`` the tensors come back sanitized and ``check`` does nothing.
+
+    Example:
+        >>> (c,), check = finite_or_sanitized_later({"color": torch.tensor([1.0, float("nan")])}, False)
+        >>> out = c * 2           # the filter's work
+        >>> check()
+        Traceback (most recent call last):
+        ...
+        torchgi.core.errors.NonFiniteError: color: expected finite values, found 1 NaN and 0 +-Inf of 2 elements (pass sanitize=True where offered to replace them)
+    """
     present = [(k, v) for k, v in named.items() if v is not None and v.is_floating_point() and v.numel()]
     if not sanitize:
-        if present and not is_recording():
-            # One reduction per tensor decides the common case: a sum is finite iff every term
-            # is, unless it overflows (|sum| > 3e38 in float32); only a non-finite sum leads to
-            # the exact count. The sums are read back together where they share a device.
-            totals = [v.sum(dtype=torch.float32) if v.dtype in (torch.float16, torch.bfloat16) else v.sum()
-                      for _, v in present]
-            if len({t.device for t in totals}) == 1:  # (tested on the host: one launch fewer)
-                common = totals[0].dtype if len({t.dtype for t in totals}) == 1 else torch.float64
-                finite = [math.isfinite(v) for v in torch.stack([t.to(common) for t in totals]).tolist()]
-            else:
-                finite = [bool(torch.isfinite(t)) for t in totals]
-            for (k, v), ok in zip(present, finite):
-                if not ok:
-                    _count_non_finite(v, k)
-        return list(named.values())
+        if not present or is_recording():
+            return list(named.values()), _nothing
+        # One reduction per tensor decides the common case: a sum is finite iff every term is,
+        # unless it overflows (|sum| > 3e38 in float32); only a non-finite sum leads to the
+        # exact count. The sums are read back together where they share a device, and tested
+        # on the host (one launch fewer).
+        totals = [v.sum(dtype=torch.float32) if v.dtype in (torch.float16, torch.bfloat16) else v.sum()
+                  for _, v in present]
+        if len({t.device for t in totals}) == 1:
+            common = totals[0].dtype if len({t.dtype for t in totals}) == 1 else torch.float64
+            stacked = torch.stack([t.to(common) for t in totals])
+
+            def check() -> None:
+                for (k, v), ok in zip(present, (math.isfinite(t) for t in stacked.tolist())):
+                    if not ok:
+                        _count_non_finite(v, k)
+        else:
+
+            def check() -> None:
+                for (k, v), t in zip(present, totals):
+                    if not bool(torch.isfinite(t)):
+                        _count_non_finite(v, k)
+
+        return list(named.values()), check
+    return _sanitized(named), _nothing
+
+
+def _nothing() -> None:
+    """The ``check`` with nothing left to check."""
+
+
+def _sanitized(named: Mapping[str, torch.Tensor | None]) -> list[torch.Tensor | None]:
+    """The named tensors with NaN/Inf replaced by 0 (a warning naming each tensor that had any,
+    pointing at the line that called the filter: user -> filter -> checker -> here)."""
     out = []
     for name, x in named.items():
         if x is not None and x.is_floating_point():
@@ -264,7 +308,7 @@ def finite_or_sanitized_all(named: Mapping[str, torch.Tensor | None], sanitize: 
             if is_recording():
                 x = torch.where(bad, torch.zeros((), dtype=x.dtype, device=x.device), x)
             elif bool(bad.any()):
-                warnings.warn(f"{name}: replaced {int(bad.sum())} non-finite values by 0 (sanitize=True)", stacklevel=3)
+                warnings.warn(f"{name}: replaced {int(bad.sum())} non-finite values by 0 (sanitize=True)", stacklevel=4)
                 x = torch.where(bad, torch.zeros((), dtype=x.dtype, device=x.device), x)
         out.append(x)
     return out

@@ -30,7 +30,7 @@ from torchgi.core.check import (
     check_same_device,
     check_same_floating,
     check_shape,
-    finite_or_sanitized_all,
+    finite_or_sanitized_later,
     is_recording,
 )
 from torchgi.core.errors import RangeError, ShapeError
@@ -227,7 +227,8 @@ def atrous(
         raise ValueError(f"subsample: expected a power of two >= 1, got {subsample!r}")
     ct = compute_dtype(color.dtype)
     B = color.shape[0]
-    c, n, x, var = (None if t is None else t.to(ct) for t in finite_or_sanitized_all(named, sanitize))
+    values, check_finite_inputs = finite_or_sanitized_later(named, sanitize)  # read back before returning
+    c, n, x, var = (None if t is None else t.to(ct) for t in values)
     if var is not None:
         check_range(var, "variance", 0.0)
     if var is not None and var.shape[1] == 1 and c.shape[1] > 1:
@@ -300,6 +301,7 @@ def atrous(
         total_out = c.sum(dim=(2, 3), keepdim=True)
         c = c * torch.where(total_out != 0, total_in / torch.where(total_out != 0, total_out, 1.0), 1.0)
     out = c.to(color.dtype).contiguous()
+    check_finite_inputs()
     if return_details:
         return out, [d.to(color.dtype) for d in details]
     return out

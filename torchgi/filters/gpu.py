@@ -43,14 +43,20 @@ except ImportError:  # pragma: no cover - CPU-only installs
 __all__ = ["applies", "atrous_level", "box", "guided"]
 
 _INTERPRET = os.environ.get("TRITON_INTERPRET") == "1"
-# pixels of a tile (rows x columns, coalesced along the row) and warps per program: on an H200 at
-# 1080p, 5 levels, with the 25 taps unrolled (scripts/sweep_gpu_tiles.py): 4x64 / 4 warps 2.35
-# ms, 8x64 / 8 warps 2.33, 8x32 / 4 warps 2.62, 16x32 and 8x64 with 4 warps 14 (register spills)
-_BH, _BW, _WARPS = 4, 64, 4
-# taps unrolled per loop step: the fully unrolled loop (25) compiles for sm_90 to 255 registers
-# and spills (2 blocks of 4 warps per SM); 1: 64 registers, no spills, 8 blocks (compiled
-# offline with ptxas, tests/test_gpu.py); 5: 154
-_UNROLL = 1
+# pixels of a tile (rows x columns, coalesced along the row), warps per program and taps per loop
+# step: GPU busy time of 5 levels at 1080p on an H200 (scripts/sweep_gpu_tiles.py, the kernels
+# alone): 2x128 / 4 warps / 2 taps 0.898 ms, 4x64 / 4 / 2 0.900, 2x64 / 2 / 2 0.901, 4x64 / 4 / 1
+# 0.909, 1x128 / 4 / 2 1.031, 1x256 / 8 / 2 1.093: the tile hardly matters. The fully unrolled
+# loop (25 taps) compiled for sm_90 to 255 registers and spilled; 2 taps: 72 registers (offline
+# ptxas, tests/test_gpu.py)
+_BH, _BW, _WARPS, _UNROLL = 2, 128, 4, 2
+
+
+def unroll(C: int, variance: bool) -> int:
+    """Taps per loop step of the À-Trous kernel for ``C`` colour channels: one with a variance
+    to propagate or 4 channels, where two took over 128 registers (offline ptxas for sm_90, 2x128
+    tiles: 4 channels 140, with the variance 176)."""
+    return 1 if variance or C > 3 else _UNROLL
 MAX_CHANNELS = 4  # colour channels the kernel takes
 _taps: dict[torch.device, torch.Tensor] = {}
 
@@ -253,16 +259,19 @@ def atrous_level(
         0 if var is None else var.stride(0), 0 if var is None or var.shape[1] == 1 else H * W,
         0 if valid is None or valid.shape[0] == 1 else H * W,
         C=C, N=normal is not None, X=position is not None, CS=0 if colour is None else 2 if plane else 1,
-        V=var is not None, VALID=valid is not None, BH=_BH, BW=_BW, UNROLL=_UNROLL, num_warps=_WARPS,
+        V=var is not None, VALID=valid is not None, BH=_BH, BW=_BW, UNROLL=unroll(C, var is not None), num_warps=_WARPS,
     )
     return out, vout, den
 
 
 # guided filter: pixels per program of the column pass (columns) / row pass (rows x columns) /
-# solve and apply; rows per program of the column pass (each starts with a full window)
-_COL_BW, _COL_ROWS = 128, 64
-_COL_UNROLL, _COL_WARPS = 1, 4  # rows per loop step of the column pass, its warps per program
-_ROW_BH, _ROW_BW = 4, 128
+# solve and apply; rows per program of the column pass (each starts with a full window), rows
+# per loop step and warps. A column-pass program is a chain of row steps that waits on its
+# loads: one warp with four rows in flight was the fastest; GPU busy time at 1080p, r = 32,
+# 4-channel guide on an H200 (scripts/sweep_gpu_tiles.py): 0.867 ms against 1.004 with 64 rows,
+# one row per step, 4 warps and 4-row row-pass tiles
+_COL_BW, _COL_ROWS, _COL_UNROLL, _COL_WARPS = 128, 128, 4, 1
+_ROW_BH, _ROW_BW = 8, 128
 _PIX = 256
 
 if triton is not None:
@@ -364,39 +373,33 @@ if triton is not None:
 
     @triton.jit
     def _solve(m_ptr, eps_ptr, a_ptr, HW, Cs, n_blk, sm_b, sa_b, unit, tiny, N: tl.constexpr, BLOCK: tl.constexpr):
-        # a = (Σ + diag(ε))^-1 cov, b = mean(p) - aᵀ mean(I) for source channel g: guided._solve
-        # written out for four guide channels; channels past N are 0 with ε = 1, so they give a = 0
-        blk, t = _split(tl.program_id(0), n_blk)
-        g, b = _split(t, Cs)
+        # a = (Σ + diag(ε))^-1 cov, b = mean(p) - aᵀ mean(I) for every source channel: guided._solve
+        # written out for four guide channels; channels past N are 0 with ε = 1, so they give a = 0.
+        # Σ is loaded and factorised once per pixel, then each source channel is solved with it.
+        blk, b = _split(tl.program_id(0), n_blk)
         b = b.to(tl.int64)
         i = blk * BLOCK + tl.arange(0, BLOCK)
         m = i < HW
         base = m_ptr + b * sm_b + i
         P = N * (N + 1) // 2
         zero = tl.zeros([BLOCK], dtype=tl.float32)
-        mp = _plane(base, N + g, HW, m)
         mi0 = _plane(base, 0, HW, m)
-        c0 = _plane(base, N + Cs + P + g, HW, m) - mi0 * mp
         e0, a00 = _pivot(_plane(base, N + Cs, HW, m), mi0, eps_ptr + b * N, unit, tiny)
         mi1, mi2, mi3 = zero, zero, zero
-        c1, c2, c3 = zero, zero, zero
         a10, a20, a21, a30, a31, a32 = zero, zero, zero, zero, zero, zero
         e1, e2, e3 = zero + 1.0, zero + 1.0, zero + 1.0
         a11, a22, a33 = e1, e2, e3
         if N > 1:
             mi1 = _plane(base, 1, HW, m)
-            c1 = _plane(base, N + Cs + P + Cs + g, HW, m) - mi1 * mp
             a10 = _plane(base, N + Cs + 1, HW, m) - mi1 * mi0
             e1, a11 = _pivot(_plane(base, N + Cs + 2, HW, m), mi1, eps_ptr + b * N + 1, unit, tiny)
         if N > 2:
             mi2 = _plane(base, 2, HW, m)
-            c2 = _plane(base, N + Cs + P + 2 * Cs + g, HW, m) - mi2 * mp
             a20 = _plane(base, N + Cs + 3, HW, m) - mi2 * mi0
             a21 = _plane(base, N + Cs + 4, HW, m) - mi2 * mi1
             e2, a22 = _pivot(_plane(base, N + Cs + 5, HW, m), mi2, eps_ptr + b * N + 2, unit, tiny)
         if N > 3:
             mi3 = _plane(base, 3, HW, m)
-            c3 = _plane(base, N + Cs + P + 3 * Cs + g, HW, m) - mi3 * mp
             a30 = _plane(base, N + Cs + 6, HW, m) - mi3 * mi0
             a31 = _plane(base, N + Cs + 7, HW, m) - mi3 * mi1
             a32 = _plane(base, N + Cs + 8, HW, m) - mi3 * mi2
@@ -415,37 +418,60 @@ if triton is not None:
         e32 = a32 - l30 * a20 - l31 * e21
         l32 = e32 / d2
         d3 = tl.maximum(a33 - l30 * a30 - l31 * e31 - l32 * e32, e3)
-        y1 = c1 - l10 * c0
-        y2 = c2 - l20 * c0 - l21 * y1
-        y3 = c3 - l30 * c0 - l31 * y1 - l32 * y2
-        q3 = y3 / d3
-        q2 = y2 / d2 - l32 * q3
-        q1 = y1 / d1 - l21 * q2 - l31 * q3
-        q0 = c0 / d0 - l10 * q1 - l20 * q2 - l30 * q3
         pa = a_ptr + b * sa_b + i
-        tl.store(pa + g * HW, q0, mask=m)
-        if N > 1:
-            tl.store(pa + (Cs + g) * HW, q1, mask=m)
-        if N > 2:
-            tl.store(pa + (2 * Cs + g) * HW, q2, mask=m)
-        if N > 3:
-            tl.store(pa + (3 * Cs + g) * HW, q3, mask=m)
-        tl.store(pa + (N * Cs + g) * HW, mp - q0 * mi0 - q1 * mi1 - q2 * mi2 - q3 * mi3, mask=m)
+        for g in range(Cs):
+            mp = _plane(base, N + g, HW, m)
+            c0 = _plane(base, N + Cs + P + g, HW, m) - mi0 * mp
+            c1, c2, c3 = zero, zero, zero
+            if N > 1:
+                c1 = _plane(base, N + Cs + P + Cs + g, HW, m) - mi1 * mp
+            if N > 2:
+                c2 = _plane(base, N + Cs + P + 2 * Cs + g, HW, m) - mi2 * mp
+            if N > 3:
+                c3 = _plane(base, N + Cs + P + 3 * Cs + g, HW, m) - mi3 * mp
+            y1 = c1 - l10 * c0
+            y2 = c2 - l20 * c0 - l21 * y1
+            y3 = c3 - l30 * c0 - l31 * y1 - l32 * y2
+            q3 = y3 / d3
+            q2 = y2 / d2 - l32 * q3
+            q1 = y1 / d1 - l21 * q2 - l31 * q3
+            q0 = c0 / d0 - l10 * q1 - l20 * q2 - l30 * q3
+            tl.store(pa + g * HW, q0, mask=m)
+            if N > 1:
+                tl.store(pa + (Cs + g) * HW, q1, mask=m)
+            if N > 2:
+                tl.store(pa + (2 * Cs + g) * HW, q2, mask=m)
+            if N > 3:
+                tl.store(pa + (3 * Cs + g) * HW, q3, mask=m)
+            tl.store(pa + (N * Cs + g) * HW, mp - q0 * mi0 - q1 * mi1 - q2 * mi2 - q3 * mi3, mask=m)
 
     @triton.jit
     def _apply(ma_ptr, g_ptr, mg_ptr, off_ptr, out_ptr, HW, Cs, n_blk, sma_b, sg_b, so_b, N: tl.constexpr,
                BLOCK: tl.constexpr):
-        # out = mean(b) + offset + Σ_i mean(a_i) (I_i - mean(I_i)) (the guide centred)
-        blk, t = _split(tl.program_id(0), n_blk)
-        g, b = _split(t, Cs)
+        # out = mean(b) + offset + Σ_i mean(a_i) (I_i - mean(I_i)) for every source channel (the
+        # centred guide loaded once)
+        blk, b = _split(tl.program_id(0), n_blk)
         b = b.to(tl.int64)
         i = blk * BLOCK + tl.arange(0, BLOCK)
         m = i < HW
         pa = ma_ptr + b * sma_b + i
-        acc = _plane(pa, N * Cs + g, HW, m) + tl.load(off_ptr + b * Cs + g)
-        for c in tl.static_range(N):
-            acc += _plane(pa, c * Cs + g, HW, m) * (_plane(g_ptr + b * sg_b + i, c, HW, m) - tl.load(mg_ptr + b * N + c))
-        tl.store(out_ptr + b * so_b + g * HW + i, acc, mask=m)
+        pg = g_ptr + b * sg_b + i
+        g0 = _plane(pg, 0, HW, m) - tl.load(mg_ptr + b * N)
+        if N > 1:
+            g1 = _plane(pg, 1, HW, m) - tl.load(mg_ptr + b * N + 1)
+        if N > 2:
+            g2 = _plane(pg, 2, HW, m) - tl.load(mg_ptr + b * N + 2)
+        if N > 3:
+            g3 = _plane(pg, 3, HW, m) - tl.load(mg_ptr + b * N + 3)
+        for c in range(Cs):
+            acc = _plane(pa, N * Cs + c, HW, m) + tl.load(off_ptr + b * Cs + c) + _plane(pa, c, HW, m) * g0
+            if N > 1:
+                acc += _plane(pa, Cs + c, HW, m) * g1
+            if N > 2:
+                acc += _plane(pa, 2 * Cs + c, HW, m) * g2
+            if N > 3:
+                acc += _plane(pa, 3 * Cs + c, HW, m) * g3
+            tl.store(out_ptr + b * so_b + c * HW + i, acc, mask=m)
 
 
 _tables: dict[tuple, torch.Tensor] = {}
@@ -528,7 +554,7 @@ def guided(
     n_blk = _cdiv(HW, _PIX)
     if coef.numel():
         e = eps.reshape(B, n).to(torch.float32).contiguous()
-        _solve[(n_blk * Cs * B,)](means, e, coef, HW, Cs, n_blk, means.stride(0), coef.stride(0),
+        _solve[(n_blk * B,)](means, e, coef, HW, Cs, n_blk, means.stride(0), coef.stride(0),
                                   16 * torch.finfo(torch.float32).eps, torch.finfo(torch.float32).tiny, N=n,
                                   BLOCK=_PIX)
     coef = _box_products(coef, None, None, None, [(q, -1) for q in range(Q)], r)
@@ -537,6 +563,6 @@ def guided(
     out = torch.empty(B, Cs, H, W, dtype=torch.float32, device=I.device)
     if out.numel():
         off = offset.reshape(B, Cs).to(torch.float32).contiguous()
-        _apply[(n_blk * Cs * B,)](coef, I, mean_I, off, out, HW, Cs, n_blk, coef.stride(0), I.stride(0), out.stride(0),
+        _apply[(n_blk * B,)](coef, I, mean_I, off, out, HW, Cs, n_blk, coef.stride(0), I.stride(0), out.stride(0),
                                   N=n, BLOCK=_PIX)
     return out

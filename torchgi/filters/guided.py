@@ -30,7 +30,7 @@ from torchgi.core.check import (
     check_same_device,
     check_same_floating,
     check_shape,
-    finite_or_sanitized_all,
+    finite_or_sanitized_later,
     is_recording,
 )
 from torchgi.core.errors import RangeError, ShapeError
@@ -273,7 +273,18 @@ def _guided(
         raise ShapeError(f"guide: expected 1 to 4 channels, got {n} (shape {tuple(guide.shape)})")
     check_int(radius, "radius")
     check_int(subsample, "subsample", 1)
-    src, guide = finite_or_sanitized_all({"src": src, "guide": guide}, sanitize)
+    (src, guide), check_finite_inputs = finite_or_sanitized_later({"src": src, "guide": guide}, sanitize)
+    out = _filtered(src, guide, radius, eps, _holder, subsample)
+    check_finite_inputs()  # read back here: on a GPU the kernels are queued by now
+    return out
+
+
+def _filtered(
+    src: torch.Tensor, guide: torch.Tensor, radius: int, eps: float | torch.Tensor, _holder: dict | None,
+    subsample: int,
+) -> torch.Tensor:
+    """:func:`_guided` after the argument checks."""
+    n = guide.shape[1]
     ct = compute_dtype(src.dtype)
     B, Cs, H, W = src.shape
     if src.numel() == 0:
