@@ -57,7 +57,7 @@ def compiled_variants(timed, device: torch.device) -> None:
     H, W = SIZES["1080p"]
     color, normal, position = inputs(H, W, device)
     guide = torch.cat([normal, position[:, :1]], 1).contiguous()
-    eps = _check_eps(0.01, 1, 4, guide)
+    eps, _ = _check_eps(0.01, 1, 4, guide, guide.dtype)
 
     def guided_graph(src: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
         mg, mp = g.mean((2, 3), keepdim=True), src.mean((2, 3), keepdim=True)

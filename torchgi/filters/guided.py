@@ -19,6 +19,8 @@ the rounding level of the variance so flat guides and ``eps=0`` stay finite and 
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -45,21 +47,30 @@ def _pairs(n: int) -> list[tuple[int, int]]:
     return [(i, j) for i in range(n) for j in range(i + 1)]
 
 
-def _check_eps(eps: float | torch.Tensor, B: int, n: int, like: torch.Tensor) -> torch.Tensor:
-    """ε as a ``(B, n, 1, 1)`` tensor of the compute dtype on ``like``'s device."""
+def _check_eps(
+    eps: float | torch.Tensor, B: int, n: int, guide: torch.Tensor, dtype: torch.dtype
+) -> tuple[torch.Tensor, Callable[[], None]]:
+    """ε as a ``(B, n, 1, 1)`` tensor of ``dtype`` on ``guide``'s device, and the check of a tensor ε's
+    values (finite, >= 0) to call just before the filter returns: its read back then waits for
+    nothing the GPU has not done anyway. A float is checked here."""
     if isinstance(eps, torch.Tensor):
-        check_same_device({"eps": eps, "guide": like})
+        check_same_device({"eps": eps, "guide": guide})
         check_floating(eps, "eps")
         if eps.shape not in ((), (n,), (B, n)):
             raise ShapeError(f"eps: expected a float, shape ({n},) or ({B}, {n}); got {tuple(eps.shape)}")
-        if not is_recording() and bool((~torch.isfinite(eps) | (eps < 0)).any()):  # one read back, not two
-            raise RangeError(f"eps: expected finite values >= 0, got {eps.flatten().tolist()[:8]}")
-        e = eps.to(like.dtype)
-    else:
-        if not isinstance(eps, (int, float)) or isinstance(eps, bool) or not eps >= 0 or eps == float("inf"):
-            raise RangeError(f"eps: expected a finite float >= 0, got {eps!r}")
-        e = torch.full((), float(eps), dtype=like.dtype, device=like.device)
-    return e.expand(B, n).reshape(B, n, 1, 1)
+        e = eps.to(dtype)
+        if is_recording():
+            return e.expand(B, n).reshape(B, n, 1, 1), lambda: None
+        bad = (~torch.isfinite(eps) | (eps < 0)).any()  # one read back, later
+
+        def check() -> None:
+            if bool(bad):
+                raise RangeError(f"eps: expected finite values >= 0, got {eps.flatten().tolist()[:8]}")
+
+        return e.expand(B, n).reshape(B, n, 1, 1), check
+    if not isinstance(eps, (int, float)) or isinstance(eps, bool) or not eps >= 0 or eps == float("inf"):
+        raise RangeError(f"eps: expected a finite float >= 0, got {eps!r}")
+    return torch.full((), float(eps), dtype=dtype, device=guide.device).expand(B, n).reshape(B, n, 1, 1), lambda: None
 
 
 def _solve(
@@ -274,16 +285,17 @@ def _guided(
     check_int(radius, "radius")
     check_int(subsample, "subsample", 1)
     (src, guide), check_finite_inputs = finite_or_sanitized_later({"src": src, "guide": guide}, sanitize)
-    out = _filtered(src, guide, radius, eps, _holder, subsample)
-    check_finite_inputs()  # read back here: on a GPU the kernels are queued by now
+    e, check_eps = _check_eps(eps, src.shape[0], n, guide, compute_dtype(src.dtype))
+    out = _filtered(src, guide, radius, e, _holder, subsample)
+    check_finite_inputs()  # the values read back here: on a GPU the kernels are queued by now
+    check_eps()
     return out
 
 
 def _filtered(
-    src: torch.Tensor, guide: torch.Tensor, radius: int, eps: float | torch.Tensor, _holder: dict | None,
-    subsample: int,
+    src: torch.Tensor, guide: torch.Tensor, radius: int, e: torch.Tensor, _holder: dict | None, subsample: int,
 ) -> torch.Tensor:
-    """:func:`_guided` after the argument checks."""
+    """:func:`_guided` after the argument checks (``e``: ε ``(B, n, 1, 1)`` in the compute dtype)."""
     n = guide.shape[1]
     ct = compute_dtype(src.dtype)
     B, Cs, H, W = src.shape
@@ -291,7 +303,6 @@ def _filtered(
         return src.clone()
     g, p = guide.to(ct), src.to(ct)
     mean_g, mean_p = g.mean(dim=(2, 3), keepdim=True), p.mean(dim=(2, 3), keepdim=True)
-    e = _check_eps(eps, B, n, g)
     fast = use_fast_path(src, guide, e)
     if subsample == 1 and native.applies(g, p, e):
         return native.guided(g, p, mean_g, mean_p, mean_p, radius, e, holder=_holder).to(src.dtype)
