@@ -150,11 +150,11 @@ def _variants():
     level: the common case and the one with every input)."""
     level = dict(BH=gpu._BH, BW=gpu._BW)
     return [
-        (gpu._level, dict(C=C, N=True, X=True, CS=CS, V=V, VALID=VALID, UNROLL=gpu.unroll(C, V), **level), gpu._WARPS)
+        (gpu._level, dict(C=C, N=True, X=True, CS=CS, V=V, VALID=VALID, UNROLL=gpu._unroll(C, V), **level), gpu._WARPS)
         for C, CS, V, VALID in ((3, 1, False, False), (3, 1, False, True), (3, 2, True, False), (4, 1, False, True),
                                 (4, 2, True, True))
     ] + [
-        (gpu._level, dict(C=1, N=False, X=False, CS=0, V=False, VALID=False, UNROLL=gpu.unroll(1, False), **level),
+        (gpu._level, dict(C=1, N=False, X=False, CS=0, V=False, VALID=False, UNROLL=gpu._unroll(1, False), **level),
          gpu._WARPS),
         (gpu._column_sums, dict(CENTRE=True, BW=gpu._COL_BW, UNROLL=gpu._COL_UNROLL), gpu._COL_WARPS),
         (gpu._column_sums, dict(CENTRE=False, BW=gpu._COL_BW, UNROLL=gpu._COL_UNROLL), gpu._COL_WARPS),

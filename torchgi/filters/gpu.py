@@ -52,7 +52,7 @@ _INTERPRET = os.environ.get("TRITON_INTERPRET") == "1"
 _BH, _BW, _WARPS, _UNROLL = 2, 128, 4, 2
 
 
-def unroll(C: int, variance: bool) -> int:
+def _unroll(C: int, variance: bool) -> int:
     """Taps per loop step of the À-Trous kernel for ``C`` colour channels: one with a variance
     to propagate or 4 channels, where two took over 128 registers (offline ptxas for sm_90, 2x128
     tiles: 4 channels 140, with the variance 176)."""
@@ -259,7 +259,7 @@ def atrous_level(
         0 if var is None else var.stride(0), 0 if var is None or var.shape[1] == 1 else H * W,
         0 if valid is None or valid.shape[0] == 1 else H * W,
         C=C, N=normal is not None, X=position is not None, CS=0 if colour is None else 2 if plane else 1,
-        V=var is not None, VALID=valid is not None, BH=_BH, BW=_BW, UNROLL=unroll(C, var is not None), num_warps=_WARPS,
+        V=var is not None, VALID=valid is not None, BH=_BH, BW=_BW, UNROLL=_unroll(C, var is not None), num_warps=_WARPS,
     )
     return out, vout, den
 
