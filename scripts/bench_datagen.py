@@ -20,9 +20,9 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from benchmark_utils import markdown_table, metadata, write_results  # noqa: E402
+from benchmark_utils import markdown_table, metadata, write_results
 
-from torchgi.data import config_from_dict, load_config, plan, run_job, task_scene  # noqa: E402
+from torchgi.data import config_from_dict, load_config, plan, run_job, task_scene
 
 DEFAULT = {"scenes": ["cornell", "sky", "grass"], "resolution": [128, 128], "views": 2, "spp": [1, 2, 4, 8],
            "reference_spp": 256, "bounces": 2, "seeds": [0]}

@@ -35,13 +35,13 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
-from benchmark_utils import SIZES, markdown_table, metadata, time_ms, write_results  # noqa: E402
+from benchmark_utils import SIZES, markdown_table, metadata, time_ms, write_results
 
-from torchgi.filters import Guided, atrous, guided, native  # noqa: E402
+from torchgi.filters import Guided, atrous, guided, native
 
 
 def make_inputs(H: int, W: int, n: int, seed: int = 0, offset: float = 0.0):
-    from oracles import scene  # noqa: PLC0415
+    from oracles import scene
 
     p, I = scene(1, H, W, n, seed=seed)
     return p.contiguous(), (I + offset).contiguous()
@@ -89,7 +89,7 @@ def accuracy(args, rows: list[dict]) -> None:
     """Max error relative to the output range against the float64 oracle and NaN count, for the
     compiled kernels and the torch code; for the latter also the number of negative variances
     before the clamp (from the module's kept workspace)."""
-    from oracles import guided_oracle  # noqa: PLC0415
+    from oracles import guided_oracle
 
     H, W = (540, 960) if args.quick else SIZES["1080p"]
     for offset in (0.0, 1e3, 1e4):

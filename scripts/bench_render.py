@@ -25,12 +25,12 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from benchmark_utils import markdown_table, metadata, write_results  # noqa: E402
+from benchmark_utils import markdown_table, metadata, write_results
 
-import torchgi  # noqa: E402
-from torchgi.render import scenes  # noqa: E402
-from torchgi.render.engine import SKIPS  # noqa: E402
-from torchgi.render.mitsuba import load_mitsuba, to_mitsuba  # noqa: E402
+import torchgi
+from torchgi.render import scenes
+from torchgi.render.engine import SKIPS
+from torchgi.render.mitsuba import load_mitsuba, to_mitsuba
 
 
 def seconds(fn) -> float:

@@ -25,7 +25,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from benchmark_utils import (  # noqa: E402
+from benchmark_utils import (
     SIZES,
     available_scenes,
     load_scene,
@@ -35,11 +35,12 @@ from benchmark_utils import (  # noqa: E402
     write_results,
 )
 
-import torchgi  # noqa: E402
-from torchgi import metrics  # noqa: E402
-from torchgi.filters import atrous, guide_from_gbuffer, guided, native  # noqa: E402
-from torchgi.render import render_guides  # noqa: E402
-from torchgi.sampling import adaptive_render, allocate, importance_map, pixel_footprint  # noqa: E402
+import torchgi
+from torchgi import metrics
+from torchgi.filters import atrous, guide_from_gbuffer, guided, native
+from torchgi.render import render_guides
+from torchgi.sampling import adaptive_render, allocate, importance_map, pixel_footprint
+
 
 def filtered_indirect(gb, method: str, sigma_x: float) -> torch.Tensor:
     albedo = gb.albedo.clamp_min(1e-3)

@@ -31,7 +31,7 @@ def test_public_names(module):
     mod = importlib.import_module(module)
     for name in PUBLIC[module]:
         assert hasattr(mod, name), f"{module}.{name} disappeared"
-    exported = getattr(mod, "__all__")
+    exported = mod.__all__
     assert set(PUBLIC[module]) <= set(exported) | {"__version__"}
     for name in exported:
         assert hasattr(mod, name), f"{module}.__all__ lists {name} but it does not exist"

@@ -16,8 +16,8 @@ import torch
 pytest.importorskip("embreex", reason="the render extra is not installed")
 pytest.importorskip("OpenEXR", reason="the exr extra is not installed")
 
-from torchgi.core import ConfigError  # noqa: E402
-from torchgi.data import FilterFeatures, ShardDataset, config_from_dict, load_config, run_job  # noqa: E402
+from torchgi.core import ConfigError
+from torchgi.data import FilterFeatures, ShardDataset, config_from_dict, load_config, run_job
 
 TINY = Path(__file__).resolve().parents[1] / "configs" / "data_gen" / "tiny.yaml"
 # Slow enough (about 1 s per task on 2 cores) to be killed in the middle.

@@ -12,4 +12,4 @@ from torchgi.render import load_scene, scenes
 
 __version__ = "0.1.0"
 
-__all__ = ["GBuffer", "Denoiser", "render", "load_scene", "scenes", "__version__"]
+__all__ = ["Denoiser", "GBuffer", "__version__", "load_scene", "render", "scenes"]

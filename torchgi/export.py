@@ -14,7 +14,7 @@ from torch import nn
 
 from torchgi.core.check import check_shape, require
 
-__all__ = ["export_onnx", "OrtSession", "export_denoiser", "OrtDenoiser"]
+__all__ = ["OrtDenoiser", "OrtSession", "export_denoiser", "export_onnx"]
 
 
 def export_onnx(

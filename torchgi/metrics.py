@@ -21,7 +21,7 @@ from torchgi.core.check import (
 )
 from torchgi.core.errors import ShapeError
 
-__all__ = ["mse", "relmse", "psnr", "ssim", "flip", "tonemap"]
+__all__ = ["flip", "mse", "psnr", "relmse", "ssim", "tonemap"]
 
 _REDUCTIONS = ("mean", "none")
 

@@ -8,17 +8,17 @@ catch all of torchgi's at once.
 from __future__ import annotations
 
 __all__ = [
-    "TorchGIError",
-    "ShapeError",
-    "DeviceError",
-    "DTypeError",
-    "NonFiniteError",
-    "RangeError",
-    "OptionError",
-    "LayerError",
-    "ExrError",
     "ConfigError",
+    "DTypeError",
+    "DeviceError",
+    "ExrError",
     "ExtraNotInstalledError",
+    "LayerError",
+    "NonFiniteError",
+    "OptionError",
+    "RangeError",
+    "ShapeError",
+    "TorchGIError",
 ]
 
 

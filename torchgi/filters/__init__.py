@@ -5,4 +5,4 @@ from torchgi.filters.bilateral import CrossBilateral, cross_bilateral
 from torchgi.filters.box import Box, box
 from torchgi.filters.guided import Guided, guide_from_gbuffer, guided
 
-__all__ = ["atrous", "ATrous", "cross_bilateral", "CrossBilateral", "box", "Box", "guided", "Guided", "guide_from_gbuffer"]
+__all__ = ["ATrous", "Box", "CrossBilateral", "Guided", "atrous", "box", "cross_bilateral", "guide_from_gbuffer", "guided"]

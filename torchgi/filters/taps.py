@@ -12,7 +12,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-__all__ = ["B3_SPLINE", "kernel_5x5", "Padded"]
+__all__ = ["B3_SPLINE", "Padded", "kernel_5x5"]
 
 # B3-spline generating kernel of the À-Trous transform (Dammertz et al. 2010, eq. 3).
 B3_SPLINE = (1 / 16, 1 / 4, 3 / 8, 1 / 4, 1 / 16)

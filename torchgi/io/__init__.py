@@ -3,4 +3,4 @@
 from torchgi.io.exr import AOV_ALIASES, find_aovs, read_aovs, read_exr, write_exr
 from torchgi.io.png import to_srgb8, write_png
 
-__all__ = ["read_exr", "write_exr", "read_aovs", "find_aovs", "AOV_ALIASES", "write_png", "to_srgb8"]
+__all__ = ["AOV_ALIASES", "find_aovs", "read_aovs", "read_exr", "to_srgb8", "write_exr", "write_png"]

@@ -23,7 +23,7 @@ import torch
 from torchgi.core.check import check_option, require
 from torchgi.core.errors import DTypeError, ExrError, LayerError, ShapeError
 
-__all__ = ["read_exr", "write_exr", "read_aovs", "find_aovs", "AOV_ALIASES", "AOV_CHANNELS"]
+__all__ = ["AOV_ALIASES", "AOV_CHANNELS", "find_aovs", "read_aovs", "read_exr", "write_exr"]
 
 _MAGIC = b"\x76\x2f\x31\x01"
 

@@ -12,7 +12,7 @@ import torch
 
 from torchgi.core.check import check_finite, check_shape
 
-__all__ = ["write_png", "to_srgb8"]
+__all__ = ["to_srgb8", "write_png"]
 
 
 def to_srgb8(image: torch.Tensor, *, exposure: float = 1.0) -> np.ndarray:

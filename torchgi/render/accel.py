@@ -13,7 +13,7 @@ import torch
 
 from torchgi.core.check import require
 
-__all__ = ["Accel", "offset", "embree_started"]
+__all__ = ["Accel", "embree_started", "offset"]
 
 _EMBREE_STARTED = False
 

@@ -9,7 +9,7 @@ import torch
 
 from torchgi.render.scene import Camera
 
-__all__ = ["camera_rays", "camera_frame"]
+__all__ = ["camera_frame", "camera_rays"]
 
 
 def camera_frame(camera: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float]:

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["Film", "BLOCK"]
+__all__ = ["BLOCK", "Film"]
 
 BLOCK = 1024
 

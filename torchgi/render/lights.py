@@ -15,8 +15,16 @@ from torchgi.render.materials import cosine_hemisphere, to_world
 from torchgi.render.scene import GLOSSY, SceneArrays
 
 __all__ = [
-    "Tables", "sample_area_light", "sample_sky",
-    "NORMAL", "ALBEDO", "EMISSION", "ALPHA", "GLOSSY_ROW", "LIGHT_PDF", "EMITTER_ROWS",
+    "ALBEDO",
+    "ALPHA",
+    "EMISSION",
+    "EMITTER_ROWS",
+    "GLOSSY_ROW",
+    "LIGHT_PDF",
+    "NORMAL",
+    "Tables",
+    "sample_area_light",
+    "sample_sky",
 ]
 
 

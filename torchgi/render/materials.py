@@ -15,7 +15,7 @@ import math
 
 import torch
 
-__all__ = ["dot", "frame", "to_world", "cosine_hemisphere", "ggx_d", "ggx_g1", "bsdf_eval", "bsdf_sample"]
+__all__ = ["bsdf_eval", "bsdf_sample", "cosine_hemisphere", "dot", "frame", "ggx_d", "ggx_g1", "to_world"]
 
 
 def dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

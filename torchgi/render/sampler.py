@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["sample_keys", "uniform", "mix32"]
+__all__ = ["mix32", "sample_keys", "uniform"]
 
 _MUL = 0x45D9F3B
 

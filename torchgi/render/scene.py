@@ -25,15 +25,15 @@ from torchgi.core.errors import ConfigError, NonFiniteError, RangeError
 from torchgi.core.registry import Registry
 
 __all__ = [
+    "LIGHTS",
+    "MATERIALS",
     "Camera",
     "Material",
     "Mesh",
     "PointLight",
-    "Sky",
     "Scene",
     "SceneArrays",
-    "MATERIALS",
-    "LIGHTS",
+    "Sky",
     "load_scene",
     "transform_matrix",
 ]

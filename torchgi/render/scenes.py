@@ -17,7 +17,7 @@ import numpy as np
 
 from torchgi.render.scene import MATERIALS, Camera, Mesh, PointLight, Scene, Sky, transform_matrix
 
-__all__ = ["cornell", "cornell_glossy", "sky", "grass", "BUILTINS"]
+__all__ = ["BUILTINS", "cornell", "cornell_glossy", "grass", "sky"]
 
 # Cornell Box Data (http://www.graphics.cornell.edu/online/box/data.html), mm, as quads.
 _CORNELL = {

@@ -7,6 +7,13 @@ from torchgi.sampling.batches import SampleBatch, accumulate, sample_batches
 from torchgi.sampling.importance import importance_map
 
 __all__ = [
-    "importance_map", "allocate", "exclusive_scan", "sample_batches", "SampleBatch", "accumulate",
-    "adaptive_counts", "adaptive_render", "pixel_footprint",
+    "SampleBatch",
+    "accumulate",
+    "adaptive_counts",
+    "adaptive_render",
+    "allocate",
+    "exclusive_scan",
+    "importance_map",
+    "pixel_footprint",
+    "sample_batches",
 ]

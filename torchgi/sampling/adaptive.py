@@ -29,7 +29,7 @@ from torchgi.sampling.importance import importance_map
 if TYPE_CHECKING:  # the renderer imports its scene types lazily (embree is an extra)
     from torchgi.render.scene import Scene
 
-__all__ = ["pixel_footprint", "adaptive_counts", "adaptive_render"]
+__all__ = ["adaptive_counts", "adaptive_render", "pixel_footprint"]
 
 
 def pixel_footprint(position: torch.Tensor, hit: torch.Tensor) -> float:

@@ -16,7 +16,7 @@ from torchgi.core.check import check_int, check_shape
 from torchgi.core.errors import DTypeError, ShapeError
 from torchgi.sampling.allocate import exclusive_scan
 
-__all__ = ["SampleBatch", "sample_batches", "accumulate"]
+__all__ = ["SampleBatch", "accumulate", "sample_batches"]
 
 
 class SampleBatch(NamedTuple):
