@@ -298,7 +298,7 @@ def _filtered(
     """:func:`_guided` after the argument checks (``e``: ε ``(B, n, 1, 1)`` in the compute dtype)."""
     n = guide.shape[1]
     ct = compute_dtype(src.dtype)
-    B, Cs, H, W = src.shape
+    Cs, H, W = src.shape[1:]
     if src.numel() == 0:
         return src.clone()
     g, p = guide.to(ct), src.to(ct)
