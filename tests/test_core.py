@@ -17,6 +17,7 @@ from torchgi.core import (
     check_same_device,
     check_shape,
     finite_or_sanitized_all,
+    finite_or_sanitized_later,
     require,
 )
 
@@ -71,6 +72,23 @@ def test_finite_or_sanitized_all_names_the_bad_tensor():
     with pytest.warns(UserWarning, match="normal: replaced 2 non-finite values by 0"):
         c, n = finite_or_sanitized_all({"color": ok, "normal": bad}, True)
     assert c is ok and torch.equal(n, torch.tensor([[1.0, 0.0], [0.0, 0.0]]))
+
+
+def test_finite_or_sanitized_later_raises_only_when_checked():
+    """The reductions are launched at once, the read back and the error wait for ``check()``
+    (what a filter calls just before it returns)."""
+    ok = torch.ones(2, 3)
+    bad = torch.tensor([[1.0, float("inf")], [float("nan"), 0.0]])
+    (c, n, x), check = finite_or_sanitized_later({"color": ok, "normal": bad, "position": None}, False)
+    assert c is ok and n is bad and x is None  # nothing raised, nothing copied yet
+    with pytest.raises(NonFiniteError, match="normal: expected finite values, found 1 NaN and 1 "):
+        check()
+    (a,), check = finite_or_sanitized_later({"big": torch.full((2,), 3e38)}, False)
+    check()  # an overflowing sum of finite terms: no error
+    with pytest.warns(UserWarning, match="normal: replaced 2 non-finite values by 0"):
+        (c, n), check = finite_or_sanitized_later({"color": ok, "normal": bad}, True)
+    check()  # sanitized: nothing left to check
+    assert torch.equal(n, torch.tensor([[1.0, 0.0], [0.0, 0.0]]))
 
 
 def test_check_range_and_option():
