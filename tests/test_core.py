@@ -1,3 +1,5 @@
+import sys
+
 import pytest
 import torch
 
@@ -20,6 +22,7 @@ from torchgi.core import (
     finite_or_sanitized_later,
     require,
 )
+from torchgi.filters import guided
 
 
 def test_check_shape_binds_and_reuses_sizes():
@@ -83,12 +86,24 @@ def test_finite_or_sanitized_later_raises_only_when_checked():
     assert c is ok and n is bad and x is None  # nothing raised, nothing copied yet
     with pytest.raises(NonFiniteError, match="normal: expected finite values, found 1 NaN and 1 "):
         check()
-    (a,), check = finite_or_sanitized_later({"big": torch.full((2,), 3e38)}, False)
+    _, check = finite_or_sanitized_later({"big": torch.full((2,), 3e38)}, False)
     check()  # an overflowing sum of finite terms: no error
-    with pytest.warns(UserWarning, match="normal: replaced 2 non-finite values by 0"):
+    with pytest.warns(UserWarning, match="normal: replaced 2 non-finite values by 0") as record:
         (c, n), check = finite_or_sanitized_later({"color": ok, "normal": bad}, True)
     check()  # sanitized: nothing left to check
     assert torch.equal(n, torch.tensor([[1.0, 0.0], [0.0, 0.0]]))
+    assert record[0].filename == __file__  # the warning points at the caller's line
+
+
+def test_sanitize_warning_points_at_the_users_line():
+    """However deep inside torchgi the check runs (guided -> _guided -> ...), the warning names
+    the line that called the filter."""
+    src = torch.rand(1, 3, 8, 8)
+    src[0, 0, 0, 0] = float("nan")
+    line = sys._getframe().f_lineno + 2
+    with pytest.warns(UserWarning, match="src: replaced 1 non-finite values by 0") as record:
+        guided(src, torch.rand(1, 2, 8, 8), radius=2, sanitize=True)
+    assert (record[0].filename, record[0].lineno) == (__file__, line)
 
 
 def test_check_range_and_option():

@@ -9,8 +9,10 @@ from __future__ import annotations
 
 import importlib
 import math
+import sys
 import warnings
 from collections.abc import Callable, Iterable, Mapping
+from pathlib import Path
 from types import ModuleType
 from typing import Any
 
@@ -298,9 +300,22 @@ def _nothing() -> None:
     """The ``check`` with nothing left to check."""
 
 
+_OWN_CODE = (str(Path(__file__).resolve().parents[1]), str(Path(torch.__file__).resolve().parent))
+
+
+def _caller_stacklevel() -> int:
+    """The ``stacklevel`` for :func:`warnings.warn` called by this function's caller that points
+    at the first frame outside torchgi and torch: the user's line that called the filter (or
+    the module), however deep the call went inside."""
+    frame, level = sys._getframe(1), 1
+    while frame is not None and frame.f_code.co_filename.startswith(_OWN_CODE):
+        frame, level = frame.f_back, level + 1
+    return level
+
+
 def _sanitized(named: Mapping[str, torch.Tensor | None]) -> list[torch.Tensor | None]:
     """The named tensors with NaN/Inf replaced by 0 (a warning naming each tensor that had any,
-    pointing at the line that called the filter: user -> filter -> checker -> here)."""
+    at the user's line that called the filter)."""
     out = []
     for name, x in named.items():
         if x is not None and x.is_floating_point():
@@ -308,7 +323,8 @@ def _sanitized(named: Mapping[str, torch.Tensor | None]) -> list[torch.Tensor | 
             if is_recording():
                 x = torch.where(bad, torch.zeros((), dtype=x.dtype, device=x.device), x)
             elif bool(bad.any()):
-                warnings.warn(f"{name}: replaced {int(bad.sum())} non-finite values by 0 (sanitize=True)", stacklevel=4)
+                warnings.warn(f"{name}: replaced {int(bad.sum())} non-finite values by 0 (sanitize=True)",
+                              stacklevel=_caller_stacklevel())
                 x = torch.where(bad, torch.zeros((), dtype=x.dtype, device=x.device), x)
         out.append(x)
     return out
