@@ -243,9 +243,7 @@ def finite_or_sanitized_all(named: Mapping[str, torch.Tensor | None], sanitize: 
         >>> n is None
         True
     """
-    if sanitize:
-        return _sanitized(named)
-    values, check = finite_or_sanitized_later(named, False)
+    values, check = finite_or_sanitized_later(named, sanitize)
     check()
     return values
 
@@ -267,33 +265,33 @@ def finite_or_sanitized_later(
         ...
         torchgi.core.errors.NonFiniteError: color: expected finite values, found 1 NaN and 0 +-Inf of 2 elements (pass sanitize=True where offered to replace them)
     """
+    if sanitize:
+        return _sanitized(named), _nothing
     present = [(k, v) for k, v in named.items() if v is not None and v.is_floating_point() and v.numel()]
-    if not sanitize:
-        if not present or is_recording():
-            return list(named.values()), _nothing
-        # One reduction per tensor decides the common case: a sum is finite iff every term is,
-        # unless it overflows (|sum| > 3e38 in float32); only a non-finite sum leads to the
-        # exact count. The sums are read back together where they share a device, and tested
-        # on the host (one launch fewer).
-        totals = [v.sum(dtype=torch.float32) if v.dtype in (torch.float16, torch.bfloat16) else v.sum()
-                  for _, v in present]
-        if len({t.device for t in totals}) == 1:
-            common = totals[0].dtype if len({t.dtype for t in totals}) == 1 else torch.float64
-            stacked = torch.stack([t.to(common) for t in totals])
+    if not present or is_recording():
+        return list(named.values()), _nothing
+    # One reduction per tensor decides the common case: a sum is finite iff every term is,
+    # unless it overflows (|sum| > 3e38 in float32); only a non-finite sum leads to the exact
+    # count. The sums are read back together where they share a device, and tested on the host
+    # (one launch fewer).
+    totals = [v.sum(dtype=torch.float32) if v.dtype in (torch.float16, torch.bfloat16) else v.sum()
+              for _, v in present]
+    if len({t.device for t in totals}) == 1:
+        common = totals[0].dtype if len({t.dtype for t in totals}) == 1 else torch.float64
+        stacked = torch.stack([t.to(common) for t in totals])
 
-            def check() -> None:
-                for (k, v), ok in zip(present, (math.isfinite(t) for t in stacked.tolist())):
-                    if not ok:
-                        _count_non_finite(v, k)
-        else:
+        def check() -> None:
+            for (k, v), ok in zip(present, (math.isfinite(t) for t in stacked.tolist())):
+                if not ok:
+                    _count_non_finite(v, k)
+    else:
 
-            def check() -> None:
-                for (k, v), t in zip(present, totals):
-                    if not bool(torch.isfinite(t)):
-                        _count_non_finite(v, k)
+        def check() -> None:
+            for (k, v), t in zip(present, totals):
+                if not bool(torch.isfinite(t)):
+                    _count_non_finite(v, k)
 
-        return list(named.values()), check
-    return _sanitized(named), _nothing
+    return list(named.values()), check
 
 
 def _nothing() -> None:

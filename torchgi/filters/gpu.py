@@ -239,11 +239,12 @@ def atrous_level(
     c = c.contiguous()
     normal = None if normal is None else normal.contiguous()
     position = None if position is None else position.contiguous()
-    if var is not None:  # one plane for every channel stays one plane (channel stride 0)
-        var = var.contiguous() if var.shape[1] == C or var.stride(1) != 0 else var[:, :1].contiguous()
+    # a variance plane for every channel, or a mask for every image, expanded from one stays
+    # one (the kernel reads it with channel / batch stride 0): not copied C or B times
+    if var is not None:
+        var = (var[:, :1] if var.stride(1) == 0 else var).contiguous()
     if valid is not None:
-        valid = valid.to(torch.float32)
-        valid = valid.contiguous() if valid.shape[0] == B else valid.reshape(1, 1, H, W).contiguous()
+        valid = (valid[:1] if valid.stride(0) == 0 else valid).to(torch.float32).contiguous()
     plane = isinstance(colour, torch.Tensor)
     cs = colour.expand(B, 1, H, W).contiguous() if plane else None
     out = torch.empty(B, C, H, W, dtype=torch.float32, device=c.device)
