@@ -18,6 +18,7 @@ from torchgi.core.check import (
     is_tracing,
     require,
 )
+from torchgi.core.dtypes import compute_dtype, variance_rounding
 from torchgi.core.errors import (
     ConfigError,
     DeviceError,
@@ -56,10 +57,12 @@ __all__ = [
     "check_same_floating",
     "check_shape",
     "check_tensor",
+    "compute_dtype",
     "finite_or_sanitized",
     "finite_or_sanitized_all",
     "finite_or_sanitized_later",
     "is_recording",
     "is_tracing",
     "require",
+    "variance_rounding",
 ]

@@ -16,8 +16,8 @@ from torchgi.core.check import (
     check_shape,
     finite_or_sanitized_all,
 )
-from torchgi.filters.atrous import _planes, _sqdist
-from torchgi.filters.box import compute_dtype
+from torchgi.backends.torch_code import channel_planes, squared_distance
+from torchgi.core.dtypes import compute_dtype
 from torchgi.filters.taps import Padded
 
 __all__ = ["CrossBilateral", "cross_bilateral"]
@@ -76,18 +76,18 @@ def cross_bilateral(
     pc = Padded(c, radius)
     pv = Padded(torch.ones_like(c[:, :1]), radius)
     pg = [Padded(g, radius) for g in gs]
-    cc, gg = _planes(c, False), [_planes(g, False) for g in gs]
+    cc, gg = channel_planes(c, False), [channel_planes(g, False) for g in gs]
     num: list[torch.Tensor] = []
     den = torch.zeros_like(c[:, :1])
     for oy in range(-radius, radius + 1):
         for ox in range(-radius, radius + 1):
-            cq = _planes(pc.at(oy, ox), False)
+            cq = channel_planes(pc.at(oy, ox), False)
             d = (oy * oy + ox * ox) / (2 * sigma_space**2)
             expo = torch.full_like(den, -d)
             if sigma_color is not None:
-                expo = expo - _sqdist(cc, cq) * (0.5 / sigma_color**2)
+                expo = expo - squared_distance(cc, cq) * (0.5 / sigma_color**2)
             for g, p, s in zip(gg, pg, sigma_guides):
-                expo = expo - _sqdist(g, _planes(p.at(oy, ox), False)) * (0.5 / s**2)
+                expo = expo - squared_distance(g, channel_planes(p.at(oy, ox), False)) * (0.5 / s**2)
             w = pv.at(oy, ox) * torch.exp(expo)
             num = [w * q for q in cq] if not num else [a + w * q for a, q in zip(num, cq)]
             den = den + w

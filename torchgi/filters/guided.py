@@ -8,9 +8,9 @@ with every mean a count-normalised box filter (:mod:`torchgi.filters.box`), so c
 depend on ``r``. The per-pixel ``C x C`` solve is a closed-form LDLᵀ written with
 elementwise ops (ONNX-exportable, half-safe), not ``torch.linalg.solve``.
 
-Where it applies the whole filter runs in compiled kernels — C on the CPU
-(:mod:`torchgi.filters.native`), Triton on CUDA (:mod:`torchgi.filters.gpu`): box sums
-sliding down the rows in double, the same solve — else in the torch code below.
+The filter runs in the back end :mod:`torchgi.backends` picks: compiled kernels (C on the
+CPU, Triton on CUDA: box sums sliding down the rows in double, the same solve) for eager
+float32 calls, else the torch code (:mod:`torchgi.backends.torch_code`).
 
 Numerics: guide and source are centred by their per-image means before any sum (the filter
 is invariant to constant offsets), variances are clamped at 0, and ε is raised per pixel to
@@ -25,6 +25,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from torchgi import backends
 from torchgi.buffers import GBuffer
 from torchgi.core.check import (
     check_floating,
@@ -35,16 +36,11 @@ from torchgi.core.check import (
     finite_or_sanitized_later,
     is_recording,
 )
+from torchgi.backends.torch_code import apply_coefficients
+from torchgi.core.dtypes import compute_dtype
 from torchgi.core.errors import RangeError, ShapeError
-from torchgi.filters import gpu, native
-from torchgi.filters.box import PlaneBoxer, _box_cumsum, compute_dtype, use_fast_path
 
 __all__ = ["Guided", "guide_from_gbuffer", "guided"]
-
-
-def _pairs(n: int) -> list[tuple[int, int]]:
-    """Lower-triangle index pairs ``(i, j), j <= i`` of an ``n x n`` symmetric matrix."""
-    return [(i, j) for i in range(n) for j in range(i + 1)]
 
 
 def _check_eps(
@@ -73,203 +69,6 @@ def _check_eps(
     return torch.full((), float(eps), dtype=dtype, device=guide.device).expand(B, n).reshape(B, n, 1, 1), lambda: None
 
 
-def _solve(
-    mI: list[torch.Tensor], mp: torch.Tensor, mII: dict[tuple[int, int], torch.Tensor],
-    mIp: list[torch.Tensor], eps: torch.Tensor, out: list[torch.Tensor] | None = None,
-) -> tuple[list[torch.Tensor], torch.Tensor]:
-    """Per-pixel ``a = (Σ + diag(ε))^-1 cov`` and ``b = mean(p) - aᵀ mean(I)``.
-
-    ``mI[i]`` is ``(B,1,H,W)``, ``mp`` ``(B,Cs,H,W)``, ``mII[(i,j)]`` ``(B,1,H,W)`` for j <= i,
-    ``mIp[i]`` ``(B,Cs,H,W)``; ``eps`` is ``(B,n,1,1)``. Returns ``a`` as a list over guide
-    channels of ``(B,Cs,H,W)`` and ``b (B,Cs,H,W)``, written into ``out`` (``n + 1`` tensors)
-    when given. LDLᵀ (``E = L·D``), no square roots, no branches, elementwise ops only.
-
-    ``Σ_ii = E[I_i²] - E[I_i]²`` carries a rounding error of a few ``finfo.eps · E[I_i²]``;
-    each ε_i is raised to ``16 · finfo.eps · E[I_i²]`` per pixel (plus the smallest normal
-    number) and pivots are clamped there, so flat guides and ``eps = 0`` give finite, exact
-    box means instead of amplified rounding noise.
-    """
-    n = len(mI)
-    unit = 16 * torch.finfo(mp.dtype).eps
-    eps = eps.clamp_min(torch.finfo(mp.dtype).tiny)
-    outs: list[dict] = [{} if out is None else {"out": o} for o in (out or [None] * (n + 1))]
-    A: dict[tuple[int, int], torch.Tensor] = {}
-    eps_eff: list[torch.Tensor] = []
-    for i, j in _pairs(n):
-        s = torch.addcmul(mII[(i, j)], mI[i], mI[j], value=-1)
-        if i == j:
-            eps_eff.append(torch.maximum(mII[(i, i)] * unit, eps[:, i : i + 1]))
-            s = s.clamp_min(0) + eps_eff[i]
-        A[(i, j)] = s
-    L: dict[tuple[int, int], torch.Tensor] = {}
-    E: dict[tuple[int, int], torch.Tensor] = {}
-    D: list[torch.Tensor] = []
-    for j in range(n):
-        d = A[(j, j)]
-        for k in range(j):
-            d = torch.addcmul(d, L[(j, k)], E[(j, k)], value=-1)
-        D.append(torch.maximum(d, eps_eff[j]))
-        for i in range(j + 1, n):
-            v = A[(i, j)]
-            for k in range(j):
-                v = torch.addcmul(v, L[(i, k)], E[(j, k)], value=-1)
-            E[(i, j)] = v
-            L[(i, j)] = v / D[j]
-    y: list[torch.Tensor] = []
-    for i in range(n):
-        v = torch.addcmul(mIp[i], mI[i], mp, value=-1)  # cov(I_i, p)
-        for k in range(i):
-            v = torch.addcmul(v, L[(i, k)], y[k], value=-1)
-        y.append(v)
-    a: list[torch.Tensor] = [mp] * n
-    for i in reversed(range(n)):
-        last = i + 1 == n
-        v = torch.div(y[i], D[i], **(outs[i] if last else {}))
-        for k in range(i + 1, n):
-            v = torch.addcmul(v, L[(k, i)], a[k], value=-1, **(outs[i] if k + 1 == n else {}))
-        a[i] = v
-    b = mp
-    for i in range(n):
-        b = torch.addcmul(b, a[i], mI[i], value=-1, **(outs[n] if i + 1 == n else {}))
-    return a, b
-
-
-def _product_specs(n: int, Cs: int) -> list[tuple[str, int, str, int]]:
-    """The planes whose box means the solve needs, in a fixed order:
-    ``I_i``, ``p_c``, ``I_i I_j (j <= i)``, ``I_i p_c`` as (tensor, index, tensor, index);
-    an empty second name means the plane itself."""
-    return (
-        [("I", i, "", 0) for i in range(n)]
-        + [("p", c, "", 0) for c in range(Cs)]
-        + [("I", i, "I", j) for i, j in _pairs(n)]
-        + [("I", i, "p", c) for i in range(n) for c in range(Cs)]
-    )
-
-
-def _unpack(planes: list[torch.Tensor], n: int, Cs: int):
-    """Split box means ordered as :func:`_product_specs` (``(B,1,H,W)`` each) into the
-    ``mI, mp, mII, mIp`` arguments of :func:`_solve`."""
-    pairs = _pairs(n)
-    mI = planes[:n]
-    mp = torch.cat(planes[n : n + Cs], 1)
-    off = n + Cs
-    mII = dict(zip(pairs, planes[off : off + len(pairs)]))
-    off += len(pairs)
-    mIp = [torch.cat(planes[off + i * Cs : off + (i + 1) * Cs], 1) for i in range(n)]
-    return mI, mp, mII, mIp
-
-
-def _guided_reference(
-    I: torch.Tensor, p: torch.Tensor, r: int, eps: torch.Tensor, coefficients_only: bool = False
-) -> torch.Tensor:
-    """Differentiable, traceable path: cumsum box filters over stacked planes. Returns the output
-    without ``mean(p)`` (centred inputs), or the box-filtered coefficients ``(B, n + 1, Cs, H, W)``
-    (``a_0 .. a_{n-1}, b``)."""
-    n, Cs = I.shape[1], p.shape[1]
-    tensors = {"I": I, "p": p}
-    planes = [
-        tensors[a][:, i : i + 1] * (tensors[b][:, j : j + 1] if b else 1) if b else tensors[a][:, i : i + 1]
-        for a, i, b, j in _product_specs(n, Cs)
-    ]
-    m = _box_cumsum(torch.cat(planes, 1), r)
-    a, b = _solve(*_unpack(list(m.split(1, 1)), n, Cs), eps)
-    coeffs = _box_cumsum(torch.cat(a + [b], 1), r)
-    if coefficients_only:
-        return coeffs.unflatten(1, (n + 1, Cs))
-    return _apply(coeffs.unflatten(1, (n + 1, Cs)), I)
-
-
-def _apply(coeffs: torch.Tensor, I: torch.Tensor) -> torch.Tensor:
-    """``b + Σ_i a_i I_i`` for coefficients ``(B, n + 1, Cs, H, W)`` and a centred guide ``(B, n, H, W)``."""
-    n = I.shape[1]
-    out = coeffs[:, n]
-    for i in range(n):
-        out = out + coeffs[:, i] * I[:, i : i + 1]
-    return out
-
-
-_STRIP_ELEMENTS = 1 << 16  # pixels per strip of the per-pixel solve: temporaries stay in L2
-
-
-class _Workspace:
-    """Buffers of the CPU path for one (guide channels, source channels, H, W, r, dtype).
-
-    glibc returns large freed blocks to the OS, so fresh buffers are page-faulted in on every
-    call (measured: ~40 % of the run time at 1024x768). :class:`Guided` keeps one workspace
-    between calls; the functional form builds a new one each time.
-    """
-
-    def __init__(self, n: int, Cs: int, H: int, W: int, r: int, dtype: torch.dtype) -> None:
-        self.key = (n, Cs, H, W, r, dtype)
-        self.boxer = PlaneBoxer(H, W, r, dtype)
-        self.I = torch.empty(n, H, W, dtype=dtype)  # centred guide of one image
-        self.p = torch.empty(Cs, H, W, dtype=dtype)  # centred source of one image
-        self.mI = torch.empty(n, H, W, dtype=dtype)
-        self.mp = torch.empty(Cs, H, W, dtype=dtype)
-        self.mII = torch.empty(len(_pairs(n)), H, W, dtype=dtype)
-        self.mIp = torch.empty(n, Cs, H, W, dtype=dtype)
-        self.coeffs = torch.empty(n + 1, Cs, H, W, dtype=dtype)  # a_0 .. a_{n-1}, b
-
-    @classmethod
-    def get(cls, holder: dict | None, n: int, Cs: int, H: int, W: int, r: int, dtype: torch.dtype) -> _Workspace:
-        key = (n, Cs, H, W, r, dtype)
-        if holder is not None and holder.get("ws") is not None and holder["ws"].key == key:
-            return holder["ws"]
-        ws = cls(*key)
-        if holder is not None:
-            holder["ws"] = ws
-        return ws
-
-
-def _guided_fast(
-    g: torch.Tensor, p: torch.Tensor, mean_g: torch.Tensor, mean_p: torch.Tensor, r: int,
-    eps: torch.Tensor, holder: dict | None = None, coefficients_only: bool = False,
-) -> torch.Tensor:
-    """CPU eager path: box means one plane at a time (cache-resident, reused buffers), the
-    solve in row strips so its temporaries stay small; strips of the grouped buffers are views.
-    Centring (by ``mean_g``, ``mean_p``) happens here, into the workspace. Returns the output,
-    or the box-filtered coefficients ``(B, n + 1, Cs, H, W)``."""
-    B, n, H, W = g.shape
-    Cs = p.shape[1]
-    ws = _Workspace.get(holder, n, Cs, H, W, r, g.dtype)
-    boxer, pairs = ws.boxer, _pairs(n)
-    out = torch.empty((B, n + 1, Cs, H, W) if coefficients_only else (B, Cs, H, W), dtype=g.dtype)
-    for bi in range(B):
-        Ib = torch.sub(g[bi], mean_g[bi], out=ws.I)
-        pb = torch.sub(p[bi], mean_p[bi], out=ws.p)
-        boxer(Ib, ws.mI)
-        boxer(pb, ws.mp)
-        # products and their box means a stack at a time: while a stack is in cache
-        for group, factors in (
-            (ws.mII, [(Ib[i], Ib[j]) for i, j in pairs]),
-            (ws.mIp.view(n * Cs, H, W), [(Ib[i], pb[c]) for i in range(n) for c in range(Cs)]),
-        ):
-            for a in range(0, len(factors), boxer.stack):
-                stack = group[a : a + boxer.stack]
-                for dst, (u, v) in zip(stack, factors[a : a + boxer.stack]):
-                    torch.mul(u, v, out=dst)
-                boxer(stack, stack)
-        e = eps[bi : bi + 1]
-        strip = max(1, _STRIP_ELEMENTS // W)
-        for y in range(0, H, strip):
-            rows = slice(y, y + strip)
-            _solve(
-                [ws.mI[i : i + 1, rows][None] for i in range(n)], ws.mp[:, rows][None],
-                {pr: ws.mII[k : k + 1, rows][None] for k, pr in enumerate(pairs)},
-                [ws.mIp[i, :, rows][None] for i in range(n)], e,
-                out=[ws.coeffs[k, :, rows][None] for k in range(n + 1)],
-            )
-        planes = ws.coeffs.view(-1, H, W)
-        boxer(planes, planes)
-        if coefficients_only:
-            out[bi].copy_(ws.coeffs)
-            continue
-        acc = torch.add(ws.coeffs[n], mean_p[bi], out=out[bi])
-        for i in range(n):
-            acc.addcmul_(ws.coeffs[i], Ib[i : i + 1])
-    return out
-
-
 def _guided(
     src: torch.Tensor, guide: torch.Tensor, radius: int, eps: float | torch.Tensor, sanitize: bool,
     _holder: dict | None, subsample: int = 1,
@@ -296,40 +95,24 @@ def _filtered(
     src: torch.Tensor, guide: torch.Tensor, radius: int, e: torch.Tensor, _holder: dict | None, subsample: int,
 ) -> torch.Tensor:
     """:func:`_guided` after the argument checks (``e``: ε ``(B, n, 1, 1)`` in the compute dtype)."""
-    n = guide.shape[1]
     ct = compute_dtype(src.dtype)
-    Cs, H, W = src.shape[1:]
     if src.numel() == 0:
         return src.clone()
     g, p = guide.to(ct), src.to(ct)
     mean_g, mean_p = g.mean(dim=(2, 3), keepdim=True), p.mean(dim=(2, 3), keepdim=True)
-    fast = use_fast_path(src, guide, e)
-    if subsample == 1 and native.applies(g, p, e):
-        return native.guided(g, p, mean_g, mean_p, mean_p, radius, e, holder=_holder).to(src.dtype)
-    if subsample == 1 and gpu.applies(g, p, e):
-        return gpu.guided(g, p, mean_g, mean_p, mean_p, radius, e).to(src.dtype)
     if subsample == 1:
-        if fast:
-            return _guided_fast(g, p, mean_g, mean_p, radius, e, _holder).to(src.dtype)
-        return (_guided_reference(g - mean_g, p - mean_p, radius, e) + mean_p).to(src.dtype)
+        return backends.run(backends.GuidedOp(g, p, mean_g, mean_p, radius, e, workspace=_holder)).to(src.dtype)
     # He & Sun 2015: coefficients from s x s means at radius r / s, upsampled bilinearly, applied
     # to the full-resolution guide
     gc = g - mean_g
     low_g = F.avg_pool2d(gc, subsample, ceil_mode=True)
     low_p = F.avg_pool2d(p - mean_p, subsample, ceil_mode=True)
-    r_low = round(radius / subsample)
     zero_g, zero_p = torch.zeros_like(mean_g), torch.zeros_like(mean_p)  # low_g, low_p are centred
-    if native.applies(low_g, low_p, e):
-        coeffs = native.guided(low_g, low_p, zero_g, zero_p, zero_p, r_low, e, coefficients_only=True,
-                               holder=_holder)
-    elif gpu.applies(low_g, low_p, e):
-        coeffs = gpu.guided(low_g, low_p, zero_g, zero_p, zero_p, r_low, e, coefficients_only=True)
-    elif fast:
-        coeffs = _guided_fast(low_g, low_p, zero_g, zero_p, r_low, e, _holder, coefficients_only=True)
-    else:
-        coeffs = _guided_reference(low_g, low_p, r_low, e, coefficients_only=True)
-    coeffs = F.interpolate(coeffs.flatten(1, 2), size=(H, W), mode="bilinear", align_corners=False)
-    return (_apply(coeffs.unflatten(1, (n + 1, Cs)), gc) + mean_p).to(src.dtype)
+    coeffs = backends.run(backends.GuidedOp(low_g, low_p, zero_g, zero_p, round(radius / subsample), e,
+                                            coefficients_only=True, workspace=_holder))
+    coeffs = F.interpolate(coeffs.flatten(1, 2), size=src.shape[-2:], mode="bilinear", align_corners=False)
+    return (apply_coefficients(coeffs.unflatten(1, (guide.shape[1] + 1, src.shape[1])), gc)
+            + mean_p).to(src.dtype)
 
 
 def guided(

@@ -4,18 +4,17 @@
 
 then the remainders go to the largest fractional parts (Hamilton's method), so the total is
 exactly ``S`` — the paper drops them. Ties are broken by pixel index, so the result is
-deterministic. On the CPU the compiled kernel of :mod:`torchgi.filters.native` does the same
-arithmetic in a few passes (the remainders ranked by 2^16 buckets, then the bucket holding the
-cut sorted, instead of ``kthvalue``); without it, the torch code below.
+deterministic. Computed in the back end :mod:`torchgi.backends` picks (on the CPU the C kernel:
+the same arithmetic, the remainders ranked by buckets instead of ``kthvalue``).
 """
 
 from __future__ import annotations
 
 import torch
 
+from torchgi import backends
 from torchgi.core.check import check_finite, check_floating, check_int, check_range, check_shape
 from torchgi.core.errors import DTypeError, RangeError
-from torchgi.filters import native
 
 __all__ = ["allocate", "exclusive_scan"]
 
@@ -62,36 +61,7 @@ def allocate(
             f"budget: {budget} samples cannot give min_samples={min_samples} to {int(n_eligible.max())} pixels "
             f"(needs at least {need})"
         )
-    if importance.device.type == "cpu" and q.dtype in (torch.float32, torch.float64) and q.shape[1] < 2**31 \
-            and native.library() is not None:
-        # the compiled kernel: the same arithmetic, the remainders ranked by buckets
-        counts = native.allocate(q, eligible, n_eligible.tolist(), (budget - min_samples * n_eligible).tolist(),
-                                 min_samples)
-        return counts.view_as(importance)
-    if eligible is None:
-        eligible = torch.ones_like(q, dtype=torch.bool)
-    q = q.to(torch.float64)
-    q = torch.where(eligible, q, torch.zeros_like(q))
-    spare = (budget - min_samples * n_eligible).to(torch.float64)  # (B,)
-    Q = q.sum(1)
-    uniform = eligible.to(torch.float64) / n_eligible.clamp_min(1)[:, None]
-    share = torch.where((Q > 0)[:, None], q / torch.where(Q > 0, Q, 1.0)[:, None], uniform)
-    exact = share * spare[:, None]
-    counts = exact.floor()
-    left = (spare - counts.sum(1)).round().to(torch.int64)  # < number of eligible pixels
-    frac = torch.where(eligible, exact - counts, torch.full_like(exact, -1.0))
-    counts = counts.to(torch.int64)
-    for b in range(B):  # the `left` largest remainders, ties to the lowest pixel index
-        k = int(left[b])
-        if k <= 0:
-            continue
-        threshold = -torch.kthvalue(-frac[b], k).values  # k-th largest remainder (O(N) selection)
-        above = frac[b] > threshold
-        tied = frac[b] == threshold
-        take = above | (tied & (tied.cumsum(0) <= k - int(above.sum())))
-        counts[b] += take.to(torch.int64)
-    counts = torch.where(eligible, counts + min_samples, torch.zeros_like(counts))
-    return counts.view_as(importance)
+    return backends.run(backends.AllocateOp(q, eligible, n_eligible, budget, min_samples)).view_as(importance)
 
 
 def exclusive_scan(counts: torch.Tensor) -> torch.Tensor:

@@ -3,15 +3,15 @@
     W_p = Σ_{q ∈ window(p)} G_n(p,q) · G_x(p,q),   W̃_p = W_p / |window(p)|,   q_p = 1 - W̃_p
 
 with ``G_n = exp(-|n_p - n_q|² / σ_n)`` and ``G_x = exp(-|x_p - x_q|² / σ_x)``, the À-Trous
-geometry weights at step 1, read through the same shifted-view taps (:mod:`torchgi.filters.taps`).
-Eager float32 CPU calls without autograd run the compiled kernel of
-:mod:`torchgi.filters.native` (one walk over each band of rows, vectorised) instead.
+geometry weights at step 1, read through the same shifted-view taps (:mod:`torchgi.filters.taps`),
+in the back end :mod:`torchgi.backends` picks (eager float32 CPU calls: the C kernel).
 """
 
 from __future__ import annotations
 
 import torch
 
+from torchgi import backends
 from torchgi.core.check import (
     check_finite,
     check_int,
@@ -20,10 +20,8 @@ from torchgi.core.check import (
     check_same_floating,
     check_shape,
 )
+from torchgi.core.dtypes import compute_dtype
 from torchgi.core.errors import DTypeError, RangeError
-from torchgi.filters import native
-from torchgi.filters.box import compute_dtype
-from torchgi.filters.taps import Padded
 
 __all__ = ["importance_map"]
 
@@ -75,40 +73,5 @@ def importance_map(
     check_finite(normal, "normal")
     check_finite(position, "position")
     ct = compute_dtype(normal.dtype)
-    n = normal.to(ct)
-    x = position.to(ct)
-    if native.applies(n, x):  # the compiled CPU kernel, straight from the inputs
-        return native.importance(n, x, sigma_normal, sigma_position, hit, window).to(normal.dtype)
-    x = x - x.mean(dim=(2, 3), keepdim=True)
-    # one feature vector per pixel: G_n · G_x = exp(-|f_p - f_q|²)
-    f = torch.cat([n / sigma_normal**0.5, x / sigma_position**0.5], 1)
-    valid = torch.ones_like(n[:, :1]) if hit is None else hit.to(ct)
-    core = _compiled_core() if fused else _core
-    return core(f, valid, window).to(normal.dtype)
-
-
-def _core(f: torch.Tensor, valid: torch.Tensor, window: int) -> torch.Tensor:
-    """``1 - mean over the window of exp(-|f_p - f_q|²)`` over valid taps, 0 off ``valid``."""
-    lo, hi = -(window // 2), (window - 1) // 2
-    pad = max(-lo, hi)
-    pf, pv = Padded(f, pad), Padded(valid, pad)
-    total = torch.zeros_like(valid)
-    count = torch.zeros_like(valid)
-    for oy in range(lo, hi + 1):
-        for ox in range(lo, hi + 1):
-            v = pv.at(oy, ox)
-            total = total + v * torch.exp(-(f - pf.at(oy, ox)).square().sum(1, keepdim=True))
-            count = count + v
-    return (1 - total / count.clamp_min(1)).clamp(0, 1) * valid
-
-
-_fused_core = None
-
-
-def _compiled_core():
-    """``torch.compile(_core, dynamic=False)`` built on first use: one specialised loop over pixels per
-    (size, window); static shapes ran 3x faster than ``dynamic=True`` here."""
-    global _fused_core
-    if _fused_core is None:
-        _fused_core = torch.compile(_core, dynamic=False)
-    return _fused_core
+    op = backends.ImportanceOp(normal.to(ct), position.to(ct), sigma_normal, sigma_position, hit, window, fused)
+    return backends.run(op).to(normal.dtype)

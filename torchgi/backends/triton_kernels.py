@@ -1,37 +1,37 @@
-"""Triton kernels for CUDA tensors (float32, without autograd or tracing): an À-Trous level and
-the guided filter (with the box filter it is built from).
+"""The Triton back end, for CUDA tensors (float32, without autograd or tracing): an À-Trous level
+and the guided filter (with the box filter it is built from).
 
-The torch code of an À-Trous level launches about ten kernels per tap (250 per level); the
-level kernel does a level in one launch: each program filters a tile of pixels, walks the 25
-taps with the weighted sums in registers and writes the level's colour, variance and weight
-sum. Same maths as ``atrous._iteration`` and the CPU kernel of :mod:`torchgi.filters.native`.
+The torch code of an À-Trous level launches about ten kernels per tap; the level kernel does a
+level in one launch: each program filters a tile of pixels, walks the 25 taps with the weighted
+sums in registers and writes the level's colour, variance and weight sum. Same maths as the
+torch code and the C back end.
 
-The guided filter's torch code launches some 200 small kernels; here it is six launches:
-products of the centred guide and source summed down the columns (sliding windows, double
-accumulators), those sums summed along the rows (a running difference and a prefix sum,
-double), the per-pixel LDLᵀ solve of ``guided._solve`` (written once for four guide channels;
-absent channels enter as exact zeros), the two box passes again over the coefficients, and
-the apply. Cost does not depend on the radius beyond one window per tile.
+The guided filter is six launches: products of the centred guide and source summed down the
+columns (sliding windows, double accumulators), those sums summed along the rows (a running
+difference and a prefix sum, double), the per-pixel LDLᵀ solve (written once for four guide
+channels; absent channels enter as exact zeros), the two box passes again over the
+coefficients, and the apply. Cost does not depend on the radius beyond one window per tile.
 
-Triton comes with CUDA builds of torch; without it (or on the CPU) the filters run their torch
-code. With ``TRITON_INTERPRET=1`` set before torchgi is imported, the same kernels run on CPU
-tensors through Triton's interpreter (the tests check them there against float64 oracles).
-:func:`torchgi.filters.native.disabled` (or ``TORCHGI_NATIVE=0``) switches them off too.
+Triton comes with CUDA builds of torch; without it (or on the CPU) the torch code runs. With
+``TRITON_INTERPRET=1`` set before torchgi is imported, the same kernels run on CPU tensors
+through Triton's interpreter (the tests check them there against float64 oracles). Tile sizes
+and warps come from ``scripts/sweep_gpu_tiles.py`` (docs/calibration.md).
 
 Example:
-    >>> from torchgi.filters import gpu
-    >>> gpu.applies(torch.zeros(1))   # a CPU tensor, no interpreter: the torch code
-    False
+    >>> from torchgi.backends import BoxOp, triton_kernels
+    >>> triton_kernels.supports("box", BoxOp(torch.zeros(1, 1, 2, 2), 1)) is not None   # a CPU tensor
+    True
 """
 
 from __future__ import annotations
 
+import functools
 import os
 
 import torch
 
-from torchgi.core.check import is_tracing
-from torchgi.filters import native
+from torchgi.backends.base import ATrousOp, BoxOp, GuidedOp, colour_scale, eager, iterate_levels
+from torchgi.core.dtypes import variance_rounding
 from torchgi.filters.taps import kernel_5x5
 
 try:  # shipped with CUDA builds of torch
@@ -40,46 +40,69 @@ try:  # shipped with CUDA builds of torch
 except ImportError:  # pragma: no cover - CPU-only installs
     triton = None
 
-__all__ = ["applies", "atrous_level", "box", "guided"]
+__all__ = ["MAX_CHANNELS", "NAME", "describe", "supports"]
+
+NAME = "triton"
 
 _INTERPRET = os.environ.get("TRITON_INTERPRET") == "1"
-# pixels of a tile (rows x columns, coalesced along the row), warps per program and taps per loop
-# step: GPU busy time of 5 levels at 1080p on an H200 (scripts/sweep_gpu_tiles.py, the kernels
-# alone): 2x128 / 4 warps / 2 taps 0.898 ms, 4x64 / 4 / 2 0.900, 2x64 / 2 / 2 0.901, 4x64 / 4 / 1
-# 0.909, 1x128 / 4 / 2 1.031, 1x256 / 8 / 2 1.093: the tile hardly matters. The fully unrolled
-# loop (25 taps) compiled for sm_90 to 255 registers and spilled; 2 taps: 72 registers (offline
-# ptxas, tests/test_gpu.py)
+# À-Trous tile (rows x columns, coalesced along the row), warps per program and taps per loop
+# step (scripts/sweep_gpu_tiles.py on an H200; docs/calibration.md)
 _BH, _BW, _WARPS, _UNROLL = 2, 128, 4, 2
 
 
 def _unroll(C: int, variance: bool) -> int:
     """Taps per loop step of the À-Trous kernel for ``C`` colour channels: one with a variance
-    to propagate or 4 channels, where two took over 128 registers (offline ptxas for sm_90, 2x128
-    tiles: 4 channels 140, with the variance 176)."""
+    to propagate or 4 channels, where two need over 128 registers (offline ptxas for sm_90;
+    tests/test_gpu.py checks the limit)."""
     return 1 if variance or C > 3 else _UNROLL
 MAX_CHANNELS = 4  # colour channels the kernel takes
-_taps: dict[torch.device, torch.Tensor] = {}
+
+
+@functools.cache
+def _taps(device: torch.device) -> torch.Tensor:
+    """The 25 tap weights, float32, on ``device``."""
+    return torch.tensor([h for _, _, h in kernel_5x5()], dtype=torch.float32, device=device)
 
 
 def _cdiv(a: int, b: int) -> int:
-    """``ceil(a / b)`` for grid sizes (``triton.cdiv`` goes through Triton's JIT wrapper: 3.5 µs a call here)."""
+    """``ceil(a / b)`` for grid sizes (``triton.cdiv`` goes through Triton's slower JIT wrapper)."""
     return -(-a // b)
 
 
-def applies(*tensors: torch.Tensor | None) -> bool:
-    """The kernels take eager float32 CUDA tensors without autograd or tracing (CPU ones under
-    the interpreter).
+def describe() -> str:
+    """One line for :func:`torchgi.backends.status`.
 
     Example:
-        >>> applies(torch.zeros(1, dtype=torch.float64))   # float64: the torch code
-        False
+        >>> isinstance(describe(), str)
+        True
     """
-    ts = [t for t in tensors if t is not None]
-    if triton is None or not native.enabled() or is_tracing() or not ts:
-        return False
-    if any(t.dtype != torch.float32 or (t.device.type != "cuda" and not _INTERPRET) for t in ts):
-        return False
-    return not (torch.is_grad_enabled() and any(t.requires_grad for t in ts))
+    if triton is None:
+        return "Triton not installed (it ships with CUDA builds of torch)"
+    where = "CPU tensors through Triton's interpreter" if _INTERPRET else "CUDA tensors"
+    return f"Triton {triton.__version__} kernels for {where}"
+
+
+def supports(op: str, desc: BoxOp | GuidedOp | ATrousOp) -> str | None:
+    """None when the kernels take ``desc``: an À-Trous level, the guided or box filter of eager
+    float32 CUDA tensors (CPU ones under the interpreter), at most 4 À-Trous colour channels;
+    else why not."""
+    if triton is None:
+        return "Triton not installed"
+    if op not in ("box", "guided", "atrous"):
+        return f"no Triton kernel for {op}"
+    ts = [t for t in desc.tensors() if t is not None]
+    if any(t.device.type != "cuda" and not _INTERPRET for t in ts):
+        return "the Triton kernels take CUDA tensors"
+    if any(t.dtype != torch.float32 for t in ts):
+        return "the Triton kernels take float32"
+    why = eager(desc)
+    if why is not None:
+        return why
+    if op == "box" and desc.x.numel() == 0:
+        return "an empty tensor: nothing to compute"
+    if op == "atrous" and desc.color.shape[1] > MAX_CHANNELS:
+        return f"the À-Trous kernel takes at most {MAX_CHANNELS} colour channels"
+    return None
 
 
 if triton is not None:
@@ -211,7 +234,7 @@ if triton is not None:
         tl.store(den_ptr + b * hw + pix, den, mask=inside)
 
 
-def atrous_level(
+def _atrous_level(
     c: torch.Tensor, normal: torch.Tensor | None, position: torch.Tensor | None, inv: torch.Tensor,
     var: torch.Tensor | None, valid: torch.Tensor | None, step: int, colour: float | torch.Tensor | None,
 ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
@@ -234,8 +257,6 @@ def atrous_level(
     if C > MAX_CHANNELS or inv.shape != (B, 3):
         raise ValueError(f"atrous_level: expected <= {MAX_CHANNELS} colour channels and inv of shape ({B}, 3); "
                          f"got C={C}, inv {tuple(inv.shape)}")
-    if c.device not in _taps:
-        _taps[c.device] = torch.tensor([h for _, _, h in kernel_5x5()], dtype=torch.float32, device=c.device)
     c = c.contiguous()
     normal = None if normal is None else normal.contiguous()
     position = None if position is None else position.contiguous()
@@ -254,7 +275,7 @@ def atrous_level(
     grid = (_cdiv(W, _BW), _cdiv(H, _BH), B)
     _level[grid](
         c, dummy if normal is None else normal, dummy if position is None else position, dummy if var is None else var,
-        dummy if valid is None else valid, dummy if cs is None else cs, inv.contiguous(), _taps[c.device], out,
+        dummy if valid is None else valid, dummy if cs is None else cs, inv.contiguous(), _taps(c.device), out,
         dummy if vout is None else vout, den,
         H, W, step, colour if isinstance(colour, float) else 1.0,
         0 if var is None else var.stride(0), 0 if var is None or var.shape[1] == 1 else H * W,
@@ -511,7 +532,7 @@ def _box_products(g: torch.Tensor, p: torch.Tensor | None, mean_g: torch.Tensor 
     return means
 
 
-def box(x: torch.Tensor, r: int) -> torch.Tensor:
+def _box(x: torch.Tensor, r: int) -> torch.Tensor:
     """Count-normalised box mean ``(B, C, H, W)`` of radius ``r`` over each plane of a float32
     ``x (B, C, H, W)`` (what :func:`torchgi.filters.box` computes), in two kernels (sums in
     double).
@@ -526,11 +547,11 @@ def box(x: torch.Tensor, r: int) -> torch.Tensor:
     return _box_products(x, None, None, None, [(c, -1) for c in range(x.shape[1])], r)
 
 
-def guided(
+def _guided(
     I: torch.Tensor, p: torch.Tensor, mean_I: torch.Tensor, mean_p: torch.Tensor, offset: torch.Tensor, r: int,
     eps: torch.Tensor, coefficients_only: bool = False,
 ) -> torch.Tensor:
-    """Guided filter with the arguments of :func:`torchgi.filters.native.guided`: ``p
+    """Guided filter with the arguments of the C back end's: ``p
     (B,Cs,H,W)`` by ``I (B,n,H,W)`` (n <= 4), centred by ``mean_p``, ``mean_I`` (``(B,C,1,1)``),
     ``eps (B,n,1,1)``, radius ``r``, ``offset (B,Cs,1,1)`` added to the output. Returns
     ``(B,Cs,H,W)`` float32, or the box-filtered coefficients ``(B,n+1,Cs,H,W)``.
@@ -548,7 +569,7 @@ def guided(
     I, p = I.contiguous(), p.contiguous()
     mean_I, mean_p = mean_I.reshape(B, n).to(torch.float32).contiguous(), mean_p.reshape(B, Cs).to(torch.float32).contiguous()
     pairs = [(i, -1) for i in range(n + Cs)] + [(i, j) for i in range(n) for j in range(i + 1)] + \
-        [(i, n + c) for i in range(n) for c in range(Cs)]  # the order of guided._product_specs
+        [(i, n + c) for i in range(n) for c in range(Cs)]  # the order of torch_code._product_specs
     means = _box_products(I, p, mean_I, mean_p, pairs, r)  # of the guide and source centred
     Q, HW = (n + 1) * Cs, H * W
     coef = torch.empty(B, Q, H, W, dtype=torch.float32, device=I.device)
@@ -556,7 +577,7 @@ def guided(
     if coef.numel():
         e = eps.reshape(B, n).to(torch.float32).contiguous()
         _solve[(n_blk * B,)](means, e, coef, HW, Cs, n_blk, means.stride(0), coef.stride(0),
-                                  16 * torch.finfo(torch.float32).eps, torch.finfo(torch.float32).tiny, N=n,
+                                  variance_rounding(torch.float32), torch.finfo(torch.float32).tiny, N=n,
                                   BLOCK=_PIX)
     coef = _box_products(coef, None, None, None, [(q, -1) for q in range(Q)], r)
     if coefficients_only:
@@ -567,3 +588,30 @@ def guided(
         _apply[(n_blk * B,)](coef, I, mean_I, off, out, HW, Cs, n_blk, coef.stride(0), I.stride(0), out.stride(0),
                                   N=n, BLOCK=_PIX)
     return out
+
+
+# ---------------------------------------------------------------------------------------- ops
+def box(desc: BoxOp) -> torch.Tensor:
+    """:class:`~torchgi.backends.base.BoxOp` in two kernels (sums in double)."""
+    return _box(desc.x, desc.radius)
+
+
+def guided(desc: GuidedOp) -> torch.Tensor:
+    """:class:`~torchgi.backends.base.GuidedOp` in six kernels."""
+    return _guided(desc.guide, desc.src, desc.mean_guide, desc.mean_src, desc.mean_src, desc.radius, desc.eps,
+                   coefficients_only=desc.coefficients_only)
+
+
+def atrous(desc: ATrousOp) -> tuple[torch.Tensor, list[torch.Tensor]]:
+    """:class:`~torchgi.backends.base.ATrousOp`, a level per launch on the raw guides with the
+    images' inverse σ's (the kernel scales the distances; normals also by ``1 / step²``)."""
+    B, ct, dev = desc.color.shape[0], desc.color.dtype, desc.color.device
+    inv = torch.stack([torch.ones(B, dtype=ct, device=dev) if t is None else t.reshape(B)
+                       for t in (desc.inv_color, desc.inv_normal, desc.inv_position)], 1)
+    n = desc.normal if desc.inv_normal is not None else None
+    x = desc.position if desc.inv_position is not None else None
+
+    def level(c, var, valid, i):
+        return _atrous_level(c, n, x, inv, var, valid, 2**i, colour_scale(desc, i, var, factor_only=True))
+
+    return iterate_levels(desc, level)

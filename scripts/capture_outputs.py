@@ -1,0 +1,134 @@
+"""Every Denoiser method and every filter on the benchmark scenes, saved for a bit-for-bit comparison
+of two trees (e.g. before and after a refactor):
+
+    python scripts/capture_outputs.py --out out/capture-after.pt
+    python scripts/capture_outputs.py --compare out/capture-before.pt out/capture-after.pt
+
+Renders cornell, cornell_glossy, sky, grass (and bunny where the shared meshes are) at 1 and 4 spp
+on the CPU, then runs: ``Denoiser`` guided / atrous / bilateral / none at every quality (and
+guided with subsample 2), its deployed guided and À-Trous modules, ``supersample``;
+the filters ``box``, ``guided`` (guides of 1, 3 and 4 channels, subsample 2, float64), ``atrous``
+(1-3 weights, variance, subsample, energy, float64), ``cross_bilateral``; the sampling
+``importance_map``, ``allocate``, ``adaptive_counts``. Each once with the default back ends and
+once with the torch code only. ``--compare`` prints the cases that differ (``torch.equal``) and
+exits 1 if any does.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import sys
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from benchmark_utils import available_scenes
+
+from torchgi.denoise import Denoiser
+from torchgi.filters import atrous, box, cross_bilateral, guide_from_gbuffer, guided
+from torchgi.render import render, render_guide_rays
+from torchgi.sampling import adaptive_counts, allocate, importance_map, pixel_footprint
+
+
+def torch_only():
+    """The torch code paths only (the name of the switch changed with the back-end seam)."""
+    try:
+        from torchgi import backends
+
+        return backends.use("torch")
+    except ImportError:
+        from torchgi.filters import native
+
+        return native.disabled()
+
+
+def cases(gb, size: int):
+    """(name, thunk) pairs over one GBuffer."""
+    surface = gb.hit
+    guide = guide_from_gbuffer(gb)
+    light = torch.where(surface, (gb.color - gb.emission) / gb.albedo.clamp_min(1e-3), 0.0)
+    sx = (4 * pixel_footprint(gb.position, surface)) ** 2
+    for method in ("guided", "atrous", "bilateral", "none"):
+        for quality in ("fast", "balanced", "high"):
+            yield f"denoiser-{method}-{quality}", lambda m=method, q=quality: Denoiser(m, q)(gb)
+    yield "denoiser-guided-sub2", lambda: Denoiser("guided", subsample=2)(gb)
+    yield "deployed-guided", lambda: Denoiser("guided").deploy(spp=1)(gb.color, gb.emission, gb.albedo, gb.normal,
+                                                                     gb.depth)
+    yield "deployed-atrous", lambda: Denoiser("atrous").deploy(spp=1, sigma_position=sx)(
+        gb.color, gb.emission, gb.albedo, gb.normal, gb.position)
+    yield "box-r3", lambda: box(light, 3)
+    yield "box-r40", lambda: box(light, 40)
+    for k in (1, 3, 4):
+        yield f"guided-g{k}", lambda k=k: guided(light, guide[:, :k], radius=6, eps=1e-3)
+    yield "guided-sub2", lambda: guided(light, guide, radius=8, eps=1e-3, subsample=2)
+    yield "guided-f64", lambda: guided(light.double(), guide.double(), radius=5, eps=1e-3)
+    yield "guided-eps-tensor", lambda: guided(light, guide, radius=4, eps=torch.tensor([1e-3] * guide.shape[1]))
+    yield "atrous-3w", lambda: atrous(light, gb.normal, gb.position, iterations=5, sigma_position=sx)
+    yield "atrous-n", lambda: atrous(light, gb.normal, iterations=3, color_weight=False)
+    yield "atrous-c", lambda: atrous(light, iterations=4, sigma_color=0.5)
+    var = torch.where(surface, gb.variance / gb.albedo.clamp_min(1e-3) ** 2, 0.0).mean(1, keepdim=True) + 1e-8
+    yield "atrous-var", lambda: atrous(light, gb.normal, gb.position, iterations=4, sigma_position=sx, variance=var,
+                                       sigma_color=4.0)
+    yield "atrous-sub2-energy", lambda: atrous(light, gb.normal, gb.position, iterations=4, sigma_position=sx,
+                                               subsample=2, energy=True)
+    yield "atrous-f64", lambda: atrous(light.double(), gb.normal.double(), gb.position.double(), iterations=3,
+                                       sigma_position=sx)
+    yield "bilateral", lambda: cross_bilateral(light, [gb.normal], radius=4, sigma_space=2.0, sigma_color=1.0,
+                                               sigma_guides=[0.2])
+    yield "importance", lambda: importance_map(gb.normal, gb.position, sigma_position=sx, hit=surface)
+    q = importance_map(gb.normal, gb.position, sigma_position=sx, hit=surface)
+    yield "allocate", lambda: allocate(q, 4 * size * size, min_samples=1, mask=surface)
+    yield "allocate-f64", lambda: allocate(q.double(), 3 * size * size + 17)
+    yield "adaptive-counts", lambda: adaptive_counts(gb, 4.0)
+
+
+def capture(size: int) -> dict[str, torch.Tensor]:
+    torch.manual_seed(0)
+    out: dict[str, torch.Tensor] = {}
+    for name, scene in available_scenes(["cornell", "cornell_glossy", "sky", "grass", "bunny"], size):
+        for spp in (1, 4):
+            gb = render(scene, spp=spp, bounces=1, seed=3)
+            for mode in ("default", "torch"):
+                ctx = torch_only() if mode == "torch" else contextlib.nullcontext()
+                with ctx:
+                    for case, fn in cases(gb, size):
+                        out[f"{name}/{spp}spp/{mode}/{case}"] = fn()
+            if spp == 4:
+                gr, eye = render_guide_rays(scene, spp=4, seed=3)
+                out[f"{name}/supersample"] = Denoiser("guided", filter_direct=False).supersample(gr, eye)
+        print(name, flush=True)
+    return out
+
+
+def compare(a: Path, b: Path) -> int:
+    x, y = torch.load(a), torch.load(b)
+    bad = sorted(k for k in x.keys() & y.keys() if not torch.equal(x[k], y[k]))
+    missing = sorted(x.keys() ^ y.keys())
+    for k in bad:
+        d = (x[k].double() - y[k].double()).abs().max().item()
+        print(f"differs: {k} (max abs diff {d:.3g})")
+    for k in missing:
+        print(f"in one only: {k}")
+    print(f"{len(x.keys() & y.keys()) - len(bad)} of {len(x.keys() | y.keys())} cases bit-identical")
+    return 1 if bad or missing else 0
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, default=Path("out/capture.pt"))
+    ap.add_argument("--size", type=int, default=96)
+    ap.add_argument("--compare", nargs=2, type=Path, default=None)
+    args = ap.parse_args()
+    if args.compare:
+        sys.exit(compare(*args.compare))
+    torch.set_num_threads(2)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    torch.save(capture(args.size), args.out)
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()

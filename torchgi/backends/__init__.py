@@ -1,0 +1,41 @@
+"""Back ends: every kernel of torchgi chosen in one place.
+
+An op (box, guided, atrous, importance, allocate) is described by a small dataclass in one
+convention (:class:`BoxOp`, :class:`GuidedOp`, :class:`ATrousOp`, :class:`ImportanceOp`,
+:class:`AllocateOp`); :func:`run` hands it to the first back end that supports it, in the
+order ``c`` (compiled CPU kernels, :mod:`torchgi.backends.c_kernels`), ``triton`` (CUDA,
+:mod:`torchgi.backends.triton_kernels`), ``torch`` (the reference: autograd, tracing, ONNX
+export, float64; :mod:`torchgi.backends.torch_code`). :func:`use` restricts the choice inside
+a block (context-local), :func:`status` says what each back end can do here and which one ran
+each op last, and why the others did not. ``TORCHGI_NATIVE=0`` in the environment switches
+the compiled back ends off for the process.
+
+Example:
+    >>> import torch
+    >>> from torchgi import backends
+    >>> from torchgi.filters import box
+    >>> with backends.use("torch"):
+    ...     _ = box(torch.rand(1, 1, 8, 8), 2)
+    >>> backends.status()["last"]["box"]["ran"]
+    'torch'
+"""
+
+from torchgi.backends.base import (
+    NAMES,
+    ORDER,
+    AllocateOp,
+    ATrousOp,
+    BoxOp,
+    GuidedOp,
+    ImportanceOp,
+    enabled,
+    run,
+    select,
+    status,
+    use,
+)
+
+__all__ = [
+    "NAMES", "ORDER", "ATrousOp", "AllocateOp", "BoxOp", "GuidedOp", "ImportanceOp", "enabled", "run", "select",
+    "status", "use",
+]

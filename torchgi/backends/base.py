@@ -1,0 +1,294 @@
+"""The seam between the filters and their implementations: one descriptor per op, one
+:func:`select`, one switch (:func:`use`).
+
+An op's descriptor holds its tensors and parameters in one convention, already validated by
+the public function that built it (shapes, devices, dtypes, ranges): back ends only decide
+whether they *support* a call and compute it. Each back end is a module with ``NAME``,
+``supports(op, desc) -> str | None`` (None: supported; else the reason it is not) and one
+function per op taking the descriptor. :func:`select` walks :data:`ORDER` and takes the first
+back end allowed by :func:`use` that supports the call; the torch code supports every call, so
+it is the last resort. Modelled on OIDN's device/engine split: the filter is the same object
+whatever runs it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import contextvars
+import importlib
+import os
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from types import ModuleType
+from typing import Any
+
+import torch
+
+from torchgi.core.check import is_tracing
+from torchgi.core.errors import OptionError
+
+__all__ = [
+    "NAMES", "ORDER", "ATrousOp", "AllocateOp", "BoxOp", "GuidedOp", "ImportanceOp", "blur3", "colour_scale", "eager",
+    "enabled", "iterate_levels", "run", "select", "status", "use",
+]
+
+NAMES = ("torch", "c", "triton")
+ORDER = ("c", "triton", "torch")  # tried first to last; CPU and CUDA calls never both fit c and triton
+_MODULES = {"torch": "torchgi.backends.torch_code", "c": "torchgi.backends.c_kernels",
+            "triton": "torchgi.backends.triton_kernels"}
+_COMPILED = frozenset({"c", "triton"})
+# TORCHGI_NATIVE=0 switches both compiled back ends off for the whole process
+_ENV_OFF = os.environ.get("TORCHGI_NATIVE", "1") == "0"
+_allowed: contextvars.ContextVar[frozenset[str]] = contextvars.ContextVar("torchgi_backends", default=frozenset(NAMES))
+_last: dict[str, tuple[str, dict[str, str]]] = {}
+_loaded: dict[str, ModuleType] = {}
+
+
+@dataclass(eq=False, slots=True)
+class BoxOp:
+    """Count-normalised box means over ``(2r+1)²`` windows of ``x (B,C,H,W)`` (float32/64, not empty)."""
+
+    x: torch.Tensor
+    radius: int
+
+    def tensors(self) -> tuple[torch.Tensor | None, ...]:
+        return (self.x,)
+
+
+@dataclass(eq=False, slots=True)
+class GuidedOp:
+    """The guided filter of ``src (B,Cs,H,W)`` by ``guide (B,n,H,W)`` (n <= 4, same float dtype),
+    both centred inside by ``mean_src`` / ``mean_guide`` ``(B,C,1,1)``; ``eps (B,n,1,1)`` >= 0.
+    Returns ``(B,Cs,H,W)`` (``mean_src`` added back) or, with ``coefficients_only``, the
+    box-filtered coefficients ``(B,n+1,Cs,H,W)`` (``a_0..a_{n-1}, b``). ``workspace`` keeps a
+    back end's buffers between calls of one size (the :class:`~torchgi.filters.Guided` module's)."""
+
+    guide: torch.Tensor
+    src: torch.Tensor
+    mean_guide: torch.Tensor
+    mean_src: torch.Tensor
+    radius: int
+    eps: torch.Tensor
+    coefficients_only: bool = False
+    workspace: dict | None = None
+
+    def tensors(self) -> tuple[torch.Tensor | None, ...]:
+        return (self.guide, self.src, self.eps)
+
+
+@dataclass(eq=False, slots=True)
+class ATrousOp:
+    """``iterations`` À-Trous levels of ``color (B,C,H,W)`` (holes of sub-sampling already 0).
+
+    ``normal`` / ``position`` ``(B,3,H,W)`` raw guides (None: no such weight, as when their
+    inverse σ is None); ``variance (B,C,H,W)`` propagated along (SVGF) or None; ``valid
+    (B,1,H,W)`` bool sources of sub-sampling or None; ``inv_color (B,1,1,1)`` is ``1/σ_rt``, or
+    ``1/σ²`` with a variance; ``inv_normal`` / ``inv_position`` ``(B,1,1,1)`` or None. The
+    colour weight is on from level ``fill`` when ``color_weight``. Returns the filtered colour
+    and, with ``return_details``, the detail coefficients of each level."""
+
+    color: torch.Tensor
+    normal: torch.Tensor | None
+    position: torch.Tensor | None
+    variance: torch.Tensor | None
+    valid: torch.Tensor | None
+    inv_color: torch.Tensor
+    inv_normal: torch.Tensor | None
+    inv_position: torch.Tensor | None
+    iterations: int
+    fill: int = 0
+    color_weight: bool = True
+    return_details: bool = False
+    fused: bool = False
+
+    def tensors(self) -> tuple[torch.Tensor | None, ...]:
+        return (self.color, self.normal, self.position, self.variance, self.inv_color, self.inv_normal,
+                self.inv_position)
+
+
+@dataclass(eq=False, slots=True)
+class ImportanceOp:
+    """Sampling importance ``(B,1,H,W)`` from ``normal`` / ``position`` ``(B,3,H,W)`` (same float
+    dtype), σ's as floats > 0, ``hit (B,1,H,W)`` bool or None, a ``window x window``
+    neighbourhood (offsets ``-(w//2) .. (w-1)//2``)."""
+
+    normal: torch.Tensor
+    position: torch.Tensor
+    sigma_normal: float
+    sigma_position: float
+    hit: torch.Tensor | None
+    window: int
+    fused: bool = False
+
+    def tensors(self) -> tuple[torch.Tensor | None, ...]:
+        return (self.normal, self.position)
+
+
+@dataclass(eq=False, slots=True)
+class AllocateOp:
+    """Integer samples per pixel ``(B,N)`` int64 from the importance ``q (B,N)`` (finite, >= 0),
+    ``eligible (B,N)`` bool or None (every pixel), ``n_eligible (B,)`` int64, ``budget`` samples
+    per image (at least ``min_samples`` times the eligible pixels)."""
+
+    q: torch.Tensor
+    eligible: torch.Tensor | None
+    n_eligible: torch.Tensor
+    budget: int
+    min_samples: int
+
+    def tensors(self) -> tuple[torch.Tensor | None, ...]:
+        return (self.q,)
+
+
+Op = BoxOp | GuidedOp | ATrousOp | ImportanceOp | AllocateOp
+_OPS = {BoxOp: "box", GuidedOp: "guided", ATrousOp: "atrous", ImportanceOp: "importance", AllocateOp: "allocate"}
+
+
+def eager(desc: Op) -> str | None:
+    """Why a compiled kernel cannot take ``desc`` (traced, or autograd through one of its
+    tensors), or None: kernels compute values, not graphs."""
+    if is_tracing():
+        return "tracing or exporting: the torch code is the traced graph"
+    if torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in desc.tensors()):
+        return "autograd: an input requires grad"
+    return None
+
+
+def _module(name: str) -> ModuleType:
+    mod = _loaded.get(name)
+    if mod is None:
+        mod = _loaded[name] = importlib.import_module(_MODULES[name])
+    return mod
+
+
+def select(desc: Op) -> tuple[str, Callable[[Any], Any]]:
+    """The first back end of :data:`ORDER` allowed here that supports ``desc``: its name and the
+    function computing the op; :func:`status` records why the ones before it did not.
+
+    Example:
+        >>> x = torch.rand(1, 1, 4, 4, dtype=torch.float64)
+        >>> select(BoxOp(x, 1))[0]   # float64: only the torch code takes it
+        'torch'
+    """
+    op = _OPS[type(desc)]
+    allowed = _allowed.get()
+    skipped: dict[str, str] = {}
+    for name in ORDER:
+        if name not in allowed:
+            skipped[name] = "switched off by torchgi.backends.use(...)"
+            continue
+        if name in _COMPILED and _ENV_OFF:
+            skipped[name] = "switched off by TORCHGI_NATIVE=0"
+            continue
+        mod = _module(name)
+        why = mod.supports(op, desc)
+        if why is None:
+            _last[op] = (name, skipped)
+            return name, getattr(mod, op)
+        skipped[name] = why
+    raise AssertionError(f"no back end for {op}: {skipped}")  # the torch code takes every call
+
+
+def run(desc: Op) -> Any:
+    """Compute ``desc`` with the back end :func:`select` picks.
+
+    Example:
+        >>> run(BoxOp(torch.arange(3.0).view(1, 1, 1, 3), 1))
+        tensor([[[[0.5000, 1.0000, 1.5000]]]])
+    """
+    return select(desc)[1](desc)
+
+
+@contextlib.contextmanager
+def use(*names: str) -> Iterator[None]:
+    """Restrict the back ends to ``names`` inside this block (this thread / task only: a
+    context variable); the torch code stays allowed, as it takes every call.
+    ``use("torch")`` runs the torch code alone (benchmarks and tests compare the two).
+
+    Example:
+        >>> with use("torch"):
+        ...     select(BoxOp(torch.rand(1, 1, 4, 4), 1))[0]
+        'torch'
+    """
+    for name in names:
+        if name not in NAMES:
+            raise OptionError(f"backends.use: unknown back end {name!r}; known: {', '.join(NAMES)}")
+    token = _allowed.set(frozenset(names) | {"torch"})
+    try:
+        yield
+    finally:
+        _allowed.reset(token)
+
+
+def enabled(name: str) -> bool:
+    """Whether back end ``name`` may run here (not switched off by :func:`use` or the environment).
+
+    Example:
+        >>> with use("torch"):
+        ...     enabled("c")
+        False
+    """
+    return name in _allowed.get() and not (name in _COMPILED and _ENV_OFF)
+
+
+def status() -> dict[str, Any]:
+    """What each back end can do here and, per op, which one ran last and why the others did
+    not (for logs and benchmark metadata); builds the C kernels if no call has yet.
+
+    Returns:
+        ``{"c": str, "triton": str, "torch": str, "last": {op: {"ran": name, "skipped": {name: reason}}}}``.
+
+    Example:
+        >>> s = status()
+        >>> sorted(s) == ["c", "last", "torch", "triton"]
+        True
+    """
+    out: dict[str, Any] = {}
+    for name in NAMES:
+        if name in _COMPILED and _ENV_OFF:
+            out[name] = "switched off by TORCHGI_NATIVE=0"
+        elif name not in _allowed.get():
+            out[name] = "switched off by torchgi.backends.use(...)"
+        else:
+            out[name] = _module(name).describe()
+    out["last"] = {op: {"ran": ran, "skipped": dict(skipped)} for op, (ran, skipped) in sorted(_last.items())}
+    return out
+
+
+LevelFn = Callable[[torch.Tensor, torch.Tensor | None, torch.Tensor | None, int],
+                   tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]]
+
+
+def iterate_levels(desc: ATrousOp, level: LevelFn) -> tuple[torch.Tensor, list[torch.Tensor]]:
+    """The À-Trous level loop every back end shares: ``level(c, var, valid, i)`` filters level
+    ``i`` (step ``2^i``) and returns the colour, the propagated variance and the weight sum;
+    in-painted pixels (weight > 0) become sources. Returns the colour and the details."""
+    c, var, valid = desc.color, desc.variance, desc.valid
+    details = []
+    for i in range(desc.iterations):
+        c_next, var, den = level(c, var, valid, i)
+        if desc.return_details:
+            details.append(c_next - c)
+        c = c_next
+        if valid is not None:
+            valid = den > 0
+    return c, details
+
+
+def blur3(v: torch.Tensor) -> torch.Tensor:
+    """3x3 binomial blur ([1,2,1]/4 ⊗ [1,2,1]/4) with edge replication, by shifted views."""
+    p = torch.nn.functional.pad(v, (1, 1, 1, 1), mode="replicate")
+    H, W = v.shape[-2], v.shape[-1]
+    rows = 0.25 * p[..., :, 0:W] + 0.5 * p[..., :, 1 : W + 1] + 0.25 * p[..., :, 2 : W + 2]
+    return 0.25 * rows[..., 0:H, :] + 0.5 * rows[..., 1 : H + 1, :] + 0.25 * rows[..., 2 : H + 2, :]
+
+
+def colour_scale(desc: ATrousOp, i: int, var: torch.Tensor | None, factor_only: bool = False) -> torch.Tensor | float | None:
+    """Level ``i``'s colour-weight scale: None (off), ``1 / (σ² · blur(Var))`` summed over channels
+    ``(B,1,H,W)`` with a variance, else ``2^i / σ_rt`` ``(B,1,1,1)`` — or the factor ``2^i`` alone
+    (``factor_only``: a kernel that multiplies by ``1/σ_rt`` itself)."""
+    if not desc.color_weight or i < desc.fill:
+        return None
+    if var is not None:
+        return desc.inv_color / (blur3(var).sum(1, keepdim=True) + 1e-12)
+    return 2.0**i if factor_only else desc.inv_color * (2.0**i)

@@ -1,0 +1,445 @@
+"""The C back end: compiled CPU kernels of one À-Trous level, the guided filter (and the box
+filter it is built from), the sampling importance map and the sample allocation, float32.
+
+The torch code walks the image once per element-wise op; these kernels (``_native.c``) do a
+level, or a guided-filter pass, in one walk over each band of rows, with the channel loops
+unrolled and the pixel loop vectorised. Same maths as the torch code (the guided box sums
+accumulate in double, so they are closer to a float64 oracle). They take eager float32 CPU
+calls without autograd or tracing (:func:`supports` says why not otherwise).
+
+The source is compiled on first use with the system C compiler (``$CC``, else ``cc`` or
+``gcc``; ``-O3 -march=native``, a few seconds) into ``$TORCHGI_CACHE`` (default
+``~/.cache/torchgi``) and loaded with ctypes; later processes load the cached library. Without
+a compiler :func:`library` returns None and :func:`describe` says why. Each call runs one band
+of rows per thread (``torch.get_num_threads()`` threads) on OpenMP threads where the compiler
+has ``-fopenmp`` — the same libgomp, and so the same worker threads, as torch (a separate pool
+competes with torch's spinning workers; docs/calibration.md) — else on the calling thread.
+
+Example:
+    >>> from torchgi.backends import c_kernels
+    >>> isinstance(c_kernels.describe(), str)
+    True
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+import hashlib
+import os
+import platform
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+from pathlib import Path
+
+import torch
+
+from torchgi.backends.base import ATrousOp, AllocateOp, BoxOp, GuidedOp, ImportanceOp, colour_scale, eager, \
+    iterate_levels
+from torchgi.core.dtypes import variance_rounding
+from torchgi.filters.taps import kernel_5x5
+
+__all__ = ["NAME", "describe", "library", "padded", "supports"]
+
+NAME = "c"
+
+_SOURCE = Path(__file__).with_name("_native.c")
+_FLAGS = ["-O3", "-march=native", "-fno-math-errno", "-fPIC", "-shared"]
+# OpenMP first (threads shared with torch's libgomp, see _native.c), else the bands run serially
+_THREADING = (["-fopenmp"], [])
+_lock = threading.Lock()
+_lib: ctypes.CDLL | None = None
+_status = "not built yet"
+_tried = False
+
+# pixels per band below which a call runs on fewer threads (a thread hand-off costs more than
+# the band's work; docs/calibration.md)
+_MIN_BAND_PIXELS = 1 << 15
+
+_P = ctypes.c_void_p
+_I = ctypes.c_int
+_F = ctypes.c_float
+_L = ctypes.c_longlong
+_BANDS = [_I, _P, _L]  # every entry point ends with: threads, scratch, scratch bytes per thread
+_SIGNATURES = {
+    "torchgi_native_version": ([], _I),
+    "torchgi_openmp": ([], _I),
+    "torchgi_exp_neg": ([_F], _F),
+    "torchgi_atrous_level": ([_P, _I, _P, _I, _P, _P, _P, _P, _I, _I, _I, _I, _L, _I, _P, _P, _P, _P, *_BANDS], None),
+    "torchgi_guided_coefficients": ([_P, _P, _I, _P, _P, _I, _I, _I, _I, _P, _F, _P, *_BANDS], None),
+    "torchgi_guided_apply": ([_P, _I, _I, _P, _P, _P, _I, _I, _I, _P, *_BANDS], None),
+    "torchgi_importance": ([_P, _P, _F, _F, _P, _I, _I, _I, _I, _P, *_BANDS], None),
+    "torchgi_allocate": ([_P, _I, _P, _L, _L, _L, _I, _P, _P, _P, _I], _I),
+}
+# the library's interface version, written once: in the C source
+_VERSION = int(re.search(r"torchgi_native_version\(void\) \{ return (\d+); \}", _SOURCE.read_text()).group(1))
+
+
+def _cache_dir() -> Path:
+    root = os.environ.get("TORCHGI_CACHE") or os.path.join(os.path.expanduser("~"), ".cache", "torchgi")
+    return Path(root)
+
+
+def _compiler() -> str | None:
+    for name in (os.environ.get("CC"), "cc", "gcc"):
+        if name and shutil.which(name):
+            return shutil.which(name)
+    return None
+
+
+def _build() -> ctypes.CDLL:
+    cc = _compiler()
+    if cc is None:
+        raise RuntimeError("no C compiler found ($CC, cc, gcc)")
+    errors = []
+    for threading_flags in _THREADING:
+        try:
+            return _build_with(cc, [*_FLAGS, *threading_flags])
+        except RuntimeError as err:
+            errors.append(str(err))
+    raise RuntimeError("; ".join(errors))
+
+
+def _build_with(cc: str, flags: list[str]) -> ctypes.CDLL:
+    source = _SOURCE.read_bytes()
+    cpu = ""
+    if os.path.exists("/proc/cpuinfo"):  # -march=native: one library per CPU model
+        cpu = next((ln for ln in Path("/proc/cpuinfo").read_text().splitlines() if ln.startswith("flags")), "")
+    key = hashlib.sha256(b"\0".join([source, " ".join(flags).encode(), cc.encode(), cpu.encode(),
+                                     platform.machine().encode(), sys.platform.encode()])).hexdigest()[:16]
+    out = _cache_dir() / f"native-{key}.so"
+    if not out.exists():
+        out.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(suffix=".so", dir=out.parent)
+        os.close(fd)
+        try:
+            proc = subprocess.run([cc, *flags, str(_SOURCE), "-o", tmp, "-lm"], capture_output=True, text=True,
+                                  check=False)
+            if proc.returncode != 0:
+                raise RuntimeError(f"{cc} {' '.join(flags)} failed: {proc.stderr.strip()[-500:]}")
+            os.replace(tmp, out)  # atomic: concurrent builders each write their own temporary file
+        finally:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+    try:
+        lib = ctypes.CDLL(str(out))
+    except OSError as err:  # e.g. an OpenMP runtime that cannot be loaded
+        raise RuntimeError(f"{out}: {err}") from err
+    for name, (args, res) in _SIGNATURES.items():
+        fn = getattr(lib, name)
+        fn.argtypes, fn.restype = args, res
+    if lib.torchgi_native_version() != _VERSION:
+        raise RuntimeError(f"{out}: unexpected version")
+    return lib
+
+
+def library() -> ctypes.CDLL | None:
+    """The compiled kernels, built on first use; None when disabled or when no build works.
+
+    Example:
+        >>> lib = library()
+        >>> lib is None or abs(lib.torchgi_exp_neg(1.0) - 0.36787944) < 1e-7
+        True
+    """
+    global _lib, _status, _tried
+    if not _tried:
+        with _lock:
+            if not _tried:
+                try:
+                    _lib = _build()
+                    threads = "OpenMP threads" if _lib.torchgi_openmp() else "one thread (no OpenMP)"
+                    _status = f"compiled kernels in use, {threads} ({_lib._name})"
+                except Exception as err:  # noqa: BLE001 - no compiler, a failed build, an unloadable library
+                    _lib, _status = None, f"compiled kernels unavailable, torch code in use: {err}"
+                _tried = True
+    return _lib
+
+
+def describe() -> str:
+    """Whether the compiled kernels are built, and why not (for :func:`torchgi.backends.status`);
+    builds them first if no call has yet.
+
+    Example:
+        >>> describe().startswith(("compiled kernels in use", "compiled kernels unavailable"))
+        True
+    """
+    library()
+    return _status
+
+
+_WHY_NOT = {"device": "the C kernels take CPU tensors", "dtype": "the C kernels take float32",
+            "empty": "an empty tensor: nothing to compute"}
+
+
+def supports(op: str, desc: BoxOp | GuidedOp | ATrousOp | ImportanceOp | AllocateOp) -> str | None:
+    """None when the kernels take ``desc``: eager float32 CPU tensors (float32/float64
+    importance for the allocation, fewer than 2^31 pixels per image), a built library; else why not."""
+    ts = [t for t in desc.tensors() if t is not None]
+    if any(t.device.type != "cpu" for t in ts):
+        return _WHY_NOT["device"]
+    if op == "allocate":
+        if desc.q.dtype not in (torch.float32, torch.float64) or desc.q.shape[1] >= 2**31:
+            return "the C allocation takes float32/float64 with fewer than 2^31 pixels per image"
+    else:
+        if any(t.dtype != torch.float32 for t in ts):
+            return _WHY_NOT["dtype"]
+        why = eager(desc)
+        if why is not None:
+            return why
+        if op == "box" and desc.x.numel() == 0:
+            return _WHY_NOT["empty"]
+    return None if library() is not None else _status
+
+
+def _threads(parts: int, pixels: int) -> int:
+    """Threads for work split ``parts`` ways over ``pixels``: torch's thread count, at most
+    one per part and per ``_MIN_BAND_PIXELS`` pixels, at least one."""
+    return max(1, min(torch.get_num_threads(), parts, pixels // _MIN_BAND_PIXELS))
+
+
+def _run(fn, H: int, W: int, *args) -> None:
+    """``fn(*args, threads, scratch, scratch_bytes)``: the C side runs rows ``[0, H)`` in one band
+    per thread; ``args[-1]`` is the number of float32 scratch values one band needs (0: none)."""
+    *args, scratch = args
+    threads = _threads(H, H * W)
+    bufs = torch.empty(threads * scratch, dtype=torch.float32) if scratch else None  # held until the call returns
+    fn(*args, threads, None if bufs is None else bufs.data_ptr(), 4 * scratch)
+
+
+def _ptr(t: torch.Tensor | None) -> int | None:
+    return None if t is None else t.data_ptr()
+
+
+_PAD = 16  # floats (64 bytes) of padding after each row and each plane of a padded tensor
+
+
+def _layout(H: int, W: int) -> tuple[int, int]:
+    """Row and plane strides (floats) of :func:`padded`."""
+    return W + _PAD, H * (W + _PAD) + _PAD
+
+
+def padded(B: int, C: int, H: int, W: int) -> torch.Tensor:
+    """An empty float32 ``(B, C, H, W)`` view whose rows are ``W + 16`` and planes ``H (W + 16)
+    + 16`` floats apart. With power-of-two widths, plain rows and planes lie a multiple of 4 KB
+    apart and the many row streams of an À-Trous tap fall into the same L1 sets (measured at
+    1024x768 with 9 guide and colour planes: 55 ns per pixel and level, 31 at width 1000).
+
+    Example:
+        >>> padded(1, 3, 4, 5).stride()   # rows 5 + 16 apart, planes 4 * 21 + 16
+        (300, 100, 21, 1)
+    """
+    rs, ps = _layout(H, W)
+    return torch.empty(max(B * C * ps, 1), dtype=torch.float32).as_strided((B, C, H, W), (C * ps, ps, rs, 1))
+
+
+def _as_padded(t: torch.Tensor) -> torch.Tensor:
+    """``t`` if it already has :func:`padded`'s layout, else a padded copy."""
+    B, C, H, W = t.shape
+    rs, ps = _layout(H, W)
+    if t.dtype == torch.float32 and t.stride() == (C * ps, ps, rs, 1):
+        return t
+    out = padded(B, C, H, W)
+    out.copy_(t)
+    return out
+
+
+@functools.cache
+def _taps() -> torch.Tensor:
+    """The 25 tap weights, float32."""
+    return torch.tensor([h for _, _, h in kernel_5x5()], dtype=torch.float32)
+
+
+def empty_planes(like: torch.Tensor, C: int) -> torch.Tensor:
+    """A :func:`padded` ``(B, C, H, W)`` buffer for the planes of ``like`` (the feature planes
+    :func:`atrous_level` reads)."""
+    B, _, H, W = like.shape
+    return padded(B, C, H, W)
+
+
+def _atrous_level(
+    c: torch.Tensor, feat: torch.Tensor | None, feat_scale: list[float], var: torch.Tensor | None,
+    valid: torch.Tensor | None, step: int, colour_scale: torch.Tensor | None,
+) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
+    """One À-Trous level with the arguments of ``atrous._iteration``, except that ``feat`` holds
+    groups of 3 planes whose squared distances are multiplied by ``feat_scale`` (one per group;
+    the level's ``1 / step²`` for normals). Returns the filtered colour ``(B,C,H,W)`` and the
+    propagated variance, both in :func:`padded` layout (pass them on as they are), and the
+    weight sum ``(B,1,H,W)``."""
+    taps = _taps()
+    lib = library()
+    B, C, H, W = c.shape
+    F = 0 if feat is None else feat.shape[1]
+    if F % 3 or len(feat_scale) != F // 3:
+        raise ValueError(f"feat: expected groups of 3 planes with one scale each, got {F} planes, {feat_scale}")
+    fs = torch.tensor(list(feat_scale) or [1.0], dtype=torch.float32)
+    rs, ps = _layout(H, W)
+    c = _as_padded(c)
+    feat = None if feat is None else _as_padded(feat)
+    var = None if var is None else _as_padded(var)
+    valid = None if valid is None else _as_padded(valid.to(torch.float32).expand(B, 1, H, W))
+    plane = colour_scale is not None and colour_scale.shape[-2:] == (H, W)
+    cs = None if colour_scale is None else _as_padded(colour_scale.expand(B, 1, H, W)) if plane else \
+        colour_scale.reshape(B).contiguous()
+    out = padded(B, C, H, W)
+    var_out = None if var is None else padded(B, C, H, W)
+    den = torch.empty(B, 1, H, W, dtype=torch.float32)
+    for b in range(B):
+        cs_b = None if cs is None else (cs[b] if plane else cs[b : b + 1])
+        _run(lib.torchgi_atrous_level, H, W, c[b].data_ptr(), C, _ptr(None if feat is None else feat[b]), F,
+             fs.data_ptr(), _ptr(None if var is None else var[b]), _ptr(None if valid is None else valid[b]), _ptr(cs_b),
+             int(plane), H, W, rs, ps, step, taps.data_ptr(), out[b].data_ptr(),
+             _ptr(None if var_out is None else var_out[b]), den[b].data_ptr(),
+             (2 * C + 1) * (W + _PAD))
+    return out, var_out, den
+
+
+def _importance(normal: torch.Tensor, position: torch.Tensor, sigma_normal: float, sigma_position: float,
+               hit: torch.Tensor | None, window: int) -> torch.Tensor:
+    """Sampling importance ``(B,1,H,W)`` (``sampling.importance._core``) from float32 ``normal``
+    and ``position`` ``(B,3,H,W)`` with the weights ``exp(-|Δn|² / σ_n - |Δx|² / σ_x)``, the
+    bool ``hit (B,1,H,W)`` or None, over a ``window x window`` neighbourhood (offsets
+    ``-(w//2) .. (w-1)//2``). Reads the inputs as they are: nothing image-sized is allocated
+    but the output."""
+    lib = library()
+    B, _, H, W = normal.shape
+    normal, position = normal.contiguous(), position.contiguous()
+    hit = None if hit is None else hit.to(torch.float32).contiguous()
+    out = torch.empty(B, 1, H, W, dtype=torch.float32)
+    for b in range(B):
+        _run(lib.torchgi_importance, H, W, normal[b].data_ptr(), position[b].data_ptr(), 1.0 / sigma_normal,
+             1.0 / sigma_position, _ptr(None if hit is None else hit[b]), H, W, -(window // 2), (window - 1) // 2,
+             out[b].data_ptr(), 0)
+    return out
+
+
+def _allocate(q: torch.Tensor, eligible: torch.Tensor | None, n_eligible: list[int], spare: list[int],
+             min_samples: int) -> torch.Tensor:
+    """Integer samples per pixel ``(B, N)`` int64 (``sampling.allocate``) from the importance
+    ``q (B, N)`` (float32 or float64, >= 0), the bool ``eligible (B, N)`` or None, each image's
+    number of eligible pixels and spare samples (budget minus the minimum), and ``min_samples``."""
+    lib = library()
+    B, N = q.shape
+    if N >= 2**31 or q.dtype not in (torch.float32, torch.float64):
+        raise ValueError(f"q: expected float32/float64 with at most 2^31 - 1 pixels per image, got {q.dtype}, {N}")
+    q = q.contiguous()
+    eligible = None if eligible is None else eligible.to(torch.bool).contiguous()
+    threads = _threads(N, N)
+    counts = torch.empty(B, N, dtype=torch.int64)
+    bucket, hist = torch.empty(N, dtype=torch.int16), torch.empty(threads * 65536, dtype=torch.int32)
+    for b in range(B):
+        if lib.torchgi_allocate(q[b].data_ptr(), int(q.dtype == torch.float64),
+                                _ptr(None if eligible is None else eligible[b]), N, n_eligible[b], spare[b], min_samples,
+                                counts[b].data_ptr(), bucket.data_ptr(), hist.data_ptr(), threads):
+            raise MemoryError("the C allocation kernel: out of memory")
+    return counts
+
+
+def _box_scratch(K: int, W: int) -> int:
+    """Floats of one band's scratch of the box passes in ``_native.c`` over ``K`` planes of width
+    ``W``: doubles for the column sums (rows ``W + 8``), 1 / window columns (``W``) and a row's
+    prefix sums (``W + 8``), then floats for the box means (rows ``W + 16``)."""
+    return 2 * (K * (W + 8) + 2 * W + 8) + K * (W + 16)
+
+
+def _box(x: torch.Tensor, r: int) -> torch.Tensor:
+    """Count-normalised box means over ``(2r+1)²`` windows of float32 ``x (B,C,H,W)`` (the
+    coefficient pass of the guided filter without the apply)."""
+    lib = library()
+    B, C, H, W = x.shape
+    x = x.contiguous()
+    out = torch.empty_like(x)
+    for b in range(B):
+        _run(lib.torchgi_guided_apply, H, W, x[b].data_ptr(), 0, C, None, None, None, H, W, r, out[b].data_ptr(),
+             _box_scratch(C, W))
+    return out
+
+
+def _guided(
+    I: torch.Tensor, p: torch.Tensor, mean_I: torch.Tensor, mean_p: torch.Tensor, offset: torch.Tensor, r: int,
+    eps: torch.Tensor, coefficients_only: bool = False, holder: dict | None = None,
+) -> torch.Tensor:
+    """Guided filter of ``p (B,Cs,H,W)`` by ``I (B,n,H,W)`` (n <= 4), both centred inside by
+    ``mean_p``, ``mean_I`` (``(B,C,1,1)``), ``eps (B,n,1,1)`` (>= 0), radius ``r``;
+    ``offset (B,Cs,1,1)`` is added to the output. Returns ``(B,Cs,H,W)``, or the box-filtered
+    coefficients ``(B,n+1,Cs,H,W)`` (``a_0..a_{n-1}, b``). ``holder`` keeps the coefficient
+    planes between calls of one size (no page faults)."""
+    lib = library()
+    B, n, H, W = I.shape
+    Cs = p.shape[1]
+    I, p = I.contiguous(), p.contiguous()
+    K = n + Cs + n * (n + 1) // 2 + n * Cs
+    Q = (n + 1) * Cs
+    key = (n, Cs, H, W)
+    if holder is not None and holder.get("native_key") == key:
+        coef = holder["native_coef"]
+    else:
+        coef = torch.empty(Q, H, W, dtype=torch.float32)
+        if holder is not None:
+            holder["native_key"], holder["native_coef"] = key, coef
+    out = torch.empty((B, n + 1, Cs, H, W) if coefficients_only else (B, Cs, H, W), dtype=torch.float32)
+    eps = eps.reshape(B, n).to(torch.float32).clamp_min(torch.finfo(torch.float32).tiny).contiguous()
+    offset = offset.reshape(B, Cs).to(torch.float32).contiguous()
+    mean_I = mean_I.reshape(B, n).to(torch.float32).contiguous()
+    mean_p = mean_p.reshape(B, Cs).to(torch.float32).contiguous()
+    unit = variance_rounding(torch.float32)
+    for b in range(B):
+        _run(lib.torchgi_guided_coefficients, H, W, I[b].data_ptr(), mean_I[b].data_ptr(), n, p[b].data_ptr(),
+             mean_p[b].data_ptr(), Cs, H, W, r,
+             eps[b].data_ptr(), unit, coef.data_ptr(),
+             _box_scratch(K, W))
+        _run(lib.torchgi_guided_apply, H, W, coef.data_ptr(), n, Cs, None if coefficients_only else I[b].data_ptr(),
+             mean_I[b].data_ptr(), offset[b].data_ptr(), H, W, r, out[b].data_ptr(),
+             _box_scratch(Q, W))
+    return out
+
+
+# ---------------------------------------------------------------------------------------- ops
+def box(desc: BoxOp) -> torch.Tensor:
+    """:class:`~torchgi.backends.base.BoxOp` by the guided kernel's box passes."""
+    return _box(desc.x, desc.radius)
+
+
+def guided(desc: GuidedOp) -> torch.Tensor:
+    """:class:`~torchgi.backends.base.GuidedOp` in two kernels (coefficients, apply)."""
+    return _guided(desc.guide, desc.src, desc.mean_guide, desc.mean_src, desc.mean_src, desc.radius, desc.eps,
+                   coefficients_only=desc.coefficients_only, holder=desc.workspace)
+
+
+def atrous(desc: ATrousOp) -> tuple[torch.Tensor, list[torch.Tensor]]:
+    """:class:`~torchgi.backends.base.ATrousOp`, a level per kernel call: the guides divided by
+    the square roots of their σ's once, into :func:`padded` planes; the kernel scales the normals'
+    distances by ``1 / step²``."""
+    x = desc.position
+    if x is not None:
+        x = x - x.mean(dim=(2, 3), keepdim=True)  # offsets cancel in differences; keep them small
+    guides = ([(desc.normal, desc.inv_normal.sqrt(), True)] if desc.inv_normal is not None else []) + \
+        ([(x, desc.inv_position.sqrt(), False)] if desc.inv_position is not None else [])
+    feat = None
+    if guides:
+        feat = empty_planes(desc.color, 3 * len(guides))
+        for k, (g, s, _) in enumerate(guides):
+            torch.mul(g, s, out=feat[:, 3 * k : 3 * k + 3])
+    def level(c, var, valid, i):
+        step = 2**i
+        scale = colour_scale(desc, i, var)
+        return _atrous_level(c, feat, [1.0 / step**2 if per_step else 1.0 for _, _, per_step in guides], var, valid,
+                             step, scale)
+
+    return iterate_levels(desc, level)
+
+
+def importance(desc: ImportanceOp) -> torch.Tensor:
+    """:class:`~torchgi.backends.base.ImportanceOp` straight from the normal / position planes."""
+    return _importance(desc.normal, desc.position, desc.sigma_normal, desc.sigma_position, desc.hit, desc.window)
+
+
+def allocate(desc: AllocateOp) -> torch.Tensor:
+    """:class:`~torchgi.backends.base.AllocateOp`: the same double arithmetic, the remainders
+    ranked by 2^16 buckets, then a sort of the bucket holding the cut."""
+    n = desc.n_eligible
+    return _allocate(desc.q, desc.eligible, n.tolist(), (desc.budget - desc.min_samples * n).tolist(),
+                     desc.min_samples)
