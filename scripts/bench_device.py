@@ -28,7 +28,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from benchmark_utils import SIZES, markdown_table, metadata, time_ms, write_results
 
-from torchgi.filters import Guided, atrous, gpu, guided, native
+from torchgi import backends
+from torchgi.backends import triton_kernels as gpu
+from torchgi.filters import Guided, atrous, guided
 from torchgi.sampling import allocate, importance_map
 
 PAPER = {
@@ -52,7 +54,8 @@ def compiled_variants(timed, device: torch.device) -> None:
     measured against the issues' 1 ms target. First calls (compiles) are timed separately."""
     import time
 
-    from torchgi.filters.guided import _check_eps, _guided_reference
+    from torchgi.backends.torch_code import _guided_reference
+    from torchgi.filters.guided import _check_eps
 
     H, W = SIZES["1080p"]
     color, normal, position = inputs(H, W, device)
@@ -140,12 +143,12 @@ def graph_replays(timed, device: torch.device) -> None:
 
 
 def apply_knobs(path: str | None) -> dict:
-    """Sets the tile knobs of :mod:`torchgi.filters.gpu` from a ``knobs.json`` of
+    """Sets the tile knobs of :mod:`torchgi.backends.triton_kernels` from a ``knobs.json`` of
     ``sweep_gpu_tiles.py`` (None: nothing); returns them."""
     knobs = json.loads(Path(path).read_text()) if path else {}
     for k, v in knobs.items():
         if not hasattr(gpu, k):
-            raise KeyError(f"{path}: torchgi.filters.gpu has no knob {k}")
+            raise KeyError(f"{path}: torchgi.backends.triton_kernels has no knob {k}")
         setattr(gpu, k, v)
     return knobs
 
@@ -181,7 +184,7 @@ def main() -> None:
             module = Guided(radius=32, eps=0.01).to(device)
             for mode in ("kernel", "torch"):
                 def run(mode=mode, guide=guide, module=module, c=c):
-                    with native.disabled() if mode != "kernel" else contextlib.nullcontext():
+                    with backends.use("torch") if mode != "kernel" else contextlib.nullcontext():
                         return module(c, guide)
 
                 err = float((run() - run("torch")).abs().max()) if mode == "kernel" else None
@@ -194,7 +197,7 @@ def main() -> None:
             for mode in ("kernel", "eager") + (() if args.no_fused else ("fused",)):
                 # kernel: the default call (Triton on CUDA, C on the CPU); eager / fused: the torch code
                 def run(mode=mode, iterations=iterations):
-                    with native.disabled() if mode != "kernel" else contextlib.nullcontext():
+                    with backends.use("torch") if mode != "kernel" else contextlib.nullcontext():
                         return atrous(c, n, x, iterations=iterations, fused=mode == "fused")
 
                 err = float((run() - run("eager")).abs().max()) if mode == "kernel" else None

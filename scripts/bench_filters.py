@@ -6,7 +6,7 @@ and accuracy against a float64 oracle. Writes CSV/JSON/Markdown and a PNG plot.
     python scripts/bench_filters.py --only atrous --out out/bench
 
 Sections: guided (DESIGN §3.2, issue 5) at 1024x768 / 1080p / 4K, guide dims 1/3/4, r = 8..64,
-the compiled kernels (the default on the CPU, ``torchgi.filters.native``) and the torch code
+the compiled kernels (the default on the CPU, ``torchgi.backends``) and the torch code
 side by side, kornia guided_blur(separable=True) at the same window, flatness in r, accuracy
 with offset guides; À-Trous (DESIGN §3.1, issue 4) with the compiled kernel, torch eager and
 ``torch.compile`` (fused), 512² / 1024x768 / 1080p, 1/5/10 iterations, 0-3 weights (the shape
@@ -37,7 +37,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 from benchmark_utils import SIZES, markdown_table, metadata, time_ms, write_results
 
-from torchgi.filters import Guided, atrous, guided, native
+from torchgi import backends
+from torchgi.backends import c_kernels
+from torchgi.filters import Guided, atrous, guided
 
 
 def make_inputs(H: int, W: int, n: int, seed: int = 0, offset: float = 0.0):
@@ -64,7 +66,7 @@ def bench_guided(args, rows: list[dict]) -> None:
         t_fn = time_ms(lambda: guided(p, I, radius=r, eps=0.01), min_run_time=args.min_time)
         t_mod = time_ms(lambda: module(p, I), min_run_time=args.min_time)
         module.release()
-        with native.disabled():
+        with backends.use("torch"):
             t_torch = time_ms(lambda: module(p, I), min_run_time=args.min_time)
         module.release()
         row = {"filter": "guided", "impl": "torchgi", "size": size, "guide_dim": n, "radius": r,
@@ -97,7 +99,7 @@ def accuracy(args, rows: list[dict]) -> None:
         ref = guided_oracle(p, I, 24, 0.01)
         for impl in ("compiled", "torch"):
             module = Guided(radius=24, eps=0.01)
-            with native.disabled() if impl == "torch" else contextlib.nullcontext():
+            with backends.use("torch") if impl == "torch" else contextlib.nullcontext():
                 out = module(p, I)
             negative = None
             if impl == "torch":
@@ -129,7 +131,7 @@ def run_atrous(c, n, x, iterations: int, weights: int, mode: str = "compiled"):
     """``mode``: "compiled" (the default call: the compiled CPU kernel), "eager" (torch code),
     "fused" (torch code under ``torch.compile``)."""
     w = WEIGHTS[weights]
-    with native.disabled() if mode != "compiled" else contextlib.nullcontext():
+    with backends.use("torch") if mode != "compiled" else contextlib.nullcontext():
         return atrous(c, n if w["normal"] else None, x if w["position"] else None, iterations=iterations,
                       color_weight=w["color_weight"], fused=mode == "fused")
 
@@ -275,8 +277,8 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     meta = metadata(args.threads)
     t0 = time.perf_counter()
-    native.library()  # build the C kernels into the empty cache
-    meta.update(native_build_s=time.perf_counter() - t0, native=native.status())
+    c_kernels.library()  # build the C kernels into the empty cache
+    meta.update(native_build_s=time.perf_counter() - t0, native=c_kernels.describe())
     print(meta, flush=True)
     rows: list[dict] = []
     if args.only in (None, "guided"):

@@ -36,7 +36,7 @@ import torchgi
 from torchgi import metrics
 from torchgi.denoise import Denoiser
 from torchgi.filters import atrous
-from torchgi.sampling import adaptive_render, pixel_footprint
+from torchgi.sampling import adaptive_render, sigma_position_rule
 
 
 def timed(fn):
@@ -55,7 +55,7 @@ def svgf_atrous(gb):
     noisy = gb.color - gb.emission
     demod = torch.where(surface, noisy / albedo, torch.zeros(()))
     var = torch.where(surface, gb.variance / albedo**2, torch.zeros(())).mean(1, keepdim=True) + 1e-8
-    sigma_x = (4 * pixel_footprint(gb.position, surface)) ** 2
+    sigma_x = sigma_position_rule(gb.position, surface, 4.0)
     out = atrous(demod, gb.normal, gb.position, iterations=5, sigma_position=sigma_x, variance=var, sigma_color=4.0)
     return torch.where(surface, out * albedo, noisy) + gb.emission
 

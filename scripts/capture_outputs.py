@@ -6,7 +6,8 @@ of two trees (e.g. before and after a refactor):
 
 Renders cornell, cornell_glossy, sky, grass (and bunny where the shared meshes are) at 1 and 4 spp
 on the CPU, then runs: ``Denoiser`` guided / atrous / bilateral / none at every quality (and
-guided with subsample 2), its deployed guided and À-Trous modules, ``supersample``;
+guided with subsample 2), its deployed guided and À-Trous modules, ``supersample``; renders at
+5 bounces (Russian roulette) and with the basic integrator;
 the filters ``box``, ``guided`` (guides of 1, 3 and 4 channels, subsample 2, float64), ``atrous``
 (1-3 weights, variance, subsample, energy, float64), ``cross_bilateral``; the sampling
 ``importance_map``, ``allocate``, ``adaptive_counts``. Each once with the default back ends and
@@ -34,15 +35,11 @@ from torchgi.sampling import adaptive_counts, allocate, importance_map, pixel_fo
 
 
 def torch_only():
-    """The torch code paths only (the name of the switch changed with the back-end seam)."""
-    try:
-        from torchgi import backends
+    """The torch code paths only, through the switch both trees have (``native.disabled``; an
+    editable install resolves new subpackages from its own tree even with another on the path)."""
+    from torchgi.filters import native
 
-        return backends.use("torch")
-    except ImportError:
-        from torchgi.filters import native
-
-        return native.disabled()
+    return native.disabled()
 
 
 def cases(gb, size: int):
@@ -97,6 +94,8 @@ def capture(size: int) -> dict[str, torch.Tensor]:
                     for case, fn in cases(gb, size):
                         out[f"{name}/{spp}spp/{mode}/{case}"] = fn()
             if spp == 4:
+                out[f"{name}/render-b5"] = render(scene, spp=2, bounces=5, seed=1).color
+                out[f"{name}/render-basic"] = render(scene, spp=2, bounces=2, seed=1, integrator="basic").color
                 gr, eye = render_guide_rays(scene, spp=4, seed=3)
                 out[f"{name}/supersample"] = Denoiser("guided", filter_direct=False).supersample(gr, eye)
         print(name, flush=True)

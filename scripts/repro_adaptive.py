@@ -36,8 +36,8 @@ from benchmark_utils import (
 )
 
 import torchgi
-from torchgi import metrics
-from torchgi.filters import atrous, guide_from_gbuffer, guided, native
+from torchgi import backends, metrics
+from torchgi.filters import atrous, guide_from_gbuffer, guided
 from torchgi.render import render_guides
 from torchgi.sampling import adaptive_render, allocate, importance_map, pixel_footprint
 
@@ -103,7 +103,7 @@ def timing(args, rows: list[dict]) -> None:
                 return importance_map(g.normal, g.position, window=window, sigma_position=(2 * foot) ** 2, hit=g.hit,
                                       fused=mode == "torch fused")
 
-            with native.disabled() if mode != "kernel" else contextlib.nullcontext():
+            with backends.use("torch") if mode != "kernel" else contextlib.nullcontext():
                 t_all = time_ms(lambda: allocate(importance(), budget, min_samples=1, mask=g.hit),
                                 min_run_time=args.min_time)["median_ms"]
                 imp = importance()

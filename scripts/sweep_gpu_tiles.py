@@ -1,4 +1,4 @@
-"""Tile shapes of the Triton kernels (torchgi.filters.gpu) on the current CUDA device, around
+"""Tile shapes of the Triton kernels (torchgi.backends.triton_kernels) on the current CUDA device, around
 the defaults: À-Trous at 1080p, 3 weights, 5 levels (tile rows x columns, warps, taps per loop
 step) and the guided filter at 1080p, 4-channel guide, r = 32 (column pass: width, rows per
 program, rows per loop step, warps; row-pass tile; pixels per solve / apply program).
@@ -25,7 +25,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_device import device_busy, inputs
 from benchmark_utils import SIZES, time_ms
 
-from torchgi.filters import atrous, gpu, guided, native
+from torchgi import backends
+from torchgi.backends import triton_kernels as gpu
+from torchgi.filters import atrous, guided
 
 ATROUS = [dict(_BH=bh, _BW=bw, _WARPS=w, _UNROLL=u) for bh, bw, w, u in (
     (4, 64, 4, 1), (4, 64, 4, 2), (2, 64, 2, 2), (2, 64, 2, 1), (2, 128, 4, 1), (2, 128, 4, 2), (8, 64, 8, 2),
@@ -42,7 +44,7 @@ def sweep(name: str, settings: list[dict], fn) -> dict:
     """Times ``fn`` under each setting of the ``gpu`` module's knobs; returns the fastest setting
     by GPU busy time (defaults restored)."""
     defaults = {k: getattr(gpu, k) for s in settings for k in s}
-    with native.disabled():
+    with backends.use("torch"):
         want = fn()
     results = []
     for setting in settings:

@@ -5,8 +5,10 @@ import numpy as np
 import pytest
 import torch
 
+from tests.helpers import rel_error as rel
+from torchgi import backends
 from torchgi.core import DTypeError, NonFiniteError, RangeError, ShapeError
-from torchgi.filters import ATrous, atrous, native
+from torchgi.filters import ATrous, atrous
 
 from .oracles import atrous_oracle
 
@@ -20,10 +22,6 @@ def buffers(B=1, H=13, W=17, seed=0):
     return color.float(), normal.float(), position.float()
 
 
-def rel(out, ref):
-    ref = np.asarray(ref)
-    return float(np.abs(out.double().numpy() - ref).max() / np.abs(ref).max())
-
 
 @pytest.mark.parametrize("kernels", ["compiled", "torch"])
 @pytest.mark.parametrize("iterations", [1, 2, 3])
@@ -33,7 +31,7 @@ def test_matches_per_pixel_oracle(iterations, weights, kernels):
     c, n, x = buffers(seed=iterations)
     kw = dict(iterations=iterations, sigma_color=0.5, sigma_normal=0.2 if "n" in weights else None,
               sigma_position=0.3 if "x" in weights else None)
-    with native.disabled() if kernels == "torch" else contextlib.nullcontext():
+    with backends.use("torch") if kernels == "torch" else contextlib.nullcontext():
         out = atrous(c, n, x, color_weight="c" in weights, **kw)
     want = atrous_oracle(c[0], n[0], x[0], color_weight="c" in weights, **kw)
     assert rel(out[0], want) < 1e-5
@@ -187,14 +185,13 @@ def test_module_and_per_batch_sigmas():
 
 def test_pointwise_formulation_matches_oracle():
     """The per-channel pointwise level (what fused=True compiles), run eagerly."""
-    import importlib
+    from torchgi.backends import torch_code as mod
 
-    mod = importlib.import_module("torchgi.filters.atrous")  # the module (the package exports the function)
     c, n, x = buffers(seed=21)
     real = mod._compiled_iteration
     try:
         mod._compiled_iteration = lambda: mod._iteration  # same code path, no compiler
-        with native.disabled():  # else the compiled C kernel takes the call
+        with backends.use("torch"):  # else the compiled C kernel takes the call
             out = atrous(c, n, x, iterations=3, sigma_color=0.5, variance=torch.full_like(c[:, :1], 0.05),
                          fused=True)
     finally:
@@ -207,7 +204,7 @@ def test_pointwise_formulation_matches_oracle():
 def test_fused_compiled_path_matches_oracle():
     """torch.compile of the level (about a minute of compiling on 2 cores, once per process)."""
     c, n, x = buffers(H=20, W=23, seed=5)
-    with native.disabled():  # else the compiled C kernel takes the call
+    with backends.use("torch"):  # else the compiled C kernel takes the call
         out = atrous(c, n, x, iterations=3, sigma_color=0.5, fused=True)
         other = atrous(c[..., :11, :17], n[..., :11, :17], x[..., :11, :17], iterations=3, sigma_color=0.5,
                        fused=True)

@@ -1,7 +1,7 @@
-import numpy as np
 import pytest
 import torch
 
+from tests.helpers import rel_error as rel
 from torchgi.core import DTypeError, NonFiniteError, RangeError
 from torchgi.filters import CrossBilateral, cross_bilateral
 
@@ -15,9 +15,6 @@ def data(H=11, W=14, seed=0):
     depth = torch.rand(1, 1, H, W, generator=g) * 3
     return color, normal, depth
 
-
-def rel(out, ref):
-    return float(np.abs(out.double().numpy() - ref).max() / np.abs(ref).max())
 
 
 @pytest.mark.parametrize("radius, sigma_color", [(0, 0.3), (1, 0.3), (3, None), (6, 0.5)])

@@ -1,9 +1,10 @@
 import pytest
 import torch
 
+from torchgi.backends.torch_code import PlaneBoxer
+from torchgi.backends.torch_code import box_cumsum as _box_cumsum
 from torchgi.core import NonFiniteError, ShapeError
 from torchgi.filters import Box, box
-from torchgi.filters.box import PlaneBoxer, _box_cumsum
 
 from .oracles import box_oracle
 

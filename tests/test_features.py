@@ -24,13 +24,24 @@ def test_filter_features_on_device(device, dtype):
     for key in ("atrous", "guided"):
         assert out[key].shape == (2, 3, 20, 24) and out[key].device == batch["color"].device
         assert out[key].dtype == dtype and bool(torch.isfinite(out[key]).all())
-    # the transform is the library's filters, applied with the documented guides and σ_x
-    guide = torch.cat([(batch["normal"] + 1) / 2, batch["depth"] / batch["depth"].amax()], 1)
-    torch.testing.assert_close(out["guided"], guided(batch["color"], guide, radius=3, eps=1e-2))
-    p = batch["position"]
-    sigma = (float((p.amax((0, 2, 3)) - p.amin((0, 2, 3))).max()) / 10) ** 2
-    torch.testing.assert_close(out["atrous"], atrous(batch["color"], batch["normal"], p, iterations=3,
-                                                     sigma_position=sigma))
+    # each sample filtered on its own: its features do not depend on its batch-mates
+    for b in range(2):
+        one = FilterFeatures(("atrous", "guided"), radius=3, eps=1e-2, iterations=3)({k: v[b] for k, v in batch.items()})
+        for key in ("atrous", "guided"):
+            torch.testing.assert_close(out[key][b], one[key])
+
+
+def test_filter_features_use_the_denoisers_guide_and_sigma_rule():
+    """A hand-computed case: positions 0.5 apart along x give a footprint of 0.5, so σ_x = (4 x 0.5)²;
+    depth is divided by the sample's own maximum."""
+    s = sample("cpu", torch.float32, batch=1)
+    x = torch.arange(24.0).expand(1, 1, 20, 24) * 0.5
+    s["position"] = torch.cat([x, 0 * x, 0 * x], 1)
+    out = FilterFeatures(("atrous", "guided"), radius=3, eps=1e-2, iterations=3)(s)
+    torch.testing.assert_close(out["atrous"], atrous(s["color"], s["normal"], s["position"], iterations=3,
+                                                     sigma_position=4.0))
+    guide = torch.cat([(s["normal"] + 1) / 2, s["depth"] / s["depth"].amax()], 1)
+    torch.testing.assert_close(out["guided"], guided(s["color"], guide, radius=3, eps=1e-2))
 
 
 def test_filter_features_single_sample_equals_batch_of_one(device):

@@ -1,4 +1,4 @@
-"""The Triton kernels (torchgi.filters.gpu: an À-Trous level, the guided filter, the box filter)
+"""The Triton back end (torchgi.backends.triton_kernels: an À-Trous level, the guided filter, the box filter)
 against the float64 oracles: on CUDA when the device is asked for (``--device cuda``), and on
 the CPU through Triton's interpreter (a subprocess with ``TRITON_INTERPRET=1``) where Triton is
 installed. The interpreter runs the kernels as Python, so a third check compiles every kernel
@@ -15,30 +15,29 @@ from pathlib import Path
 import pytest
 import torch
 
+from tests.helpers import last_backend
 from tests.oracles import ATROUS_CASES, atrous_case, atrous_error, box_oracle, fast_guided_oracle, guided_oracle, scene
-from torchgi.filters import atrous, box, gpu, guided, native
+from torchgi import backends
+from torchgi.backends import triton_kernels as gpu
+from torchgi.filters import atrous, box, guided
 
 
-def _spy_on_cuda(device: torch.device, monkeypatch, name: str) -> list:
-    """Skip unless the run is on CUDA with Triton; else record the calls of ``gpu.<name>``."""
+def _cuda_with_triton(device: torch.device) -> None:
+    """Skip unless the run is on CUDA with Triton."""
     if device.type != "cuda":
         pytest.skip("the CUDA run; the CPU checks the same kernels through the interpreter below")
     if gpu.triton is None:
         pytest.skip("no Triton")
-    calls: list = []
-    real = getattr(gpu, name)
-    monkeypatch.setattr(gpu, name, lambda *a, **k: calls.append(1) or real(*a, **k))
-    return calls
 
 
 @pytest.mark.parametrize("C", [1, 2, 3])
 @pytest.mark.parametrize("case", ATROUS_CASES)
 def test_triton_kernel_matches_oracle_on_cuda(device, C, case, monkeypatch):
-    calls = _spy_on_cuda(device, monkeypatch, "atrous_level")
+    _cuda_with_triton(device)
     c, n, x, kw = atrous_case(C, case)
     out = atrous(c.to(device), n.to(device), x.to(device),
                  **{k: v.to(device) if torch.is_tensor(v) else v for k, v in kw.items()})
-    assert len(calls) == 3 and out.device.type == "cuda"
+    assert last_backend("atrous") == "triton" and out.device.type == "cuda"
     assert atrous_error(out, c, n, x, kw) < 2e-5  # GPU exp is not correctly rounded
 
 
@@ -46,12 +45,14 @@ _INTERPRETED = """
 import sys, torch
 sys.path.insert(0, {root!r})
 from tests.oracles import ATROUS_CASES, atrous_case, atrous_error
-from torchgi.filters import atrous, gpu
-assert gpu.applies(torch.zeros(1)), "interpreter not active"
+from torchgi import backends
+from torchgi.filters import atrous
+assert backends.status()["triton"].endswith("interpreter"), "interpreter not active"
 worst = 0.0
 for C, case in [(3, case) for case in ATROUS_CASES] + [(1, "cnx"), (1, "variance"), (2, "c")]:
     c, n, x, kw = atrous_case(C, case)
     worst = max(worst, atrous_error(atrous(c, n, x, **kw), c, n, x, kw))
+    assert backends.status()["last"]["atrous"]["ran"] == "triton"
 print(worst)
 """
 
@@ -60,13 +61,13 @@ _INTERPRETED_GUIDED = """
 import sys, torch
 sys.path.insert(0, {root!r})
 from tests.oracles import box_oracle, fast_guided_oracle, guided_oracle, scene
-from torchgi.filters import box, gpu, guided
+from tests.helpers import rel_range as rel
+from torchgi import backends
+from torchgi.filters import box, guided
 calls = []
-real = gpu.guided
-gpu.guided = lambda *a, **k: calls.append(1) or real(*a, **k)
+def ran():
+    calls.append(backends.status()["last"]["guided"]["ran"])
 worst = 0.0
-def rel(out, ref):
-    return float((out.double() - ref).abs().max() / (ref.max() - ref.min()))
 # guide channels 1-4, source channels 1/3, r = 0, windows past the image, one pixel, offset guides
 for B, H, W, n, Cs, r, offset in [(2, 9, 13, 4, 3, 2, 0.0), (1, 20, 30, 2, 1, 40, 0.0), (1, 7, 11, 1, 3, 0, 0.0),
                                   (1, 12, 10, 3, 1, 3, 1e3), (1, 1, 1, 2, 1, 3, 0.0)]:
@@ -74,6 +75,7 @@ for B, H, W, n, Cs, r, offset in [(2, 9, 13, 4, 3, 2, 0.0), (1, 20, 30, 2, 1, 40
     p, I = p[:, :Cs], I + offset
     want = guided_oracle(p, I, r, 0.01)
     got = guided(p, I, radius=r, eps=0.01)
+    ran()
     worst = max(worst, rel(got, want) if H * W > 1 else float((got - p).abs().max()))
 p, I = scene(1, 13, 17, 4, seed=9)
 worst = max(worst, rel(guided(p, I, radius=4, eps=0.01, subsample=2), fast_guided_oracle(p, I, 4, 0.01, 2)))
@@ -87,9 +89,10 @@ flat = torch.full((1, 2, 13, 17), 1e4)
 worst = max(worst, rel(guided(p, flat, radius=3, eps=0.0), box_oracle(box_oracle(p.double(), 3), 3)))
 const = guided(torch.full((1, 3, 13, 17), 7.5), I, radius=3, eps=0.0)
 worst = max(worst, float((const - 7.5).abs().max()) / 7.5)
-assert len(calls) == 9, calls
+assert calls == ["triton"] * 5, calls
 x = torch.rand(2, 3, 11, 140) + 5  # absolute errors: r = 200 averages the whole image
 box_err = max(float((box(x, r).double() - box_oracle(x.double(), r)).abs().max()) for r in (0, 5, 200))
+assert backends.status()["last"]["box"]["ran"] == "triton"
 print(worst, box_err)
 """
 
@@ -100,9 +103,7 @@ def _interpret(code: str) -> list[float]:
     pytest.importorskip("triton")
     root = str(Path(__file__).resolve().parents[1])
     env = dict(os.environ, TRITON_INTERPRET="1", TORCHGI_NATIVE="1")
-    code = code.format(root=root).replace("from torchgi.filters import",
-                                          "from torchgi.filters import native\nnative.library = lambda: None\n"
-                                          "from torchgi.filters import", 1)
+    code = "from torchgi.backends import c_kernels\nc_kernels.library = lambda: None\n" + code.format(root=root)
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=root,
                           timeout=600, check=False)
     assert proc.returncode == 0, proc.stderr[-2000:]
@@ -121,28 +122,30 @@ def test_triton_guided_and_box_match_oracle_in_the_interpreter():
 
 @pytest.mark.parametrize("n", [1, 3, 4])
 @pytest.mark.parametrize("Cs", [1, 3])
-def test_triton_guided_matches_oracle_on_cuda(device, n, Cs, monkeypatch):
-    calls = _spy_on_cuda(device, monkeypatch, "guided")
+def test_triton_guided_matches_oracle_on_cuda(device, n, Cs):
+    _cuda_with_triton(device)
     full_hd = [(1080, 1920, 24, 1e4)] if n == 4 else []  # the float64 oracle takes seconds there
     for H, W, r, offset in [(37, 53, 5, 0.0), (120, 301, 40, 1e3)] + full_hd:
         p, I = scene(1, H, W, n, seed=n + Cs)
         p, I = p[:, :Cs].contiguous(), (I + offset).float()
         want = guided_oracle(p, I, r, 0.01)
         got = guided(p.to(device), I.to(device), radius=r, eps=0.01).cpu()
+        assert last_backend("guided") == "triton"
         assert torch.isfinite(got).all()
         assert float((got.double() - want).abs().max() / (want.max() - want.min())) < 1e-5
     p, I = scene(2, 37, 53, n, seed=1)
     got = guided(p[:, :Cs].to(device), I.to(device), radius=6, eps=0.01, subsample=2).cpu()
     want = fast_guided_oracle(p[:, :Cs], I, 6, 0.01, 2)
     assert float((got.double() - want).abs().max() / (want.max() - want.min())) < 1e-5
-    assert len(calls) == 3 + (n == 4)  # every call above went through the kernel
+    assert last_backend("guided") == "triton"
     x = torch.rand(2, 3, 70, 90)
     torch.testing.assert_close(box(x.to(device), 7).cpu().double(), box_oracle(x.double(), 7), rtol=0, atol=1e-6)
 
 
-def test_kernels_off_inside_disabled():
-    with native.disabled():
-        assert not gpu.applies(torch.zeros(1, device="cuda" if torch.cuda.is_available() else "cpu"))
+def test_kernels_off_inside_use_torch():
+    with backends.use("torch"):
+        box(torch.rand(1, 1, 4, 4, device="cuda" if torch.cuda.is_available() else "cpu"), 1)
+        assert backends.status()["last"]["box"]["skipped"]["triton"].startswith("switched off")
 
 
 def _variants():

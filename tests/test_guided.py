@@ -3,15 +3,12 @@ import math
 import pytest
 import torch
 
-from torchgi import GBuffer
+from tests.helpers import rel_range as rel_err
+from torchgi import GBuffer, backends
 from torchgi.core import DeviceError, DTypeError, NonFiniteError, RangeError, ShapeError
-from torchgi.filters import Guided, guide_from_gbuffer, guided, native
+from torchgi.filters import Guided, guide_from_gbuffer, guided
 
 from .oracles import box_oracle, fast_guided_oracle, guided_oracle, scene
-
-
-def rel_err(out, ref):
-    return float((out.double() - ref).abs().max() / (ref.max() - ref.min()))
 
 
 @pytest.mark.parametrize("n", [1, 2, 3, 4])
@@ -20,7 +17,7 @@ def test_matches_float64_oracle(n, r):
     p, I = scene(2, 37, 53, n, seed=n + r)
     want = guided_oracle(p, I, r, 0.01)
     assert rel_err(guided(p, I, radius=r, eps=0.01), want) < 1e-5  # CPU compiled kernel, float32
-    with native.disabled():
+    with backends.use("torch"):
         assert rel_err(guided(p, I, radius=r, eps=0.01), want) < 1e-5  # CPU torch fast path, float32
     p64 = p.double().requires_grad_()  # autograd forces the cumsum (export) path
     assert rel_err(guided(p64, I.double(), radius=r, eps=0.01).detach(), want) < 1e-10

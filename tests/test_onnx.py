@@ -3,15 +3,13 @@
 import pytest
 import torch
 
+from tests.helpers import rel_error as rel
 from torchgi.export import OrtSession, export_onnx
 from torchgi.filters import Box, Guided
 
 pytest.importorskip("onnxruntime")
 pytest.importorskip("onnxscript")
 
-
-def rel(a, b):
-    return float((a - b).abs().max() / b.abs().max())
 
 
 def test_box_parity(tmp_path):

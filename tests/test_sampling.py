@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 import torch
 
+from torchgi import backends
 from torchgi.core import NonFiniteError, RangeError
-from torchgi.filters import native
 from torchgi.sampling import allocate, exclusive_scan, importance_map
 
 
@@ -49,7 +49,7 @@ def test_importance_matches_oracle(window, W, device):
     everywhere = importance_oracle(n, x, torch.ones_like(hit), window, 0.2, 0.5)
     n, x, hit_d = n.to(device), x.to(device), hit.to(device)
     for kernel in (True, False):  # the compiled CPU kernel (where it builds) and the torch code
-        with contextlib.nullcontext() if kernel else native.disabled():
+        with contextlib.nullcontext() if kernel else backends.use("torch"):
             got = importance_map(n, x, window=window, sigma_normal=0.2, sigma_position=0.5, hit=hit_d).cpu()
             np.testing.assert_allclose(got.double().numpy(), want, atol=2e-6)
             assert (got[~hit] == 0).all()
@@ -106,7 +106,7 @@ def test_allocation_matches_hamilton_oracle(qtype, device):
     cases = [(3 * 61 * 89 + 7, 1, mask), (10 * 61 * 89 - 1, 2, mask), (61 * 89, 0, mask), (2 * 61 * 89 + 5, 1, None)]
     for budget, min_samples, m in cases:
         for kernel in (True, False):  # the compiled CPU kernel (where it builds) and the torch code
-            with contextlib.nullcontext() if kernel else native.disabled():
+            with contextlib.nullcontext() if kernel else backends.use("torch"):
                 counts = allocate(q.to(device), budget, min_samples=min_samples,
                                   mask=None if m is None else m.to(device)).cpu()
             for b in range(3):
@@ -177,7 +177,7 @@ def test_accumulate_is_a_per_pixel_sum():
 def test_importance_fused_matches_eager():
     n, x, _ = geometry()
     hit = torch.rand(n.shape[0], 1, *n.shape[2:], generator=torch.Generator().manual_seed(2)) > 0.2
-    with native.disabled():  # the compiled CPU kernel would take both calls
+    with backends.use("torch"):  # the compiled CPU kernel would take both calls
         eager = importance_map(n, x, window=3, hit=hit)
         fused = importance_map(n, x, window=3, hit=hit, fused=True)
     torch.testing.assert_close(fused, eager, rtol=1e-5, atol=1e-6)

@@ -325,12 +325,41 @@ def run_job(
         raise RangeError(f"workers: expected an int >= 1, got {workers!r}")
     out = Path(out)
     _check_writable(out)
+    removed = _remove_temporaries(out, log)
+    todo, manifests, skipped, regenerated = _sort_tasks(config, out, log)
+    show = sys.stderr.isatty() if progress is None else progress
+    with tqdm(total=len(todo), disable=not show, unit="task", desc="datagen") as bar:
+        for m in _run_tasks(config, todo, out, workers, scheduler):
+            manifests[Task(**m["task"]).name] = m
+            bar.update()
+    shards = [s for t in plan(config) for s in manifests[t.name]["shards"]]
+    index = json.dumps({"config": config.resolved(), "shards": shards}, indent=1, sort_keys=True) + "\n"
+    index_path = out / INDEX
+    written = not index_path.is_file() or index_path.read_text() != index
+    if written:
+        _write_atomic(index_path, index)
+    return {
+        "rendered": [t.name for t in todo], "skipped": skipped, "regenerated": regenerated,
+        "removed_temporary": removed, "index_written": written,
+    }
+
+
+def _remove_temporaries(out: Path, log: Callable[[str], None]) -> int:
+    """Delete the temporary files a killed run left (writes are atomic: the real files are whole)."""
     removed = 0
     for tmp in glob.glob(str(out / ".*.tmp")) + glob.glob(str(out / _TASKS / ".*.tmp")):
-        os.unlink(tmp)  # left by a killed run (writes are atomic: the real files are whole)
+        os.unlink(tmp)
         removed += 1
     if removed:
         log(f"removed {removed} temporary file(s) left by an interrupted run")
+    return removed
+
+
+def _sort_tasks(
+    config: DataGenConfig, out: Path, log: Callable[[str], None]
+) -> tuple[list[Task], dict[str, dict], list[str], list[str]]:
+    """The tasks still to run, the manifests of the complete ones, and the names of the tasks
+    skipped (complete) and regenerated (missing or corrupt files)."""
     todo, manifests, skipped, regenerated = [], {}, [], []
     for task in plan(config):
         manifest, bad = _complete(task, out)
@@ -342,40 +371,38 @@ def run_job(
                 log(f"{task.name}: missing or corrupt {', '.join(bad)}: regenerating the task")
                 regenerated.append(task.name)
             todo.append(task)
-    show = sys.stderr.isatty() if progress is None else progress
-    bar = tqdm(total=len(todo), disable=not show, unit="task", desc="datagen")
+    return todo, manifests, skipped, regenerated
+
+
+def _run_tasks(config: DataGenConfig, todo: list[Task], out: Path, workers: int, scheduler: str | None):
+    """Yield each task's manifest as it completes: on a Dask scheduler, local worker processes or here."""
     if scheduler is not None:
         distributed = require("distributed", "dist")
         with distributed.Client(scheduler) as client:
             futures = [client.submit(run_task, config, t, str(out), pure=False, key=f"torchgi-{t.name}")
                        for t in todo]
             for future in distributed.as_completed(futures):
-                m = future.result()
-                manifests[Task(**m["task"]).name] = m
-                bar.update()
+                yield future.result()
     elif workers > 1 and len(todo) > 1:
         from torchgi.render.engine import worker_pool
 
         with worker_pool(workers) as pool:
-            for m in pool.map(_task_entry, [(config, t, str(out)) for t in todo]):
-                manifests[Task(**m["task"]).name] = m
-                bar.update()
+            yield from pool.map(_task_entry, [(config, t, str(out)) for t in todo])
     else:
         for t in todo:
-            m = run_task(config, t, out)
-            manifests[t.name] = m
-            bar.update()
-    bar.close()
-    shards = [s for t in plan(config) for s in manifests[t.name]["shards"]]
-    index = json.dumps({"config": config.resolved(), "shards": shards}, indent=1, sort_keys=True) + "\n"
-    index_path = out / INDEX
-    written = not index_path.is_file() or index_path.read_text() != index
-    if written:
-        _write_atomic(index_path, index)
-    return {
-        "rendered": [t.name for t in todo], "skipped": skipped, "regenerated": regenerated,
-        "removed_temporary": removed, "index_written": written,
-    }
+            yield run_task(config, t, out)
+
+
+def _sigma_position(position: torch.Tensor, hit: torch.Tensor | None) -> torch.Tensor:
+    """σ_x of each sample of ``position (B, 3, H, W)``, ``(B,)``: the Denoiser's rule on its own
+    pixels (all of them without ``hit``)."""
+    from torchgi.sampling import sigma_position_rule
+    from torchgi.settings import ATROUS
+
+    if hit is None:
+        hit = torch.ones_like(position[:, :1], dtype=torch.bool)
+    return torch.tensor([sigma_position_rule(position[b : b + 1], hit[b : b + 1].bool(), ATROUS.sigma_position_footprints)
+                         for b in range(position.shape[0])], dtype=position.dtype, device=position.device)
 
 
 # ------------------------------------------------------------------------------ reading
@@ -463,9 +490,12 @@ class FilterFeatures(torch.nn.Module):
     """Add filtered versions of the noisy colour to a sample as extra features.
 
     ``atrous``: edge-avoiding À-Trous of ``color`` guided by ``normal`` (and ``position`` when
-    present); ``guided``: the guided filter of ``color`` with normal (and depth) as guide. Works
-    on single samples ``(C, H, W)`` or collated batches ``(B, C, H, W)`` on any device, so it can
-    run in a DataLoader worker or on the GPU after collation.
+    present, σ_x by :func:`~torchgi.sampling.sigma_position_rule` as the Denoiser's, from each
+    sample's own positions and ``hit``); ``guided``: the guided filter of ``color`` with the
+    Denoiser's guide (:func:`~torchgi.filters.guide_from`: normal, and depth over each sample's
+    largest). A sample's features do not depend on the batch it is in. Works on single samples
+    ``(C, H, W)`` or collated batches ``(B, C, H, W)`` on any device, so it can run in a
+    DataLoader worker or on the GPU after collation.
 
     Example:
         >>> s = {"color": torch.rand(3, 16, 16), "normal": torch.nn.functional.normalize(torch.randn(3, 16, 16), dim=0)}
@@ -482,7 +512,7 @@ class FilterFeatures(torch.nn.Module):
         self.methods, self.radius, self.eps, self.iterations = tuple(methods), radius, eps, iterations
 
     def forward(self, sample: Mapping[str, Any]) -> dict[str, Any]:
-        from torchgi.filters import atrous, guided
+        from torchgi.filters import atrous, guide_from, guided
 
         out = dict(sample)
         color = sample["color"]
@@ -490,19 +520,12 @@ class FilterFeatures(torch.nn.Module):
         batch = {k: v[None] if single else v for k, v in sample.items() if isinstance(v, torch.Tensor)}
         if "atrous" in self.methods:
             position = batch.get("position")
-            if position is not None:  # σ_x = (extent / 10)², in scene units squared
-                extent = float((position.amax((0, 2, 3)) - position.amin((0, 2, 3))).max())
-                sigma = max(extent / 10, 1e-6) ** 2
-            else:
-                sigma = None
+            sigma = None if position is None else _sigma_position(position, batch.get("hit"))
             r = atrous(batch["color"], batch.get("normal"), position, iterations=self.iterations,
                        sigma_position=sigma)
             out["atrous"] = r[0] if single else r
         if "guided" in self.methods:
-            guide = (batch["normal"] + 1) / 2
-            if "depth" in batch:
-                d = batch["depth"]
-                guide = torch.cat([guide, d / d.amax().clamp_min(1e-12)], 1)
+            guide = guide_from(batch["normal"], batch.get("depth"), depth_scale="image")
             r = guided(batch["color"], guide, radius=self.radius, eps=self.eps)
             out["guided"] = r[0] if single else r
         return out

@@ -33,37 +33,15 @@ from torchgi.buffers import GBuffer
 from torchgi.core.check import check_finite, check_option, is_recording
 from torchgi.core.errors import ShapeError
 from torchgi.core.registry import Registry
+from torchgi.settings import ATROUS, BILATERAL, GUIDED, PIPELINE
 from torchgi.supersample import EyeSamples
 
 __all__ = ["DENOISERS", "METHODS", "QUALITIES", "Denoiser", "DeployedDenoiser"]
 
 METHODS = ("guided", "atrous", "bilateral", "none")
 QUALITIES = ("fast", "balanced", "high")
-_QUALITY_SCALE = {"fast": 0.5, "balanced": 1.0, "high": 1.5}
-# Guided defaults: radius 4 px at 1 spp (shrinking as 1/sqrt(spp)), eps 1e-4 (guide units²).
-# A sweep at 1-4 spp with the light and firefly steps (r 3/4/6/8 x eps 1e-4/1e-3 on cornell,
-# cornell_glossy, sky, grass, bunny at 128² and Mitsuba's Cornell box at 128²/256²): r 4, eps 1e-4
-# was the best or within one unit of the best noisy/denoised relMSE ratio on 8 of 10 cases (sky
-# preferred r 3, the 256² Cornell box r 6).
-_GUIDED_RADIUS, _GUIDED_EPS = 4, 1e-4
-# The mean relative variance (variance of the pixel mean / colour²) a 1 spp render would have,
-# for choosing radii from a measured variance: at 4 spp, 128², the guided filter's best radius on
-# cornell, cornell_glossy, sky, grass, bunny (3, 3, 1, 2, 3) was round(4 · sqrt(v / 0.25)) for their
-# mean relative variance v (0.132, 0.121, 0.013, 0.067, 0.179); the spp rule gave 2 everywhere.
-# Out of sample (256², 4 spp, radius >= 2): relMSE lower on cornell and cornell_glossy, equal on
-# grass, higher on bunny (0.00565 vs 0.00541).
-_REL_VAR_1SPP = 0.25
-_SUBSAMPLE_FROM = 256  # px on the short side from which the guided filter may run at half resolution
-_EDGE, _EDGE_SHARE = 0.1, 0.1  # ... unless more than 10 % of neighbours differ by more than 0.1 in the guide
-_LIGHT = 8.0  # emission above 8x the median demodulated light is a light source, passed untouched
-# Fireflies: demodulated light above k x its local level (the box mean over 17x17 pixels of the light
-# capped at k x the image median) is scaled down to that bound before filtering (its excess energy is
-# dropped: one sample's outlier spread over a filter window costs more error than it carries). k = 4
-# for the guided filter, 2 for the colour-weighted filters, which keep an outlier as an isolated
-# speck instead of spreading it (1 spp, seven 128² cases: k 2 vs 4 lowered relMSE on 6 of 7 for the
-# bilateral, 5 of 7 for À-Trous, e.g. cornell 0.031 -> 0.017; the guided filter was best at 4).
-_FIREFLY = {"guided": 4.0, "atrous": 2.0, "bilateral": 2.0, "none": 4.0}
-_FIREFLY_RADIUS = 8
+# fireflies are clamped at this many times their local level before each method's filter
+_FIREFLY = {"guided": GUIDED.firefly, "atrous": ATROUS.firefly, "bilateral": BILATERAL.firefly, "none": GUIDED.firefly}
 _INPUTS = ("color", "albedo", "normal", "position", "depth", "emission", "direct", "indirect", "variance", "spp",
            "hit")
 
@@ -74,9 +52,10 @@ def _surface(hit: torch.Tensor | None, albedo: torch.Tensor) -> torch.Tensor:
 
 
 def _demodulator(albedo: torch.Tensor, surface: torch.Tensor) -> torch.Tensor:
-    """What light is divided by: the albedo (at least 1e-3) on surfaces, 1 on the background,
+    """What light is divided by: the albedo (at least ``PIPELINE.albedo_floor``) on surfaces, 1 on the background,
     which is filtered as it is."""
-    return torch.where(surface, albedo.clamp_min(1e-3), torch.ones((), dtype=albedo.dtype, device=albedo.device))
+    return torch.where(surface, albedo.clamp_min(PIPELINE.albedo_floor),
+                       torch.ones((), dtype=albedo.dtype, device=albedo.device))
 
 
 def _noise_free(gb: GBuffer) -> bool:
@@ -100,16 +79,18 @@ def _median_level(x: torch.Tensor, surface: torch.Tensor) -> torch.Tensor:
 
 
 def _light_sources(emission: torch.Tensor, threshold: torch.Tensor) -> torch.Tensor:
-    """``(B,1,H,W)`` bool: pixels whose emission exceeds ``threshold`` and that lie in a 3x3 square
-    of such pixels (a morphological opening: whole lights, corners included, stay; single pixels
-    and one-pixel fringes that a few samples hit along a light's silhouette do not)."""
+    """``(B,1,H,W)`` bool: pixels whose emission exceeds ``threshold`` and that lie in a square of
+    ``PIPELINE.light_square`` (3x3) such pixels (a morphological opening: whole lights, corners
+    included, stay; single pixels and one-pixel fringes that a few samples hit along a light's
+    silhouette do not)."""
     from torchgi.filters import box
 
     bright = emission.amax(1, keepdim=True) > threshold
     if not is_recording() and not bool(bright.any()):
         return bright  # no light source in view: nothing to open
-    core = box(bright.to(emission.dtype), 1) > 1 - 1e-3  # erosion: the whole 3x3 window is bright
-    return bright & (box(core.to(emission.dtype), 1) > 0)  # dilation back
+    r = PIPELINE.light_square // 2
+    core = box(bright.to(emission.dtype), r) > 1 - 1e-3  # erosion: the whole window is bright
+    return bright & (box(core.to(emission.dtype), r) > 0)  # dilation back
 
 
 def _clamp_fireflies(x: torch.Tensor, scene_level: torch.Tensor, k: float) -> torch.Tensor:
@@ -119,7 +100,7 @@ def _clamp_fireflies(x: torch.Tensor, scene_level: torch.Tensor, k: float) -> to
 
     peak = x.amax(1, keepdim=True)
     # (box sums round: a mean of zeros can come out as -1e-9, so the bound is clamped at 0)
-    bound = k * box(torch.minimum(peak, k * scene_level), _FIREFLY_RADIUS).clamp_min(0)
+    bound = k * box(torch.minimum(peak, k * scene_level), PIPELINE.firefly_radius).clamp_min(0)
     over = peak > bound  # so peak > 0 wherever it divides
     return torch.where(over, x * (bound / torch.where(over, peak, 1.0)), x)
 
@@ -143,7 +124,7 @@ def _restore(
     albedo = _demodulator(albedo, surface)
     base = color - kept if kept is not None else color
     level = _median_level((base - emission if emission is not None else base) / albedo, surface)
-    lights = _light_sources(emission if emission is not None else base / albedo, _LIGHT * level)
+    lights = _light_sources(emission if emission is not None else base / albedo, PIPELINE.light * level)
     if emission is not None:
         light = torch.where(lights, emission, 0.0)
         kept = light if kept is None else kept + light
@@ -233,7 +214,7 @@ class Denoiser(torch.nn.Module):
         """
         p = self.filter_params
         if self.method == "guided":
-            params = {"radius": self._radius(spp, _GUIDED_RADIUS), "eps": p.get("eps", _GUIDED_EPS)}
+            params = {"radius": self._radius(spp, GUIDED.radius), "eps": p.get("eps", GUIDED.eps)}
             if p.get("subsample", 1) > 1:
                 params["subsample"] = p["subsample"]
         elif self.method == "atrous":
@@ -242,8 +223,8 @@ class Denoiser(torch.nn.Module):
                 raise ValueError("sigma_position: an exported À-Trous needs a fixed σ_x (scene units squared)")
             params = {
                 "iterations": self._iterations(spp),
-                "sigma_normal": p.get("sigma_normal", 0.1), "sigma_position": sigma_x,
-                "sigma_color": p.get("sigma_color", 1.0),
+                "sigma_normal": p.get("sigma_normal", ATROUS.sigma_normal), "sigma_position": sigma_x,
+                "sigma_color": p.get("sigma_color", ATROUS.deployed_sigma_color),
             }
         else:
             raise ValueError(f"method: only 'guided' and 'atrous' deploy to ONNX, not {self.method!r}")
@@ -333,16 +314,18 @@ class Denoiser(torch.nn.Module):
 
     def _radius(self, spp: float, base: int) -> int:
         """Filter radius: given, or ``base · quality / sqrt(spp)`` (at least 2) px."""
-        return self.filter_params.get("radius", max(2, round(_QUALITY_SCALE[self.quality] * base / math.sqrt(spp))))
+        scale = PIPELINE.quality_scale(self.quality)
+        return self.filter_params.get("radius", max(PIPELINE.min_radius, round(scale * base / math.sqrt(spp))))
 
     def _iterations(self, spp: float) -> int:
         """À-Trous levels: given, or enough for a ``16 · quality / sqrt(spp)`` px footprint (2..8)."""
-        q = _QUALITY_SCALE[self.quality]
-        return self.filter_params.get("iterations", max(2, min(8, round(math.log2(16 * q / math.sqrt(spp)) + 2))))
+        q = PIPELINE.quality_scale(self.quality)
+        levels = round(math.log2(ATROUS.footprint * q / math.sqrt(spp)) + 2)
+        return self.filter_params.get("iterations", max(ATROUS.min_iterations, min(ATROUS.max_iterations, levels)))
 
     def _spp(self, gb: GBuffer, surface: torch.Tensor) -> float:
         """The sample count the noise corresponds to. With a measured variance (>= 2 samples on
-        every surface pixel): ``_REL_VAR_1SPP`` over the mean relative variance of the colour on
+        every surface pixel): ``PIPELINE.rel_var_1spp`` over the mean relative variance of the colour on
         surfaces (>= 1/4), so noisier images get wider filters; otherwise the mean ``spp`` (>= 1)."""
         if gb.spp is None:
             return 1.0
@@ -354,7 +337,7 @@ class Denoiser(torch.nn.Module):
             return spp  # some surface pixel has no variance estimate
         # (masks by where, not by indexing: no gathered copies)
         rel = float(torch.where(surface, gb.variance / (gb.color.square() + 1e-4), 0.0).sum()) / count
-        return max(_REL_VAR_1SPP / max(rel, 1e-12), 0.25)
+        return max(PIPELINE.rel_var_1spp / max(rel, 1e-12), 0.25)
 
     def _subsample(self, guide: torch.Tensor) -> int:
         """Guided filter's subsampling: given, or 2 where half resolution loses nothing
@@ -367,10 +350,10 @@ class Denoiser(torch.nn.Module):
         if "subsample" in self.filter_params:
             return self.filter_params["subsample"]
         H, W = guide.shape[-2:]
-        if min(H, W) < _SUBSAMPLE_FROM or self.quality == "high":
+        if min(H, W) < GUIDED.subsample_from or self.quality == "high":
             return 1
-        edges = (guide[:, :, ::2, 1:] - guide[:, :, ::2, :-1]).square().sum(1) > _EDGE**2
-        return 2 if float(edges.float().mean()) < _EDGE_SHARE else 1
+        edges = (guide[:, :, ::2, 1:] - guide[:, :, ::2, :-1]).square().sum(1) > GUIDED.edge**2
+        return 2 if float(edges.float().mean()) < GUIDED.edge_share else 1
 
     def _filter(self, x: torch.Tensor, gb: GBuffer, surface: torch.Tensor) -> torch.Tensor:
         from torchgi.filters import atrous, cross_bilateral, guide_from_gbuffer
@@ -380,7 +363,7 @@ class Denoiser(torch.nn.Module):
         spp = self._spp(gb, surface)
         if self.method == "guided":  # the workspace of the CPU path is kept between calls
             guide = guide_from_gbuffer(gb)
-            return _guided(x, guide, self._radius(spp, _GUIDED_RADIUS), p.get("eps", _GUIDED_EPS), False,
+            return _guided(x, guide, self._radius(spp, GUIDED.radius), p.get("eps", GUIDED.eps), False,
                            self._workspace, self._subsample(guide))
         scale = self.input_scale
         if scale is None:
@@ -390,17 +373,18 @@ class Denoiser(torch.nn.Module):
             iterations = self._iterations(spp)
             sigma_x = p.get("sigma_position")
             if sigma_x is None and gb.position is not None:
-                from torchgi.sampling.adaptive import pixel_footprint
+                from torchgi.sampling.adaptive import sigma_position_rule
 
-                sigma_x = (4 * pixel_footprint(gb.position, surface)) ** 2
+                sigma_x = sigma_position_rule(gb.position, surface, ATROUS.sigma_position_footprints)
             out = atrous(x * scale, gb.normal, gb.position, iterations=iterations,
-                         sigma_normal=p.get("sigma_normal", 0.1), sigma_position=sigma_x,
+                         sigma_normal=p.get("sigma_normal", ATROUS.sigma_normal), sigma_position=sigma_x,
                          sigma_color=p.get("sigma_color"))
             return out / scale
-        radius = self._radius(spp, 6)
+        radius = self._radius(spp, BILATERAL.radius)
         guides = [gb.normal] + ([gb.depth / gb.depth.amax().clamp_min(1e-12)] if gb.depth is not None else [])
         out = cross_bilateral(x * scale, guides, radius=radius, sigma_space=p.get("sigma_space", radius / 2),
-                              sigma_color=p.get("sigma_color", 2.0), sigma_guides=[0.2] * len(guides))
+                              sigma_color=p.get("sigma_color", BILATERAL.sigma_color),
+                              sigma_guides=[BILATERAL.sigma_guide] * len(guides))
         return out / scale
 
 
@@ -426,14 +410,13 @@ class DeployedDenoiser(torch.nn.Module):
 
     def forward(self, color: torch.Tensor, emission: torch.Tensor, albedo: torch.Tensor, normal: torch.Tensor,
                 geometry: torch.Tensor) -> torch.Tensor:
-        from torchgi.filters import atrous, guided
+        from torchgi.filters import atrous, guide_from, guided
 
         surface = _surface(None, albedo)
 
         def filter_fn(x: torch.Tensor) -> torch.Tensor:
             if self.method == "guided":
-                depth = geometry / geometry.amax(dim=(1, 2, 3), keepdim=True).clamp_min(1e-12)
-                return guided(x, torch.cat([(normal + 1) * 0.5, depth], 1), radius=self.params["radius"],
+                return guided(x, guide_from(normal, geometry, depth_scale="image"), radius=self.params["radius"],
                               eps=self.params["eps"], subsample=self.params.get("subsample", 1))
             return atrous(x, normal, geometry, iterations=self.params["iterations"],
                           sigma_normal=self.params["sigma_normal"], sigma_position=self.params["sigma_position"],

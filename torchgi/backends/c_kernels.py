@@ -38,8 +38,16 @@ from pathlib import Path
 
 import torch
 
-from torchgi.backends.base import ATrousOp, AllocateOp, BoxOp, GuidedOp, ImportanceOp, colour_scale, eager, \
-    iterate_levels
+from torchgi.backends.base import (
+    AllocateOp,
+    ATrousOp,
+    BoxOp,
+    GuidedOp,
+    ImportanceOp,
+    colour_scale,
+    eager,
+    iterate_levels,
+)
 from torchgi.core.dtypes import variance_rounding
 from torchgi.filters.taps import kernel_5x5
 

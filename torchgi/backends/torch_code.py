@@ -22,7 +22,7 @@ import functools
 import torch
 import torch.nn.functional as F
 
-from torchgi.backends.base import ATrousOp, AllocateOp, BoxOp, GuidedOp, ImportanceOp, colour_scale, iterate_levels
+from torchgi.backends.base import AllocateOp, ATrousOp, BoxOp, GuidedOp, ImportanceOp, colour_scale, iterate_levels
 from torchgi.core.dtypes import variance_rounding
 from torchgi.filters.taps import Padded, kernel_5x5
 

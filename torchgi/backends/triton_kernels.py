@@ -246,10 +246,10 @@ def _atrous_level(
     ``inv[:, 0]``) or a ``(B,1,H,W)`` plane (variance-guided). Returns the colour
     ``(B,C,H,W)``, the propagated variance and the weight sum ``(B,1,H,W)``.
 
-    Example (CUDA; :func:`torchgi.filters.atrous` calls it once per level):
+    Example (CUDA; :func:`atrous` calls it once per level):
         >>> c = torch.rand(1, 3, 32, 32, device="cuda")                              # doctest: +SKIP
         >>> inv = torch.ones(1, 3, device="cuda")                                   # doctest: +SKIP
-        >>> out, var, den = atrous_level(c, None, None, inv, None, None, 1, 1.0)   # doctest: +SKIP
+        >>> out, var, den = _atrous_level(c, None, None, inv, None, None, 1, 1.0)   # doctest: +SKIP
         >>> out.shape, var is None, den.shape                                       # doctest: +SKIP
         (torch.Size([1, 3, 32, 32]), True, torch.Size([1, 1, 32, 32]))
     """
@@ -540,7 +540,7 @@ def _box(x: torch.Tensor, r: int) -> torch.Tensor:
     Example (CUDA; :func:`torchgi.filters.box` calls it for such tensors):
         >>> from torchgi import filters
         >>> x = torch.rand(1, 3, 64, 64, device="cuda")             # doctest: +SKIP
-        >>> torch.allclose(box(x, 4).cpu(), filters.box(x.cpu(), 4), atol=1e-6)  # doctest: +SKIP
+        >>> torch.allclose(_box(x, 4).cpu(), filters.box(x.cpu(), 4), atol=1e-6)  # doctest: +SKIP
         True
     """
     x = x.contiguous()
@@ -559,7 +559,7 @@ def _guided(
     Example (CUDA; :func:`torchgi.filters.guided` calls it for such tensors):
         >>> I, p = torch.rand(1, 4, 64, 64, device="cuda"), torch.rand(1, 3, 64, 64, device="cuda")  # doctest: +SKIP
         >>> mI, mp = I.mean((2, 3), keepdim=True), p.mean((2, 3), keepdim=True)  # doctest: +SKIP
-        >>> guided(I, p, mI, mp, mp, 8, torch.full((1, 4, 1, 1), 0.01, device="cuda")).shape  # doctest: +SKIP
+        >>> _guided(I, p, mI, mp, mp, 8, torch.full((1, 4, 1, 1), 0.01, device="cuda")).shape  # doctest: +SKIP
         torch.Size([1, 3, 64, 64])
     """
     B, n, H, W = I.shape

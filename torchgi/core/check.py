@@ -50,7 +50,7 @@ __all__ = [
 
 def is_tracing() -> bool:
     """True while torch.jit tracing, torch.compile or torch.export / ONNX export records code
-    (the kernels of :mod:`torchgi.filters.native` / ``gpu`` step aside then: the recorded graph
+    (the compiled back ends of :mod:`torchgi.backends` step aside then: the recorded graph
     needs torch ops).
 
     Example:

@@ -3,6 +3,7 @@
 from torchgi.filters.atrous import ATrous, atrous
 from torchgi.filters.bilateral import CrossBilateral, cross_bilateral
 from torchgi.filters.box import Box, box
-from torchgi.filters.guided import Guided, guide_from_gbuffer, guided
+from torchgi.filters.guided import Guided, guide_from, guide_from_gbuffer, guided
 
-__all__ = ["ATrous", "Box", "CrossBilateral", "Guided", "atrous", "box", "cross_bilateral", "guide_from_gbuffer", "guided"]
+__all__ = ["ATrous", "Box", "CrossBilateral", "Guided", "atrous", "box", "cross_bilateral", "guide_from", "guide_from_gbuffer",
+           "guided"]

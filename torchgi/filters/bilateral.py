@@ -8,6 +8,7 @@ from collections.abc import Sequence
 import torch
 from torch import nn
 
+from torchgi.backends.torch_code import channel_planes, squared_distance
 from torchgi.core.check import (
     check_int,
     check_positive,
@@ -16,7 +17,6 @@ from torchgi.core.check import (
     check_shape,
     finite_or_sanitized_all,
 )
-from torchgi.backends.torch_code import channel_planes, squared_distance
 from torchgi.core.dtypes import compute_dtype
 from torchgi.filters.taps import Padded
 

@@ -26,6 +26,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from torchgi import backends
+from torchgi.backends.torch_code import apply_coefficients
 from torchgi.buffers import GBuffer
 from torchgi.core.check import (
     check_floating,
@@ -36,11 +37,10 @@ from torchgi.core.check import (
     finite_or_sanitized_later,
     is_recording,
 )
-from torchgi.backends.torch_code import apply_coefficients
 from torchgi.core.dtypes import compute_dtype
 from torchgi.core.errors import RangeError, ShapeError
 
-__all__ = ["Guided", "guide_from_gbuffer", "guided"]
+__all__ = ["Guided", "guide_from", "guide_from_gbuffer", "guided"]
 
 
 def _check_eps(
@@ -164,7 +164,8 @@ def guided(
 def guide_from_gbuffer(
     gb: GBuffer, *, depth_scale: float | None = None, drop_constant: bool = True
 ) -> torch.Tensor:
-    """The paper's guide from a GBuffer: normal xyz mapped to [0, 1] and depth / extent.
+    """The paper's guide from a GBuffer: normal xyz mapped to [0, 1] and depth / extent
+    (:func:`guide_from` of ``gb.normal``, ``gb.depth`` and ``gb.hit``).
 
     Args:
         gb: needs ``normal``; ``depth`` is appended when present.
@@ -184,15 +185,45 @@ def guide_from_gbuffer(
     """
     if gb.normal is None:
         raise ShapeError("gb: the guide needs gb.normal (and uses gb.depth when present)")
-    channels = [(gb.normal + 1) * 0.5]
-    if gb.depth is not None:
-        if depth_scale is None:
-            valid = gb.depth if gb.hit is None else torch.where(gb.hit, gb.depth, -torch.inf)
-            depth_scale = float(valid.max()) if valid.numel() else 1.0
-            depth_scale = depth_scale if depth_scale > 0 else 1.0  # (-inf: no hit pixel)
-        elif not depth_scale > 0:
-            raise RangeError(f"depth_scale: expected > 0, got {depth_scale}")
-        channels.append(gb.depth / depth_scale)
+    return guide_from(gb.normal, gb.depth, hit=gb.hit, depth_scale=depth_scale, drop_constant=drop_constant)
+
+
+def guide_from(
+    normal: torch.Tensor, depth: torch.Tensor | None = None, *, hit: torch.Tensor | None = None,
+    depth_scale: float | str | None = None, drop_constant: bool = False,
+) -> torch.Tensor:
+    """The guided filter's guide, built one way for the Denoiser, its exported form and
+    :class:`~torchgi.data.FilterFeatures`: ``(normal + 1) / 2`` and ``depth / scale``.
+
+    Args:
+        normal: ``(B, 3, H, W)`` in [-1, 1].
+        depth: ``(B, 1, H, W)`` or None (the guide is the normal alone).
+        hit: ``(B, 1, H, W)`` bool, the pixels whose depth sets the default scale.
+        depth_scale: a float (scene units); None = the largest depth on ``hit`` pixels of the
+            batch (a host read); ``"image"`` = each image's own largest depth (no host read:
+            traceable, and a sample's guide does not depend on its batch).
+        drop_constant: drop channels constant over the whole batch (a host read).
+
+    Returns:
+        ``(B, G, H, W)``, ``G <= 4``, dtype/device of ``normal``.
+
+    Example:
+        >>> n = torch.zeros(2, 3, 2, 2); d = torch.tensor([1.0, 4.0]).view(2, 1, 1, 1).expand(2, 1, 2, 2)
+        >>> guide_from(n, d, depth_scale="image")[:, 3, 0, 0].tolist()   # each image by its own maximum
+        [1.0, 1.0]
+    """
+    channels = [(normal + 1) * 0.5]
+    if depth is not None:
+        if depth_scale == "image":
+            channels.append(depth / depth.amax(dim=(1, 2, 3), keepdim=True).clamp_min(1e-12))
+        else:
+            if depth_scale is None:
+                valid = depth if hit is None else torch.where(hit, depth, -torch.inf)
+                depth_scale = float(valid.max()) if valid.numel() else 1.0
+                depth_scale = depth_scale if depth_scale > 0 else 1.0  # (-inf: no hit pixel)
+            elif isinstance(depth_scale, str) or not depth_scale > 0:
+                raise RangeError(f"depth_scale: expected > 0, None or 'image', got {depth_scale!r}")
+            channels.append(depth / depth_scale)
     guide = torch.cat(channels, 1)
     if drop_constant:
         flat = guide.flatten(2)

@@ -1,5 +1,5 @@
 """The old switch of the compiled kernels, kept for scripts that use it: the kernels now live
-in :mod:`torchgi.backends` (``c_kernels``, ``triton_kernels``), which chooses between them.
+in :mod:`torchgi.backends`, which chooses between them.
 
 Example:
     >>> from torchgi.filters import native

@@ -13,6 +13,7 @@ import atexit
 import concurrent.futures
 import contextlib
 import dataclasses
+import functools
 import multiprocessing
 import os
 import sys
@@ -388,20 +389,7 @@ def render(
     """
     if not isinstance(scene, Scene):
         scene = load_scene(scene)
-    check_int(bounces, "bounces", 0)
-    check_int(seed, "seed", 0)
-    if seed >= 1 << 32:
-        raise RangeError(f"seed: expected an int in [0, 2^32), got {seed}")
-    check_option(integrator, "integrator", tuple(INTEGRATORS))
-    if isinstance(skip_unneeded, bool):
-        skips = frozenset(SKIPS) if skip_unneeded else frozenset()
-    else:
-        skips = frozenset(skip_unneeded)
-        for name in skips:
-            check_option(name, "skip_unneeded", tuple(SKIPS))
-    check_int(chunk_size, "chunk_size", BLOCK)
-    if workers is not None:
-        check_int(workers, "workers", 1)
+    skips = _check_render_args(bounces, seed, integrator, skip_unneeded, chunk_size, workers)
     camera = scene.camera
     width, height = camera.resolution
     counts = _counts(spp, camera)
@@ -413,35 +401,13 @@ def render(
             passes.append((_Pass(2, "indirect"), flat))
     else:
         passes = [(_Pass(0, "all"), flat)]
-    arrays = scene.arrays()
     total = sum(int(c.sum()) for _, c in passes)
     if workers is None:
         workers = (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
         workers = workers if total >= _PARALLEL_MIN_SAMPLES else 1
-
-    # Radiance rows 0-8 (emission, direct, indirect) and the colour variance 9-11, float32;
-    # each tile is merged as soon as it arrives, so only one tile's film is held here at a time.
-    rows = torch.zeros(12, flat.numel())
+    jobs = functools.partial(_Job, scene.arrays(), camera, integrator, bounces, seed)
     with _progress_bar(total, progress, f"render {scene.name}") as bar:
-        for render_pass, pass_counts in passes:
-            tiles = _tiles(pass_counts, workers * _TILES_PER_WORKER if workers > 1 else 1)
-            jobs = [
-                _Job(
-                    arrays, camera, integrator, bounces, seed, render_pass, skips, a,
-                    pass_counts[a:b].numpy(), chunk_size,
-                )
-                for a, b in tiles
-            ]
-            if workers > 1:
-                futures = {_pool(workers).submit(_run_tile, job): tile for job, tile in zip(jobs, tiles)}
-                done = ((futures[f], f.result()) for f in concurrent.futures.as_completed(futures))
-            else:
-                done = ((tile, _run_tile(job, bar.update)) for job, tile in zip(jobs, tiles))
-            for (a, b), (mean, variance) in done:
-                rows[:9, a:b] += torch.from_numpy(mean)
-                rows[9:, a:b] = torch.from_numpy(variance)
-                if workers > 1:
-                    bar.update(int(pass_counts[a:b].sum()))
+        rows = _trace(jobs, passes, skips, chunk_size, workers, bar)
     g = render_guides(scene, chunk_size=chunk_size)
 
     def image(x: torch.Tensor) -> torch.Tensor:  # (C, B*H*W) -> (B, C, H, W)
@@ -462,3 +428,48 @@ def render(
         variance=image(rows[9:12]),
         spp=counts.clone(),
     )
+
+
+def _check_render_args(
+    bounces: int, seed: int, integrator: str, skip_unneeded: bool | Collection[str], chunk_size: int,
+    workers: int | None,
+) -> frozenset[str]:
+    """Validate :func:`render`'s arguments; returns the skips to apply."""
+    check_int(bounces, "bounces", 0)
+    check_int(seed, "seed", 0)
+    if seed >= 1 << 32:
+        raise RangeError(f"seed: expected an int in [0, 2^32), got {seed}")
+    check_option(integrator, "integrator", tuple(INTEGRATORS))
+    if isinstance(skip_unneeded, bool):
+        skips = frozenset(SKIPS) if skip_unneeded else frozenset()
+    else:
+        skips = frozenset(skip_unneeded)
+        for name in skips:
+            check_option(name, "skip_unneeded", tuple(SKIPS))
+    check_int(chunk_size, "chunk_size", BLOCK)
+    if workers is not None:
+        check_int(workers, "workers", 1)
+    return skips
+
+
+def _trace(
+    jobs: Callable[..., _Job], passes: list, skips: frozenset[str], chunk_size: int, workers: int, bar,
+) -> torch.Tensor:
+    """Trace every pass in tiles (here or on ``workers`` processes) into radiance rows 0-8
+    (emission, direct, indirect) and the colour variance 9-11, float32 ``(12, pixels)``; each
+    tile is merged as soon as it arrives, so only one tile's film is held at a time."""
+    rows = torch.zeros(12, passes[0][1].numel())
+    for render_pass, pass_counts in passes:
+        tiles = _tiles(pass_counts, workers * _TILES_PER_WORKER if workers > 1 else 1)
+        tile_jobs = [jobs(render_pass, skips, a, pass_counts[a:b].numpy(), chunk_size) for a, b in tiles]
+        if workers > 1:
+            futures = {_pool(workers).submit(_run_tile, job): tile for job, tile in zip(tile_jobs, tiles)}
+            done = ((futures[f], f.result()) for f in concurrent.futures.as_completed(futures))
+        else:
+            done = ((tile, _run_tile(job, bar.update)) for job, tile in zip(tile_jobs, tiles))
+        for (a, b), (mean, variance) in done:
+            rows[:9, a:b] += torch.from_numpy(mean)
+            rows[9:, a:b] = torch.from_numpy(variance)
+            if workers > 1:
+                bar.update(int(pass_counts[a:b].sum()))
+    return rows

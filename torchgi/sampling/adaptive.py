@@ -29,7 +29,11 @@ from torchgi.sampling.importance import importance_map
 if TYPE_CHECKING:  # the renderer imports its scene types lazily (embree is an extra)
     from torchgi.render.scene import Scene
 
-__all__ = ["adaptive_counts", "adaptive_render", "pixel_footprint"]
+__all__ = ["adaptive_counts", "adaptive_render", "pixel_footprint", "sigma_position_rule"]
+
+# σ_x of the importance map, in pixel footprints: the map compares neighbours at step 1 over a
+# 4 px window, where the filter's σ_x (4 footprints, settings.ATROUS) would see no edge
+IMPORTANCE_FOOTPRINTS = 2.0
 
 
 def pixel_footprint(position: torch.Tensor, hit: torch.Tensor) -> float:
@@ -47,6 +51,19 @@ def pixel_footprint(position: torch.Tensor, hit: torch.Tensor) -> float:
     return median if median > 0 else 1.0  # no geometry or no spread: any scale will do
 
 
+def sigma_position_rule(position: torch.Tensor, hit: torch.Tensor, footprints: float) -> float:
+    """The one default rule for σ_x when the scene's units are unknown: ``(footprints x
+    pixel_footprint)²``, in scene units squared (a position difference of ``footprints`` pixels
+    weighs ``exp(-1)``). The Denoiser's À-Trous uses 4 footprints, the importance map 2.
+
+    Example:
+        >>> x = torch.arange(8.0).expand(1, 1, 4, 8) * 0.5
+        >>> sigma_position_rule(torch.cat([x, 0 * x, 0 * x], 1), torch.ones(1, 1, 4, 8, dtype=torch.bool), 4)
+        4.0
+    """
+    return (footprints * pixel_footprint(position, hit)) ** 2
+
+
 def adaptive_counts(
     guides: GBuffer,
     rate: float,
@@ -62,7 +79,7 @@ def adaptive_counts(
     Args:
         guides: a GBuffer with ``normal``, ``position`` and ``hit`` (e.g. ``render_guides``).
         rate: average samples per pixel on geometry (> 0).
-        sigma_position: σ_x in scene units squared; None = (2 x :func:`pixel_footprint`)².
+        sigma_position: σ_x in scene units squared; None = :func:`sigma_position_rule` with 2 footprints.
 
     Returns:
         ``(B, 1, H, W)`` int64 counts.
@@ -79,7 +96,7 @@ def adaptive_counts(
     check_int(min_samples, "min_samples")
     hit = guides.hit
     if sigma_position is None:
-        sigma_position = (2 * pixel_footprint(guides.position, hit)) ** 2
+        sigma_position = sigma_position_rule(guides.position, hit, IMPORTANCE_FOOTPRINTS)
     imp = importance_map(guides.normal, guides.position, window=window, sigma_normal=sigma_normal,
                          sigma_position=sigma_position, hit=hit)
     budget = int(round(rate * int(hit.flatten(1).sum(1).max())))

@@ -13,10 +13,13 @@ import torch
 
 from torchgi.render.camera import camera_rays
 from torchgi.render.integrators.common import (
+    BSDF,
     CAMERA_DIMS,
     DIRECT,
     EMISSION,
     INDIRECT,
+    LIGHT,
+    SKY,
     Context,
     dims,
     emitted,
@@ -64,7 +67,7 @@ def radiance(
         # ---- next-event estimation
         if not (depth == 1 and record == "indirect"):
             if tables.has_area:
-                point, light = sample_area_light(tables, u[0:3])
+                point, light = sample_area_light(tables, u[LIGHT])
                 to_light = point - s.position
                 dist2 = (to_light * to_light).sum(0)
                 wl = to_light * torch.rsqrt(dist2)
@@ -81,7 +84,7 @@ def radiance(
                 visible = ~ctx.accel.occluded(s.origin, wl, torch.sqrt(dist2) * (1 - 1e-4))
                 out[rows] += beta * f_cos * tables.intensities[p].reshape(3, 1) / dist2 * visible
             if tables.sky is not None:
-                wl, pdf_sky = sample_sky(s.normal, u[3:5])
+                wl, pdf_sky = sample_sky(s.normal, u[SKY])
                 f_cos, _ = bsdf_eval(s.glossy, s.albedo, s.alpha, s.normal, s.wi, wl)
                 visible = ~ctx.accel.occluded(s.origin, wl, None)
                 out[rows] += beta * f_cos * tables.sky / pdf_sky.clamp(min=1e-20) * visible
@@ -89,7 +92,7 @@ def radiance(
             break
 
         # ---- continue the path along a BSDF sample
-        wo, weight, _ = bsdf_sample(s.glossy, s.albedo, s.alpha, s.normal, s.wi, u[5:7])
+        wo, weight, _ = bsdf_sample(s.glossy, s.albedo, s.alpha, s.normal, s.wi, u[BSDF])
         beta = beta * weight
         origin, direction = s.origin, wo
         t, prim = ctx.accel.intersect(origin, direction)

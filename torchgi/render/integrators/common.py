@@ -15,11 +15,16 @@ from torchgi.render.materials import dot
 from torchgi.render.scene import Camera
 
 __all__ = [
+    "BSDF",
     "CAMERA_DIMS",
     "DIRECT",
     "EMISSION",
     "INDIRECT",
+    "LIGHT",
+    "ROULETTE",
+    "RR_START",
     "SKIPS",
+    "SKY",
     "Context",
     "Surface",
     "dims",
@@ -30,8 +35,15 @@ __all__ = [
 
 # Rows of an integrator's (9, N) output.
 EMISSION, DIRECT, INDIRECT = slice(0, 3), slice(3, 6), slice(6, 9)
-CAMERA_DIMS = [0, 1]
+CAMERA_DIMS = [0, 1]  # the pixel jitter
+# A path vertex's random dimensions, as offsets into its block of _PER_VERTEX (pbrt's fixed
+# Get1D/Get2D order: a sample's dimensions mean the same whatever else the path does)
+LIGHT = slice(0, 3)  # light choice, then the point on it (2D)
+SKY = slice(3, 5)  # sky direction
+BSDF = slice(5, 7)  # BSDF direction
+ROULETTE = 7  # Russian roulette
 _PER_VERTEX = 8
+RR_START = 3  # Russian roulette only past this many bounces (Context.roulette_from)
 
 # Work the fast integrator leaves out when a scene does not need it (DESIGN §4):
 SKIPS = {
@@ -42,8 +54,13 @@ SKIPS = {
 
 
 def dims(depth: int) -> list[int]:
-    """Random-number dimensions of path vertex ``depth`` (1 = first hit): light choice, light
-    point (2), sky direction (2), BSDF (2), Russian roulette."""
+    """Random-number dimensions of path vertex ``depth`` (1 = first hit), indexed by
+    :data:`LIGHT`, :data:`SKY`, :data:`BSDF`, :data:`ROULETTE`.
+
+    Example:
+        >>> dims(2)[BSDF], dims(2)[ROULETTE]
+        ([15, 16], 17)
+    """
     base = 2 + _PER_VERTEX * (depth - 1)
     return list(range(base, base + _PER_VERTEX))
 
@@ -58,6 +75,7 @@ class Context:
     bounces: int
     seed: int
     skip: frozenset[str] = frozenset()  # which of SKIPS are on (DESIGN §4)
+    roulette_from: int = RR_START  # bounces after which Russian roulette may end a path
 
     @property
     def pixels_per_image(self) -> int:

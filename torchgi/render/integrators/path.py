@@ -4,14 +4,13 @@ Per vertex: one light sample on the emissive triangles and one towards the sky, 
 BSDF sampling by the power heuristic; every point light is sampled (no random choice). At the
 last vertex (``depth = bounces + 1``) a diffuse surface takes its light samples with weight 1
 and traces no BSDF ray (nothing could use it); a glossy one keeps MIS. Russian roulette starts
-after the third bounce. Paths that miss or carry zero throughput are dropped, and light types
+after ``Context.roulette_from`` bounces (3). Paths that miss or carry zero throughput are dropped, and light types
 the scene lacks are never sampled (DESIGN §4); each skip named in ``common.SKIPS`` can be
 turned off (``Context.skip``) to measure it. Matches ``basic`` in expectation.
 
-Speed notes (CPU): boolean-mask indexing and ``x[:, idx] += v`` are 5-10x slower in torch
-than ``index_select`` / ``index_add_``, so the active set is compacted once per vertex with
-one index vector, and shadow rays that cannot contribute are disabled (``tmax = 0``) rather
-than compacted away.
+The active set is compacted once per vertex with one index vector (``index_select`` /
+``index_add_``: boolean-mask indexing and ``x[:, idx] += v`` are much slower in torch), and
+shadow rays that cannot contribute are disabled (``tmax = 0``) rather than compacted away.
 """
 
 from __future__ import annotations
@@ -21,7 +20,20 @@ import math
 import torch
 
 from torchgi.render.camera import camera_rays
-from torchgi.render.integrators.common import CAMERA_DIMS, DIRECT, EMISSION, INDIRECT, Context, dims, emitted, surface
+from torchgi.render.integrators.common import (
+    BSDF,
+    CAMERA_DIMS,
+    DIRECT,
+    EMISSION,
+    INDIRECT,
+    LIGHT,
+    ROULETTE,
+    SKY,
+    Context,
+    dims,
+    emitted,
+    surface,
+)
 from torchgi.render.lights import EMISSION as EMISSION_ROWS
 from torchgi.render.lights import LIGHT_PDF, NORMAL, sample_area_light, sample_sky
 from torchgi.render.materials import bsdf_eval, bsdf_sample, dot
@@ -29,7 +41,6 @@ from torchgi.render.sampler import sample_keys, uniform
 
 __all__ = ["radiance"]
 
-_RR_START = 3  # Russian roulette only past this many bounces
 _SHADOW_END = 1.0 - 1e-4  # shadow rays to a light point stop just short of it
 
 
@@ -61,29 +72,10 @@ def radiance(
     skip_dead = "dead_paths" in ctx.skip
     # Without the "absent_lights" skip, an absent sky is sampled anyway (at zero radiance).
     sky = tables.sky if tables.sky is not None or "absent_lights" in ctx.skip else torch.zeros(3, 1)
-    n_total = pixel.numel()
-    out = torch.zeros(9, n_total)
+    out = torch.zeros(9, pixel.numel())
     keys = sample_keys(ctx.seed, pixel, sample, stream)
-    jitter = None if centre else uniform(keys, CAMERA_DIMS)
-    origin, direction = camera_rays(ctx.camera, pixel % ctx.pixels_per_image, jitter)
-    t, prim = ctx.accel.intersect(origin, direction)
-    hit = prim >= 0
-    if record != "indirect":
-        # ---- light seen directly: emitters' front faces and the sky
-        if tables.has_area:
-            out[EMISSION] += emitted(ctx, direction, prim)[0]
-        if sky is not None:
-            out[EMISSION] += sky * ~hit
+    idx, keys, prim, t, direction, beta, position = _camera_paths(ctx, out, pixel, keys, record, centre, sky)
     bounces = 0 if record == "direct" else ctx.bounces
-    if skip_dead:  # camera rays that missed go no further
-        idx = hit.nonzero().squeeze(1)
-        keys, prim, t = keys.index_select(0, idx), prim.index_select(0, idx), t.index_select(0, idx)
-        direction = direction.index_select(1, idx)
-        beta = torch.ones(3, idx.numel())
-    else:  # ... unless asked: they continue from a placeholder with zero throughput
-        idx, beta = torch.arange(n_total), torch.ones(3, n_total) * hit
-        prim, t = torch.where(hit, prim, 0), torch.where(hit, t, 1.0)
-    position = origin + direction * t
     for depth in range(1, bounces + 2):
         if idx.numel() == 0:
             break
@@ -97,7 +89,8 @@ def radiance(
             mis = torch.ones(idx.numel(), dtype=torch.bool)
         trace_on = not last or (mis is not None and (tables.has_area or sky is not None))
         need = _needed_dims(ctx, depth, trace_on, record_here, sky is not None)
-        u = dict(zip(need, uniform(keys, [dims(depth)[k] for k in need]))) if need else {}
+        vertex = dims(depth)
+        u = dict(zip(need, uniform(keys, [vertex[k] for k in need]))) if need else {}
         acc = torch.zeros(3, idx.numel())
         if record_here:
             _next_event(ctx, acc, s, beta, u, mis, last, sky)
@@ -105,28 +98,19 @@ def radiance(
             out[rows].index_add_(1, idx, acc)
             break
         # ---- continue along a BSDF sample
-        wo, weight, pdf = bsdf_sample(s.glossy, s.albedo, s.alpha, s.normal, s.wi, torch.stack([u[5], u[6]]))
+        wo, weight, pdf = bsdf_sample(s.glossy, s.albedo, s.alpha, s.normal, s.wi, _stack(u, BSDF))
         beta = beta * weight
         live = beta.amax(0) > 0
         if last:
             live &= mis
-        if depth > _RR_START:
+        if depth > ctx.roulette_from:
             q = beta.amax(0).clamp(max=0.95)
-            live &= u[7] < q
+            live &= u[ROULETTE] < q
             beta = beta / torch.where(live, q, 1.0)
         t, prim = ctx.accel.intersect(s.origin, wo, torch.where(live, math.inf, 0.0) if skip_dead else None)
         hit = (prim >= 0) & live
         if record_here:
-            if tables.has_area:
-                e, rows_l = emitted(ctx, wo, torch.where(live, prim, -1))
-                cos_l = (-dot(rows_l[NORMAL], wo)).clamp(min=1e-12)
-                t_hit = torch.where(hit, t, 0.0)  # t is +inf on misses
-                pdf_light = rows_l[LIGHT_PDF] * t_hit * t_hit / cos_l
-                acc += beta * e * _power(pdf, pdf_light)
-            if sky is not None:
-                miss = live & (prim < 0)
-                pdf_sky = dot(s.normal, wo).clamp(min=0.0) * (1.0 / math.pi)
-                acc += beta * sky * (_power(pdf, pdf_sky) * miss)
+            _bsdf_light(ctx, acc, s, beta, wo, pdf, t, prim, live, hit, sky)
         out[rows].index_add_(1, idx, acc)
         if last:
             break
@@ -141,17 +125,69 @@ def radiance(
     return out
 
 
+def _stack(u: dict[int, torch.Tensor], dims: slice) -> torch.Tensor:
+    """The rows of ``u`` for the vertex dimensions ``dims`` (``common.LIGHT``, ``SKY``, ``BSDF``)."""
+    return torch.stack([u[d] for d in range(dims.start, dims.stop)])
+
+
+def _camera_paths(
+    ctx: Context, out: torch.Tensor, pixel: torch.Tensor, keys: torch.Tensor, record: str, centre: bool,
+    sky: torch.Tensor | None,
+) -> tuple[torch.Tensor, ...]:
+    """Trace the camera rays, add the light they see directly to ``out``, and return the paths
+    that go on: ``idx`` (their columns of ``out``), keys, primitive, distance, direction,
+    throughput ``beta (3, n)`` and first-hit position."""
+    n_total = pixel.numel()
+    jitter = None if centre else uniform(keys, CAMERA_DIMS)
+    origin, direction = camera_rays(ctx.camera, pixel % ctx.pixels_per_image, jitter)
+    t, prim = ctx.accel.intersect(origin, direction)
+    hit = prim >= 0
+    if record != "indirect":
+        # ---- light seen directly: emitters' front faces and the sky
+        if ctx.tables.has_area:
+            out[EMISSION] += emitted(ctx, direction, prim)[0]
+        if sky is not None:
+            out[EMISSION] += sky * ~hit
+    if "dead_paths" in ctx.skip:  # camera rays that missed go no further
+        idx = hit.nonzero().squeeze(1)
+        keys, prim, t = keys.index_select(0, idx), prim.index_select(0, idx), t.index_select(0, idx)
+        direction = direction.index_select(1, idx)
+        beta = torch.ones(3, idx.numel())
+    else:  # ... unless asked: they continue from a placeholder with zero throughput
+        idx, beta = torch.arange(n_total), torch.ones(3, n_total) * hit
+        prim, t = torch.where(hit, prim, 0), torch.where(hit, t, 1.0)
+    return idx, keys, prim, t, direction, beta, origin + direction * t
+
+
+def _bsdf_light(
+    ctx: Context, acc: torch.Tensor, s, beta: torch.Tensor, wo: torch.Tensor, pdf: torch.Tensor, t: torch.Tensor,
+    prim: torch.Tensor, live: torch.Tensor, hit: torch.Tensor, sky: torch.Tensor | None,
+) -> None:
+    """Add to ``acc`` the light the BSDF rays ``wo`` (of pdf ``pdf``) found: emitters they hit and
+    the sky they reached, MIS-weighted against light sampling."""
+    if ctx.tables.has_area:
+        e, rows_l = emitted(ctx, wo, torch.where(live, prim, -1))
+        cos_l = (-dot(rows_l[NORMAL], wo)).clamp(min=1e-12)
+        t_hit = torch.where(hit, t, 0.0)  # t is +inf on misses
+        pdf_light = rows_l[LIGHT_PDF] * t_hit * t_hit / cos_l
+        acc += beta * e * _power(pdf, pdf_light)
+    if sky is not None:
+        miss = live & (prim < 0)
+        pdf_sky = dot(s.normal, wo).clamp(min=0.0) * (1.0 / math.pi)
+        acc += beta * sky * (_power(pdf, pdf_sky) * miss)
+
+
 def _needed_dims(ctx: Context, depth: int, trace_on: bool, record_here: bool, has_sky: bool) -> list[int]:
     """Which of a vertex's random dimensions (see ``common.dims``) this vertex uses."""
     need = []
     if record_here and ctx.tables.has_area:
-        need += [0, 1, 2]
+        need += range(LIGHT.start, LIGHT.stop)
     if record_here and has_sky:
-        need += [3, 4]
+        need += range(SKY.start, SKY.stop)
     if trace_on:
-        need += [5, 6]
-        if depth > _RR_START:
-            need.append(7)
+        need += range(BSDF.start, BSDF.stop)
+        if depth > ctx.roulette_from:
+            need.append(ROULETTE)
     return need
 
 
@@ -178,7 +214,7 @@ def _next_event(
         return torch.where(mis, _power(pdf_light, pdf_bsdf), 1.0)
 
     if tables.has_area:
-        point, light = sample_area_light(tables, torch.stack([u[0], u[1], u[2]]))
+        point, light = sample_area_light(tables, _stack(u, LIGHT))
         to_light = point - s.position
         dist2 = dot(to_light, to_light)
         inv_dist = torch.rsqrt(dist2)
@@ -201,7 +237,7 @@ def _next_event(
         tmax = torch.where(ok, dist2 * inv_dist * _SHADOW_END, 0.0)
         acc += value * ~ctx.accel.occluded(s.origin, wl, tmax)
     if sky is not None:
-        wl, pdf_sky = sample_sky(s.normal, torch.stack([u[3], u[4]]))
+        wl, pdf_sky = sample_sky(s.normal, _stack(u, SKY))
         f_cos, pdf_bsdf = bsdf_eval(s.glossy, s.albedo, s.alpha, s.normal, s.wi, wl)
         ok = (pdf_sky > 0) & (f_cos.amax(0) > 0)
         value = beta * f_cos * sky * (weight(pdf_sky, pdf_bsdf) / pdf_sky.clamp(min=1e-20) * ok)

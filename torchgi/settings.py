@@ -1,0 +1,107 @@
+"""Every setting of :class:`torchgi.Denoiser`, per method, in one place: name, default, range,
+unit and the reason for the default (as Falcor's ``SVGFPass.h`` member block or NRD's
+``NRDSettings.h`` range comments). The sweeps behind the defaults, with the commands that
+reproduce them, are in ``docs/calibration.md``.
+
+Example:
+    >>> from torchgi.settings import GUIDED, describe
+    >>> GUIDED.radius, describe(GUIDED)[0]["name"]
+    (4, 'radius')
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+__all__ = ["ATROUS", "BILATERAL", "GUIDED", "PIPELINE", "ATrousSettings", "BilateralSettings", "GuidedSettings",
+           "PipelineSettings", "describe"]
+
+
+def _setting(default: Any, low: float, high: float, unit: str, reason: str) -> Any:
+    """A dataclass field with its range ``[low, high]``, unit and one-line reason as metadata."""
+    return dataclasses.field(default=default, metadata={"range": (low, high), "unit": unit, "reason": reason})
+
+
+@dataclasses.dataclass(frozen=True)
+class PipelineSettings:
+    """The steps around every method's filter (:mod:`torchgi.denoise`)."""
+
+    light: float = _setting(8.0, 1.0, math.inf, "x median demodulated light",
+                            "emission this far above the lit scene is a light source, passed untouched")
+    light_square: int = _setting(3, 1, 15, "px", "a light source covers a square this wide (an opening): "
+                                 "pixels a few samples hit along a silhouette are filtered with the rest")
+    firefly_radius: int = _setting(8, 1, 64, "px", "the local level a firefly is compared with: a 17x17 box mean")
+    albedo_floor: float = _setting(1e-3, 0.0, 1.0, "albedo", "light is divided by at least this (black surfaces)")
+    rel_var_1spp: float = _setting(0.25, 0.0, math.inf, "relative variance",
+                                   "the mean relative variance of a 1 spp render: a measured variance maps to spp")
+    min_radius: int = _setting(2, 1, 64, "px", "no filter narrower than this, however many samples")
+    fast: float = _setting(0.5, 0.0, math.inf, "x", "quality 'fast' scales radii and footprints by this")
+    balanced: float = _setting(1.0, 0.0, math.inf, "x", "quality 'balanced'")
+    high: float = _setting(1.5, 0.0, math.inf, "x", "quality 'high'")
+
+    def quality_scale(self, quality: str) -> float:
+        """The radius / footprint scale of ``quality`` ("fast", "balanced", "high")."""
+        return getattr(self, quality)
+
+
+@dataclasses.dataclass(frozen=True)
+class GuidedSettings:
+    """``Denoiser("guided")``: the guided filter on normal + depth guides (Bauszat et al. 2011)."""
+
+    radius: int = _setting(4, 1, 64, "px at 1 spp", "best or within one unit of the best on 8 of 10 tuning "
+                           "cases; shrinks as 1/sqrt(spp)")
+    eps: float = _setting(1e-4, 0.0, math.inf, "guide units squared", "same sweep as radius")
+    firefly: float = _setting(4.0, 1.0, math.inf, "x local level",
+                              "light above this is scaled down to it before filtering (4 was best for guided)")
+    subsample_from: int = _setting(256, 1, math.inf, "px (short side)",
+                                   "half resolution only from this size (it costs 3-20 % relMSE at 128²)")
+    edge: float = _setting(0.1, 0.0, math.inf, "guide units", "a neighbour this different in the guide is an edge")
+    edge_share: float = _setting(0.1, 0.0, 1.0, "share of pixels",
+                                 "half resolution only where fewer pixels than this lie on edges")
+
+
+@dataclasses.dataclass(frozen=True)
+class ATrousSettings:
+    """``Denoiser("atrous")``: edge-avoiding À-Trous (Dammertz et al. 2010)."""
+
+    footprint: float = _setting(16.0, 1.0, math.inf, "px at 1 spp",
+                                "levels enough for this footprint, shrinking as 1/sqrt(spp)")
+    min_iterations: int = _setting(2, 1, 16, "levels", "at least this many levels")
+    max_iterations: int = _setting(8, 1, 16, "levels", "at most this many (a 1025 px footprint)")
+    sigma_normal: float = _setting(0.1, 0.0, math.inf, "normal distance squared", "the paper's value")
+    sigma_position_footprints: float = _setting(4.0, 0.0, math.inf, "pixel footprints",
+                                                "σ_x = (this x the median pixel footprint)²: scene units unknown")
+    deployed_sigma_color: float = _setting(1.0, 0.0, math.inf, "colour units squared",
+                                           "an exported model has no image maximum to tie σ_rt to")
+    firefly: float = _setting(2.0, 1.0, math.inf, "x local level",
+                              "colour-weighted filters keep an outlier as a speck: 2 beat 4 on 5 of 7 cases")
+
+
+@dataclasses.dataclass(frozen=True)
+class BilateralSettings:
+    """``Denoiser("bilateral")``: brute-force cross-bilateral on normal + depth."""
+
+    radius: int = _setting(6, 1, 64, "px at 1 spp", "shrinks as 1/sqrt(spp); σ_space is half of it")
+    sigma_color: float = _setting(2.0, 0.0, math.inf, "colour units (scaled input)", "on light scaled to mean 1")
+    sigma_guide: float = _setting(0.2, 0.0, math.inf, "guide units", "normal and depth / extent alike")
+    firefly: float = _setting(2.0, 1.0, math.inf, "x local level",
+                              "colour-weighted filters keep an outlier as a speck: 2 beat 4 on 6 of 7 cases")
+
+
+PIPELINE = PipelineSettings()
+GUIDED = GuidedSettings()
+ATROUS = ATrousSettings()
+BILATERAL = BilateralSettings()
+
+
+def describe(settings: Any) -> list[dict[str, Any]]:
+    """One row per setting of a settings instance: name, value, range, unit, reason (for docs
+    and benchmark metadata).
+
+    Example:
+        >>> describe(BILATERAL)[0]
+        {'name': 'radius', 'value': 6, 'range': (1, 64), 'unit': 'px at 1 spp', 'reason': 'shrinks as 1/sqrt(spp); σ_space is half of it'}
+    """
+    return [{"name": f.name, "value": getattr(settings, f.name), **f.metadata} for f in dataclasses.fields(settings)]
