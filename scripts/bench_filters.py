@@ -80,7 +80,7 @@ def bench_guided(args, rows: list[dict]) -> None:
                               min_run_time=args.min_time)
                 row["kornia_ms"] = t_k["median_ms"]
                 row["kornia_over_module"] = t_k["median_ms"] / t_mod["median_ms"]
-            except Exception as exc:  # report the peer's failure, do not hide it
+            except Exception as exc:  # noqa: BLE001 - report the peer's failure, do not hide it
                 row["kornia_ms"] = None
                 row["kornia_error"] = f"{type(exc).__name__}: {exc}"[:120]
         rows.append(row)
@@ -122,9 +122,9 @@ def atrous_inputs(H: int, W: int, seed: int = 0):
     return c, n, x
 
 
-WEIGHTS = {0: dict(color_weight=False, normal=False, position=False), 1: dict(color_weight=True, normal=False,
-           position=False), 2: dict(color_weight=True, normal=True, position=False),
-           3: dict(color_weight=True, normal=True, position=True)}
+WEIGHTS = {0: {"color_weight": False, "normal": False, "position": False}, 1: {"color_weight": True, "normal": False,
+           "position": False}, 2: {"color_weight": True, "normal": True, "position": False},
+           3: {"color_weight": True, "normal": True, "position": True}}
 
 
 def run_atrous(c, n, x, iterations: int, weights: int, mode: str = "compiled"):

@@ -29,15 +29,15 @@ from torchgi import backends
 from torchgi.backends import triton_kernels as gpu
 from torchgi.filters import atrous, guided
 
-ATROUS = [dict(_BH=bh, _BW=bw, _WARPS=w, _UNROLL=u) for bh, bw, w, u in (
+ATROUS = [{"_BH": bh, "_BW": bw, "_WARPS": w, "_UNROLL": u} for bh, bw, w, u in (
     (4, 64, 4, 1), (4, 64, 4, 2), (2, 64, 2, 2), (2, 64, 2, 1), (2, 128, 4, 1), (2, 128, 4, 2), (8, 64, 8, 2),
     (1, 128, 4, 2), (1, 128, 4, 1), (2, 128, 8, 2), (1, 256, 8, 2), (1, 64, 2, 2))]
-_BASE = dict(_ROW_BH=8, _COL_ROWS=128)
+_BASE = {"_ROW_BH": 8, "_COL_ROWS": 128}
 GUIDED = [{}, _BASE] + [{**_BASE, **v} for v in (
-    dict(_COL_UNROLL=2), dict(_COL_UNROLL=4), dict(_COL_UNROLL=8), dict(_COL_UNROLL=4, _COL_WARPS=2),
-    dict(_COL_UNROLL=4, _COL_WARPS=1), dict(_COL_UNROLL=4, _COL_ROWS=64), dict(_COL_UNROLL=4, _COL_ROWS=256),
-    dict(_COL_UNROLL=4, _COL_BW=256), dict(_COL_UNROLL=4, _COL_BW=64, _COL_WARPS=2), dict(_COL_UNROLL=4, _ROW_BH=4),
-    dict(_COL_UNROLL=4, _ROW_BW=64), dict(_COL_UNROLL=4, _PIX=512), dict(_COL_UNROLL=4, _PIX=128))]
+    {"_COL_UNROLL": 2}, {"_COL_UNROLL": 4}, {"_COL_UNROLL": 8}, {"_COL_UNROLL": 4, "_COL_WARPS": 2},
+    {"_COL_UNROLL": 4, "_COL_WARPS": 1}, {"_COL_UNROLL": 4, "_COL_ROWS": 64}, {"_COL_UNROLL": 4, "_COL_ROWS": 256},
+    {"_COL_UNROLL": 4, "_COL_BW": 256}, {"_COL_UNROLL": 4, "_COL_BW": 64, "_COL_WARPS": 2}, {"_COL_UNROLL": 4, "_ROW_BH": 4},
+    {"_COL_UNROLL": 4, "_ROW_BW": 64}, {"_COL_UNROLL": 4, "_PIX": 512}, {"_COL_UNROLL": 4, "_PIX": 128})]
 
 
 def sweep(name: str, settings: list[dict], fn) -> dict:
@@ -54,7 +54,7 @@ def sweep(name: str, settings: list[dict], fn) -> dict:
             err = float((fn() - want).abs().max())
             t = time_ms(fn, min_run_time=0.3, device="cuda")
             busy = device_busy(fn, torch.device("cuda"))["gpu_busy_ms"]
-        except Exception as e:  # a setting that does not compile or run: report, go on
+        except Exception as e:  # noqa: BLE001 - a setting that does not compile or run: report, go on
             print(f"{name} {setting}: failed: {type(e).__name__}: {str(e)[:200]}", flush=True)
             continue
         results.append((busy, t["median_ms"], err, setting))

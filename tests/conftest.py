@@ -65,7 +65,7 @@ def _find_meshes() -> str | None:
     roots = [os.path.dirname(os.path.abspath(__file__))]
     try:  # a clone made from a local checkout: look beside that checkout too
         origin = subprocess.run(["git", "config", "--get", "remote.origin.url"], capture_output=True, text=True,
-                                cwd=roots[0], timeout=10).stdout.strip()
+                                cwd=roots[0], timeout=10, check=False).stdout.strip()
         if origin and os.path.isdir(origin):
             roots.append(os.path.join(os.path.abspath(origin), "tests"))
     except (OSError, subprocess.SubprocessError):

@@ -43,7 +43,7 @@ def fast_guided_oracle(p: torch.Tensor, I: torch.Tensor, r: int, eps, s: int) ->
     exists), coefficients at radius round(r / s), bilinear upsampling with pixel centres aligned
     (u = (i + 0.5) h / H - 0.5, clamped to the image), applied to the full-resolution guide."""
     p, I = p.double(), I.double()
-    B, C, H, W = p.shape
+    _B, _C, H, W = p.shape
     h, w = -(-H // s), -(-W // s)
 
     def down(x):
@@ -57,7 +57,7 @@ def fast_guided_oracle(p: torch.Tensor, I: torch.Tensor, r: int, eps, s: int) ->
         rows = []
         for i in range(n_out):
             u = max((i + 0.5) * n_in / n_out - 0.5, 0.0)
-            i0 = min(int(math.floor(u)), n_in - 1)
+            i0 = min(math.floor(u), n_in - 1)
             i1 = min(i0 + 1, n_in - 1)
             row = torch.zeros(n_in, dtype=torch.float64)
             row[i0] += 1 - (u - i0)
@@ -92,7 +92,8 @@ def scene(B, H, W, n, seed=0, noise=0.5):
 _B3 = (1 / 16, 1 / 4, 3 / 8, 1 / 4, 1 / 16)
 
 
-def atrous_oracle(color, normal=None, position=None, *, iterations, sigma_color=None, sigma_normal=0.1,
+def atrous_oracle(  # noqa: C901, PLR0912 - the oracle is one literal loop, to be read against DESIGN §3.1
+        color, normal=None, position=None, *, iterations, sigma_color=None, sigma_normal=0.1,
                   sigma_position=0.1, variance=None, color_weight=True, subsample=1, energy=False):
     """DESIGN §3.1 pixel by pixel in float64 numpy (one image ``(C, H, W)``), literally:
     taps outside the image are skipped, σ_rt,i = 2^-i σ_rt, no centring or fusing."""
@@ -178,12 +179,12 @@ def atrous_case(C: int, case: str):
     c = torch.rand(1, C, H, W, generator=g) * 2
     n = torch.nn.functional.normalize(torch.randn(1, 3, H, W, generator=g), dim=1)
     x = torch.rand(1, 3, H, W, generator=g)
-    kw = dict(iterations=3, sigma_color=0.5, sigma_normal=0.2 if "n" in case else None,
-              sigma_position=0.3 if "x" in case else None, color_weight="c" in case)
+    kw = {"iterations": 3, "sigma_color": 0.5, "sigma_normal": 0.2 if "n" in case else None,
+              "sigma_position": 0.3 if "x" in case else None, "color_weight": "c" in case}
     if case == "variance":
-        kw = dict(iterations=3, variance=torch.rand(1, 1, H, W, generator=g) * 0.1)
+        kw = {"iterations": 3, "variance": torch.rand(1, 1, H, W, generator=g) * 0.1}
     if case == "subsample":
-        kw = dict(iterations=3, sigma_color=1.0, subsample=2)
+        kw = {"iterations": 3, "sigma_color": 1.0, "subsample": 2}
     return c, n, x, kw
 
 

@@ -29,8 +29,8 @@ def buffers(B=1, H=13, W=17, seed=0):
 def test_matches_per_pixel_oracle(iterations, weights, kernels):
     """The default call (the compiled CPU kernel where it builds) and the float32 torch code."""
     c, n, x = buffers(seed=iterations)
-    kw = dict(iterations=iterations, sigma_color=0.5, sigma_normal=0.2 if "n" in weights else None,
-              sigma_position=0.3 if "x" in weights else None)
+    kw = {"iterations": iterations, "sigma_color": 0.5, "sigma_normal": 0.2 if "n" in weights else None,
+              "sigma_position": 0.3 if "x" in weights else None}
     with backends.use("torch") if kernels == "torch" else contextlib.nullcontext():
         out = atrous(c, n, x, color_weight="c" in weights, **kw)
     want = atrous_oracle(c[0], n[0], x[0], color_weight="c" in weights, **kw)
@@ -90,7 +90,7 @@ def test_constant_image_stays_constant():
 
 
 def test_all_zero_weights_fall_back_to_centre():
-    c, n, x = buffers()
+    c, _n, x = buffers()
     out = atrous(c, None, x * 1e3, iterations=3, sigma_position=1e-6, color_weight=False)
     torch.testing.assert_close(out, c)  # every neighbour's weight underflows: the centre remains
     tiny = torch.rand(1, 3, 3, 3)

@@ -42,7 +42,7 @@ def backend(request, device):
     if request.param == "compiled":
         name = "triton" if device.type == "cuda" else "c"
         why = backends.status()[name]
-        if not (why.startswith("compiled kernels in use") or why.startswith("Triton ")):
+        if not (why.startswith(("compiled kernels in use", "Triton "))):
             pytest.skip(f"{name}: {why}")
         with backends.use(name):
             yield name

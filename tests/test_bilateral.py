@@ -20,7 +20,7 @@ def data(H=11, W=14, seed=0):
 @pytest.mark.parametrize("radius, sigma_color", [(0, 0.3), (1, 0.3), (3, None), (6, 0.5)])
 def test_matches_per_pixel_oracle(radius, sigma_color):
     c, n, d = data(seed=radius)
-    kw = dict(radius=radius, sigma_space=2.0, sigma_color=sigma_color, sigma_guides=[0.3, 0.5])
+    kw = {"radius": radius, "sigma_space": 2.0, "sigma_color": sigma_color, "sigma_guides": [0.3, 0.5]}
     out = cross_bilateral(c, [n, d], **kw)
     assert rel(out[0], bilateral_oracle(c[0], [n[0], d[0]], **kw)) < 1e-5
 
@@ -36,7 +36,7 @@ def test_matches_kornia_joint_bilateral_inside_the_image():
 
 
 def test_constant_stays_constant_and_dtype(dtype):
-    c, n, d = data()
+    c, n, _d = data()
     flat = torch.full_like(c, 0.25).to(dtype)
     out = cross_bilateral(flat, [n.to(dtype)], radius=2, sigma_space=1.0, sigma_color=0.1, sigma_guides=[0.1])
     assert out.dtype == dtype

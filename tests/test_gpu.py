@@ -151,7 +151,7 @@ def test_kernels_off_inside_use_torch():
 def _variants():
     """Every Triton kernel with the compile-time arguments it is launched with (the À-Trous
     level: the common case and the one with every input)."""
-    level = dict(BH=gpu._BH, BW=gpu._BW)
+    level = {"BH": gpu._BH, "BW": gpu._BW}
     return [
         (gpu._level, dict(C=C, N=True, X=True, CS=CS, V=V, VALID=VALID, UNROLL=gpu._unroll(C, V), **level), gpu._WARPS)
         for C, CS, V, VALID in ((3, 1, False, False), (3, 1, False, True), (3, 2, True, False), (4, 1, False, True),
@@ -159,10 +159,10 @@ def _variants():
     ] + [
         (gpu._level, dict(C=1, N=False, X=False, CS=0, V=False, VALID=False, UNROLL=gpu._unroll(1, False), **level),
          gpu._WARPS),
-        (gpu._column_sums, dict(CENTRE=True, BW=gpu._COL_BW, UNROLL=gpu._COL_UNROLL), gpu._COL_WARPS),
-        (gpu._column_sums, dict(CENTRE=False, BW=gpu._COL_BW, UNROLL=gpu._COL_UNROLL), gpu._COL_WARPS),
-        (gpu._row_means, dict(BH=gpu._ROW_BH, BW=gpu._ROW_BW), 4),
-    ] + [(k, dict(N=n, BLOCK=gpu._PIX), 4) for k in (gpu._solve, gpu._apply) for n in (1, 2, 3, 4)]
+        (gpu._column_sums, {"CENTRE": True, "BW": gpu._COL_BW, "UNROLL": gpu._COL_UNROLL}, gpu._COL_WARPS),
+        (gpu._column_sums, {"CENTRE": False, "BW": gpu._COL_BW, "UNROLL": gpu._COL_UNROLL}, gpu._COL_WARPS),
+        (gpu._row_means, {"BH": gpu._ROW_BH, "BW": gpu._ROW_BW}, 4),
+    ] + [(k, {"N": n, "BLOCK": gpu._PIX}, 4) for k in (gpu._solve, gpu._apply) for n in (1, 2, 3, 4)]
 
 
 def test_kernels_compile_for_a_gpu_without_register_spills():

@@ -32,7 +32,7 @@ EXTRAS: dict[str, tuple[str, ...]] = {
 def _module_version(name: str) -> str | None:
     try:
         mod = importlib.import_module(name)
-    except Exception:  # any import failure means "not usable"
+    except Exception:  # noqa: BLE001 - any import failure means "not usable"
         return None
     return str(getattr(mod, "__version__", "installed"))
 

@@ -21,6 +21,7 @@ from __future__ import annotations
 import dataclasses
 import glob
 import hashlib
+import itertools
 import json
 import os
 import tempfile
@@ -81,19 +82,10 @@ def _int(value: Any, key: str, low: int) -> int:
     return value
 
 
-def config_from_dict(cfg: Mapping[str, Any], root: str = ".") -> DataGenConfig:
-    """Validate a parsed config; errors name the key."""
-    if not isinstance(cfg, Mapping):
-        raise ConfigError("config: expected a mapping")
-    unknown = sorted(set(cfg) - set(_KEYS))
-    if unknown:
-        raise ConfigError(f"config: unknown key(s) {', '.join(unknown)}; known: {', '.join(_KEYS)}")
-    for key in ("scenes", "spp", "reference_spp"):
-        if key not in cfg:
-            raise ConfigError(f"{key}: required")
+def _scenes(scenes: Any, root: str) -> list[str]:
+    """The ``scenes`` key: a non-empty list of built-in names or YAML paths with distinct names."""
     from torchgi.render.scenes import BUILTINS
 
-    scenes = cfg["scenes"]
     if not isinstance(scenes, list) or not scenes or not all(isinstance(s, str) for s in scenes):
         raise ConfigError(f"scenes: expected a non-empty list of names or YAML paths, got {scenes!r}")
     for name in scenes:
@@ -104,11 +96,25 @@ def config_from_dict(cfg: Mapping[str, Any], root: str = ".") -> DataGenConfig:
             )
     if len({_scene_name(s) for s in scenes}) != len(scenes):
         raise ConfigError(f"scenes: two scenes share a name: {scenes}")
+    return scenes
+
+
+def config_from_dict(cfg: Mapping[str, Any], root: str = ".") -> DataGenConfig:
+    """Validate a parsed config; errors name the key."""
+    if not isinstance(cfg, Mapping):
+        raise ConfigError("config: expected a mapping")
+    unknown = sorted(set(cfg) - set(_KEYS))
+    if unknown:
+        raise ConfigError(f"config: unknown key(s) {', '.join(unknown)}; known: {', '.join(_KEYS)}")
+    for key in ("scenes", "spp", "reference_spp"):
+        if key not in cfg:
+            raise ConfigError(f"{key}: required")
+    scenes = _scenes(cfg["scenes"], root)
     spp = cfg["spp"]
     if not isinstance(spp, list) or not spp:
         raise ConfigError(f"spp: expected a list of ints > 0 (the ladder), got {spp!r}")
     ladder = tuple(_int(s, "spp", 1) for s in spp)
-    if any(b <= a for a, b in zip(ladder, ladder[1:])):
+    if any(b <= a for a, b in itertools.pairwise(ladder)):
         raise ConfigError(f"spp: the ladder must be strictly increasing, got {list(ladder)}")
     reference = _int(cfg["reference_spp"], "reference_spp", 1)
     if reference <= ladder[-1]:

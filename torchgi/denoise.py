@@ -343,10 +343,8 @@ class Denoiser(torch.nn.Module):
         """Guided filter's subsampling: given, or 2 where half resolution loses nothing
         measurable, else 1. Half resolution needs >= 256 px on the short side, quality
         "fast"/"balanced", and a guide that is smooth at the pixel scale: fewer than 10 % of
-        (every other row's) horizontal neighbours differing by more than 0.1 in the guide.
-        Measured at 1 spp, 512²: relMSE -5 % to +1 % on cornell, cornell_glossy, bunny and
-        Mitsuba's Cornell box and +14 % on sky (0.3-3 % such edges) for 2-4x less filter work;
-        +30 % on grass (28 %: sub-pixel blades, so it stays at full resolution); +3-20 % at 128²."""
+        (every other row's) horizontal neighbours differing by more than 0.1 in the guide
+        (``settings.GUIDED``; the measurements behind it in docs/calibration.md)."""
         if "subsample" in self.filter_params:
             return self.filter_params["subsample"]
         H, W = guide.shape[-2:]

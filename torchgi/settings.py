@@ -50,13 +50,13 @@ class PipelineSettings:
 class GuidedSettings:
     """``Denoiser("guided")``: the guided filter on normal + depth guides (Bauszat et al. 2011)."""
 
-    radius: int = _setting(4, 1, 64, "px at 1 spp", "best or within one unit of the best on 8 of 10 tuning "
-                           "cases; shrinks as 1/sqrt(spp)")
+    radius: int = _setting(4, 1, 64, "px at 1 spp", "the best compromise over the tuning scenes; shrinks as "
+                           "1/sqrt(spp)")
     eps: float = _setting(1e-4, 0.0, math.inf, "guide units squared", "same sweep as radius")
     firefly: float = _setting(4.0, 1.0, math.inf, "x local level",
-                              "light above this is scaled down to it before filtering (4 was best for guided)")
+                              "light above this is scaled down to it before filtering")
     subsample_from: int = _setting(256, 1, math.inf, "px (short side)",
-                                   "half resolution only from this size (it costs 3-20 % relMSE at 128²)")
+                                   "half resolution only from this size: below it the error grows")
     edge: float = _setting(0.1, 0.0, math.inf, "guide units", "a neighbour this different in the guide is an edge")
     edge_share: float = _setting(0.1, 0.0, 1.0, "share of pixels",
                                  "half resolution only where fewer pixels than this lie on edges")
@@ -76,7 +76,7 @@ class ATrousSettings:
     deployed_sigma_color: float = _setting(1.0, 0.0, math.inf, "colour units squared",
                                            "an exported model has no image maximum to tie σ_rt to")
     firefly: float = _setting(2.0, 1.0, math.inf, "x local level",
-                              "colour-weighted filters keep an outlier as a speck: 2 beat 4 on 5 of 7 cases")
+                              "colour-weighted filters keep an outlier as a speck, so a lower bound pays")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -87,7 +87,7 @@ class BilateralSettings:
     sigma_color: float = _setting(2.0, 0.0, math.inf, "colour units (scaled input)", "on light scaled to mean 1")
     sigma_guide: float = _setting(0.2, 0.0, math.inf, "guide units", "normal and depth / extent alike")
     firefly: float = _setting(2.0, 1.0, math.inf, "x local level",
-                              "colour-weighted filters keep an outlier as a speck: 2 beat 4 on 6 of 7 cases")
+                              "colour-weighted filters keep an outlier as a speck, so a lower bound pays")
 
 
 PIPELINE = PipelineSettings()

@@ -233,8 +233,8 @@ def _layout(H: int, W: int) -> tuple[int, int]:
 def padded(B: int, C: int, H: int, W: int) -> torch.Tensor:
     """An empty float32 ``(B, C, H, W)`` view whose rows are ``W + 16`` and planes ``H (W + 16)
     + 16`` floats apart. With power-of-two widths, plain rows and planes lie a multiple of 4 KB
-    apart and the many row streams of an À-Trous tap fall into the same L1 sets (measured at
-    1024x768 with 9 guide and colour planes: 55 ns per pixel and level, 31 at width 1000).
+    apart and the many row streams of an À-Trous tap fall into the same L1 sets
+    (docs/calibration.md).
 
     Example:
         >>> padded(1, 3, 4, 5).stride()   # rows 5 + 16 apart, planes 4 * 21 + 16

@@ -126,13 +126,14 @@ if triton is not None:
         return u * u
 
     @triton.jit
-    def _level(c_ptr, n_ptr, x_ptr, var_ptr, valid_ptr, cs_ptr, inv_ptr, taps_ptr, out_ptr, vout_ptr, den_ptr,
+    def _level(  # noqa: C901, PLR0912, PLR0915 - one launch: its branches are compile-time channel guards
+               c_ptr, n_ptr, x_ptr, var_ptr, valid_ptr, cs_ptr, inv_ptr, taps_ptr, out_ptr, vout_ptr, den_ptr,
                H, W, step, cmul, v_b, v_c, a_b,
                C: tl.constexpr, N: tl.constexpr, X: tl.constexpr, CS: tl.constexpr, V: tl.constexpr,
                VALID: tl.constexpr, BH: tl.constexpr, BW: tl.constexpr, UNROLL: tl.constexpr):
         # Channels are separate 2-D tiles (c0..c3, normal, position) under compile-time guards: a
         # channel axis in one 3-D tile is spread over threads and every tap's sum over it goes
-        # through shared memory (measured: 9.4 ms for 5 levels at 1080p on an H200). Planes are
+        # through shared memory (much slower: docs/calibration.md). Planes are
         # contiguous (B, C, H, W) except the variance (channel stride v_c: 0 when expanded) and
         # the valid mask (batch stride a_b). The guides enter raw: differences of nearby float32
         # values are exact, then scaled by the image's inverse σ (normals also by 1 / step²).
@@ -289,9 +290,7 @@ def _atrous_level(
 # guided filter: pixels per program of the column pass (columns) / row pass (rows x columns) /
 # solve and apply; rows per program of the column pass (each starts with a full window), rows
 # per loop step and warps. A column-pass program is a chain of row steps that waits on its
-# loads: one warp with four rows in flight was the fastest; GPU busy time at 1080p, r = 32,
-# 4-channel guide on an H200 (scripts/sweep_gpu_tiles.py): 0.867 ms against 1.004 with 64 rows,
-# one row per step, 4 warps and 4-row row-pass tiles
+# loads: one warp with four rows in flight was the fastest (docs/calibration.md)
 _COL_BW, _COL_ROWS, _COL_UNROLL, _COL_WARPS = 128, 128, 4, 1
 _ROW_BH, _ROW_BW = 8, 128
 _PIX = 256
@@ -394,7 +393,8 @@ if triton is not None:
         return e, tl.maximum(mean_sq - mean * mean, 0.0) + e
 
     @triton.jit
-    def _solve(m_ptr, eps_ptr, a_ptr, HW, Cs, n_blk, sm_b, sa_b, unit, tiny, N: tl.constexpr, BLOCK: tl.constexpr):
+    def _solve(  # noqa: PLR0915 - the LDLᵀ of up to 4 guide channels unrolled in one launch
+               m_ptr, eps_ptr, a_ptr, HW, Cs, n_blk, sm_b, sa_b, unit, tiny, N: tl.constexpr, BLOCK: tl.constexpr):
         # a = (Σ + diag(ε))^-1 cov, b = mean(p) - aᵀ mean(I) for every source channel: guided._solve
         # written out for four guide channels; channels past N are 0 with ε = 1, so they give a = 0.
         # Σ is loaded and factorised once per pixel, then each source channel is solved with it.

@@ -1,16 +1,15 @@
-"""A dependency-free 8-bit PNG writer for previews (contact sheets, density maps)."""
+"""8-bit sRGB previews (contact sheets, density maps) written as PNG through imageio (the
+``image`` extra, which the demo's ``all`` installs)."""
 
 from __future__ import annotations
 
 import os
-import struct
-import zlib
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from torchgi.core.check import check_finite, check_shape
+from torchgi.core.check import check_finite, check_shape, require
 
 __all__ = ["to_srgb8", "write_png"]
 
@@ -32,7 +31,9 @@ def to_srgb8(image: torch.Tensor, *, exposure: float = 1.0) -> np.ndarray:
 
 
 def write_png(path: str | os.PathLike, pixels: np.ndarray, *, overwrite: bool = False) -> Path:
-    """Write an ``(H, W)`` or ``(H, W, 3)`` uint8 array as a PNG file.
+    """Write an ``(H, W)`` or ``(H, W, 3)`` uint8 array as a PNG file (imageio encodes it).
+
+    Raises ``ExtraNotInstalledError`` without imageio (``pip install "torchgi[image]"``).
 
     Example:
         >>> import tempfile, os
@@ -45,21 +46,8 @@ def write_png(path: str | os.PathLike, pixels: np.ndarray, *, overwrite: bool = 
         raise FileExistsError(f"path: {path} exists; pass overwrite=True to replace it")
     if pixels.dtype != np.uint8 or pixels.ndim not in (2, 3) or (pixels.ndim == 3 and pixels.shape[2] != 3):
         raise ValueError(f"pixels: expected uint8 (H, W) or (H, W, 3), got {pixels.dtype} {pixels.shape}")
-    h, w = pixels.shape[:2]
-    colour_type = 0 if pixels.ndim == 2 else 2
-    rows = np.ascontiguousarray(pixels).reshape(h, -1)
-    raw = b"".join(b"\x00" + row.tobytes() for row in rows)
-
-    def chunk(kind: bytes, data: bytes) -> bytes:
-        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
-
-    png = (
-        b"\x89PNG\r\n\x1a\n"
-        + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, colour_type, 0, 0, 0))
-        + chunk(b"IDAT", zlib.compress(raw, 6))
-        + chunk(b"IEND", b"")
-    )
+    iio = require("imageio.v3", "image")
     tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_bytes(png)
-    os.replace(tmp, path)
+    iio.imwrite(tmp, np.ascontiguousarray(pixels), extension=".png")
+    os.replace(tmp, path)  # atomic: a reader never sees half a file
     return path

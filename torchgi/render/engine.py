@@ -14,6 +14,7 @@ import concurrent.futures
 import contextlib
 import dataclasses
 import functools
+import itertools
 import multiprocessing
 import os
 import sys
@@ -126,8 +127,8 @@ def _tiles(counts: torch.Tensor, pieces: int) -> list[tuple[int, int]]:
     if pieces <= 1 or total == 0:
         return [(0, counts.numel())]
     targets = torch.linspace(0, total, pieces + 1, dtype=torch.float64)[1:-1].to(torch.int64)
-    cuts = sorted(set([0, *torch.searchsorted(cum, targets, right=True).tolist(), counts.numel()]))
-    return [(a, b) for a, b in zip(cuts[:-1], cuts[1:]) if b > a]
+    cuts = sorted({0, *torch.searchsorted(cum, targets, right=True).tolist(), counts.numel()})
+    return [(a, b) for a, b in itertools.pairwise(cuts) if b > a]
 
 
 _POOL: concurrent.futures.ProcessPoolExecutor | None = None

@@ -15,6 +15,6 @@ __all__ = [
     "exclusive_scan",
     "importance_map",
     "pixel_footprint",
-    "sigma_position_rule",
     "sample_batches",
+    "sigma_position_rule",
 ]

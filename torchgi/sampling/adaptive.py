@@ -99,7 +99,7 @@ def adaptive_counts(
         sigma_position = sigma_position_rule(guides.position, hit, IMPORTANCE_FOOTPRINTS)
     imp = importance_map(guides.normal, guides.position, window=window, sigma_normal=sigma_normal,
                          sigma_position=sigma_position, hit=hit)
-    budget = int(round(rate * int(hit.flatten(1).sum(1).max())))
+    budget = round(rate * int(hit.flatten(1).sum(1).max()))
     return allocate(imp, budget, min_samples=min_samples, mask=hit)
 
 
@@ -144,7 +144,7 @@ def adaptive_render(
         scene = load_scene(scene)
     g = render_guides(scene)
     hit = g.hit
-    total = int(round(rate * int(hit.sum())))
+    total = round(rate * int(hit.sum()))
     first_rate = rate * (1 - variance_share)
     counts = adaptive_counts(g, first_rate, window=window, sigma_normal=sigma_normal,
                              sigma_position=sigma_position, min_samples=min_samples)

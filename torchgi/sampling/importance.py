@@ -44,8 +44,8 @@ def importance_map(
         window: window size ``w`` in 2..10 (offsets ``-(w//2) .. (w-1)//2`` in x and y).
         sigma_normal, sigma_position: σ_n (normal distance squared), σ_x (scene units squared).
         hit: ``(B, 1, H, W)`` bool; background pixels get importance 0 and are no neighbours.
-        fused: run the taps through ``torch.compile`` (one loop over pixels: about 10x faster
-            at 1024x768 on 2 cores; the first call compiles, about 8 s).
+        fused: run the taps through ``torch.compile`` (one loop over pixels, several times
+            faster than eager; the first call compiles, a few seconds).
 
     Returns:
         ``(B, 1, H, W)`` importance in [0, 1], dtype of the inputs (float16/bfloat16 computed in
