@@ -190,10 +190,10 @@ def atrous_case(C: int, case: str):
 
 def atrous_error(out: torch.Tensor, c, n, x, kw) -> float:
     """Max error of image 0 of ``out`` against :func:`atrous_oracle`, relative to its maximum."""
-    import numpy as np
+    from tests.helpers import rel_error
 
     want = atrous_oracle(c[0], n[0], x[0], **{k: v[0] if torch.is_tensor(v) else v for k, v in kw.items()})
-    return float(np.abs(out[0].double().cpu().numpy() - want).max() / np.abs(want).max())
+    return rel_error(out[0], want)
 
 
 def bilateral_oracle(color, guides, *, radius, sigma_space, sigma_color, sigma_guides):

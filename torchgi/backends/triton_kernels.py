@@ -121,6 +121,17 @@ if triton is not None:
         return a, b, c, d
 
     @triton.jit
+    def _store_channels(p, stride, mask, use, a, b, c, d, ka, kb, kc, kd, C: tl.constexpr):
+        # the first C of four channel planes `stride` apart: a..d where `use`, else ka..kd
+        tl.store(p, tl.where(use, a, ka), mask=mask)
+        if C > 1:
+            tl.store(p + stride, tl.where(use, b, kb), mask=mask)
+        if C > 2:
+            tl.store(p + 2 * stride, tl.where(use, c, kc), mask=mask)
+        if C > 3:
+            tl.store(p + 3 * stride, tl.where(use, d, kd), mask=mask)
+
+    @triton.jit
     def _sq(a, b):
         u = a - b
         return u * u
@@ -213,25 +224,14 @@ if triton is not None:
                     v3 += w2 * u3
         has = den > 0
         safe = tl.where(has, den, 1.0)
-        po = out_ptr + b * C * hw + pix
-        tl.store(po, tl.where(has, n_0 / safe, c0), mask=inside)
-        if C > 1:
-            tl.store(po + hw, tl.where(has, n_1 / safe, c1), mask=inside)
-        if C > 2:
-            tl.store(po + 2 * hw, tl.where(has, n_2 / safe, c2), mask=inside)
-        if C > 3:
-            tl.store(po + 3 * hw, tl.where(has, n_3 / safe, c3), mask=inside)
+        # a pixel without weight keeps its value (and variance)
+        _store_channels(out_ptr + b * C * hw + pix, hw, inside, has, n_0 / safe, n_1 / safe, n_2 / safe, n_3 / safe,
+                        c0, c1, c2, c3, C)
         if V:
             p0, p1, p2, p3 = _channels(var_ptr + b * v_b + pix, v_c, inside, C)
             s2 = safe * safe
-            pvo = vout_ptr + b * C * hw + pix
-            tl.store(pvo, tl.where(has, v0 / s2, p0), mask=inside)
-            if C > 1:
-                tl.store(pvo + hw, tl.where(has, v1 / s2, p1), mask=inside)
-            if C > 2:
-                tl.store(pvo + 2 * hw, tl.where(has, v2 / s2, p2), mask=inside)
-            if C > 3:
-                tl.store(pvo + 3 * hw, tl.where(has, v3 / s2, p3), mask=inside)
+            _store_channels(vout_ptr + b * C * hw + pix, hw, inside, has, v0 / s2, v1 / s2, v2 / s2, v3 / s2,
+                            p0, p1, p2, p3, C)
         tl.store(den_ptr + b * hw + pix, den, mask=inside)
 
 
