@@ -68,16 +68,21 @@ INLINE void ftz_end(unsigned csr) {
     y = y * x + 1.6666665459e-1f;                                                             \
     y = y * x + 5.0000001201e-1f
 
+/* exp(x) of x in [EXP_LO, 0] as y * 2^n, for a float or a vector of floats T: n = round(x / ln 2),
+ * x reduced by n ln 2 in two parts, then the polynomial */
+#define EXP_CORE(T, n, y, x)                                                                  \
+    const T n = (x * EXP_LOG2E + EXP_ROUND) - EXP_ROUND;                                      \
+    x = x - n * EXP_C1;                                                                       \
+    x = x - n * EXP_C2;                                                                       \
+    T y;                                                                                      \
+    EXP_POLY(y, x);                                                                           \
+    y = y * (x * x) + x + 1.0f
+
 INLINE float exp_neg(float d) {
     float x = -d;
     const int under = x < EXP_LO;
     x = under ? EXP_LO : x;
-    const float n = (x * EXP_LOG2E + EXP_ROUND) - EXP_ROUND;
-    x = x - n * EXP_C1;
-    x = x - n * EXP_C2;
-    float y;
-    EXP_POLY(y, x);
-    y = y * (x * x) + x + 1.0f;
+    EXP_CORE(float, n, y, x);
     union { int32_t i; float f; } s;
     s.i = ((int32_t)n + 127) << 23;
     return under ? 0.0f : y * s.f;
@@ -105,12 +110,7 @@ INLINE vf vexp_neg(vf d) {
     vf x = -d;
     const vi under = x < vsplat(EXP_LO);
     x = vselect(under, vsplat(EXP_LO), x);
-    const vf n = (x * EXP_LOG2E + EXP_ROUND) - EXP_ROUND;
-    x = x - n * EXP_C1;
-    x = x - n * EXP_C2;
-    vf y;
-    EXP_POLY(y, x);
-    y = y * (x * x) + x + 1.0f;
+    EXP_CORE(vf, n, y, x);
     const vf s = (vf)((__builtin_convertvector(n, vi) + 127) << 23);
     return (vf)((vi)(y * s) & ~under);
 }

@@ -121,6 +121,18 @@ if triton is not None:
         return a, b, c, d
 
     @triton.jit
+    def _add_weighted(a, b, c, d, w, qa, qb, qc, qd, C: tl.constexpr):
+        # the first C of four channel sums, each plus w times its value
+        a += w * qa
+        if C > 1:
+            b += w * qb
+        if C > 2:
+            c += w * qc
+        if C > 3:
+            d += w * qd
+        return a, b, c, d
+
+    @triton.jit
     def _store_channels(p, stride, mask, use, a, b, c, d, ka, kb, kc, kd, C: tl.constexpr):
         # the first C of four channel planes `stride` apart: a..d where `use`, else ka..kd
         tl.store(p, tl.where(use, a, ka), mask=mask)
@@ -137,7 +149,7 @@ if triton is not None:
         return u * u
 
     @triton.jit
-    def _level(  # noqa: C901, PLR0912, PLR0915 - one launch: its branches are compile-time channel guards
+    def _level(  # noqa: PLR0915 - one launch: its statements are mostly compile-time channel guards
                c_ptr, n_ptr, x_ptr, var_ptr, valid_ptr, cs_ptr, inv_ptr, taps_ptr, out_ptr, vout_ptr, den_ptr,
                H, W, step, cmul, v_b, v_c, a_b,
                C: tl.constexpr, N: tl.constexpr, X: tl.constexpr, CS: tl.constexpr, V: tl.constexpr,
@@ -205,23 +217,10 @@ if triton is not None:
                 w *= tl.load(valid_ptr + b * a_b + pix + off, mask=ok, other=0.0)
             w = tl.where(ok, w, 0.0)
             den += w
-            n_0 += w * q0
-            if C > 1:
-                n_1 += w * q1
-            if C > 2:
-                n_2 += w * q2
-            if C > 3:
-                n_3 += w * q3
+            n_0, n_1, n_2, n_3 = _add_weighted(n_0, n_1, n_2, n_3, w, q0, q1, q2, q3, C)
             if V:
                 u0, u1, u2, u3 = _channels(var_ptr + b * v_b + pix + off, v_c, ok, C)
-                w2 = w * w
-                v0 += w2 * u0
-                if C > 1:
-                    v1 += w2 * u1
-                if C > 2:
-                    v2 += w2 * u2
-                if C > 3:
-                    v3 += w2 * u3
+                v0, v1, v2, v3 = _add_weighted(v0, v1, v2, v3, w * w, u0, u1, u2, u3, C)
         has = den > 0
         safe = tl.where(has, den, 1.0)
         # a pixel without weight keeps its value (and variance)
