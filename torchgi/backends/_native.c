@@ -1,9 +1,9 @@
 /* CPU kernels of the two hot filters and of the sampling importance, float32, one image per call.
  *
- * Compiled at first use by torchgi/filters/native.py (gcc/cc, -O3 -march=native, -fopenmp where
+ * Compiled at first use by torchgi/backends/c_kernels.py (gcc/cc, -O3 -march=native, -fopenmp where
  * the compiler has it) and called through ctypes, which releases the GIL; each entry point runs
  * its rows in bands, one per thread (OVER_BANDS, at the end). The maths
- * is exactly that of the torch code paths (atrous._iteration, guided._solve); only the order
+ * is exactly that of the torch code paths (torch_code._iteration, torch_code.solve); only the order
  * of the sums differs (box sums accumulate in double here, so they are more accurate).
  *
  * Planes are contiguous H x W float32; a multi-channel buffer is its planes back to back.
@@ -120,7 +120,7 @@ int torchgi_native_version(void) { return 2; }
 float torchgi_exp_neg(float d) { return exp_neg(d); }
 
 /* ------------------------------------------------------------------------------------------
- * Sampling importance (sampling.importance._core) for rows [y0, y1) of one image:
+ * Sampling importance (torch_code._core) for rows [y0, y1) of one image:
  *
  *   out = clamp(1 - Σ_q v_q exp(-d(p,q)) / max(Σ_q v_q, 1), 0, 1) · v_p,
  *   d(p,q) = sn · |n_p - n_q|² + sx · |x_p - x_q|²
@@ -207,7 +207,7 @@ static void importance_rows(const float *n, const float *x, float sn, float sx, 
 }
 
 /* ------------------------------------------------------------------------------------------
- * One À-Trous level (atrous._iteration) for rows [y0, y1) of one image.
+ * One À-Trous level (torch_code._iteration) for rows [y0, y1) of one image.
  *
  * c: C planes; f: F = 3 G feature planes (G groups of 3: normal, position), each group's squared
  * distance times fs[g]; var: C planes or NULL; valid: one plane (0/1) or NULL; cs: colour scale,
@@ -380,7 +380,7 @@ static void atrous_rows(const float *c, int C, const float *f, int F, const floa
 }
 
 /* ------------------------------------------------------------------------------------------
- * Guided filter (guided._solve / guided._apply) on centred planes, in two passes over bands of
+ * Guided filter (torch_code.solve / apply_coefficients) on centred planes, in two passes over bands of
  * rows: pass 1 box-means the products and solves for the coefficients of every pixel; pass 2
  * box-means the coefficients and applies them (or returns their box means). Box sums slide
  * down the rows (double accumulators, one row in and one out per output row) and are prefix-
@@ -498,7 +498,7 @@ static void column_counts(int W, int r, double *inv_cx) {
 
 /* Solve one row for source channels [c0, c0 + G): means in m (K x W, the order of
  * add_products), write a_0..a_{n-1}, b (each Cs planes) into coef at row y. LDLᵀ as in
- * guided._solve: eps_i raised to unit · E[I_i²] per pixel, variances clamped at 0, pivots at eps. */
+ * torch_code.solve: eps_i raised to unit · E[I_i²] per pixel, variances clamped at 0, pivots at eps. */
 INLINE void solve_row(const int n, const int G, int c0, int Cs, const float *m, int W, const float *eps, float unit,
                       float *coef, size_t HW, int y) {
     const int MW = MEAN_STRIDE(W);

@@ -272,7 +272,7 @@ def _atrous_level(
     c: torch.Tensor, feat: torch.Tensor | None, feat_scale: list[float], var: torch.Tensor | None,
     valid: torch.Tensor | None, step: int, colour_scale: torch.Tensor | None,
 ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
-    """One À-Trous level with the arguments of ``atrous._iteration``, except that ``feat`` holds
+    """One À-Trous level with the arguments of ``torch_code._iteration``, except that ``feat`` holds
     groups of 3 planes whose squared distances are multiplied by ``feat_scale`` (one per group;
     the level's ``1 / step²`` for normals). Returns the filtered colour ``(B,C,H,W)`` and the
     propagated variance, both in :func:`padded` layout (pass them on as they are), and the
@@ -307,7 +307,7 @@ def _atrous_level(
 
 def _importance(normal: torch.Tensor, position: torch.Tensor, sigma_normal: float, sigma_position: float,
                hit: torch.Tensor | None, window: int) -> torch.Tensor:
-    """Sampling importance ``(B,1,H,W)`` (``sampling.importance._core``) from float32 ``normal``
+    """Sampling importance ``(B,1,H,W)`` (``torch_code._core``) from float32 ``normal``
     and ``position`` ``(B,3,H,W)`` with the weights ``exp(-|Δn|² / σ_n - |Δx|² / σ_x)``, the
     bool ``hit (B,1,H,W)`` or None, over a ``window x window`` neighbourhood (offsets
     ``-(w//2) .. (w-1)//2``). Reads the inputs as they are: nothing image-sized is allocated
@@ -326,7 +326,7 @@ def _importance(normal: torch.Tensor, position: torch.Tensor, sigma_normal: floa
 
 def _allocate(q: torch.Tensor, eligible: torch.Tensor | None, n_eligible: list[int], spare: list[int],
              min_samples: int) -> torch.Tensor:
-    """Integer samples per pixel ``(B, N)`` int64 (``sampling.allocate``) from the importance
+    """Integer samples per pixel ``(B, N)`` int64 (``torch_code.allocate``) from the importance
     ``q (B, N)`` (float32 or float64, >= 0), the bool ``eligible (B, N)`` or None, each image's
     number of eligible pixels and spare samples (budget minus the minimum), and ``min_samples``."""
     lib = library()

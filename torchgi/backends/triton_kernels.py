@@ -394,7 +394,7 @@ if triton is not None:
     @triton.jit
     def _solve(  # noqa: PLR0915 - the LDLᵀ of up to 4 guide channels unrolled in one launch
                m_ptr, eps_ptr, a_ptr, HW, Cs, n_blk, sm_b, sa_b, unit, tiny, N: tl.constexpr, BLOCK: tl.constexpr):
-        # a = (Σ + diag(ε))^-1 cov, b = mean(p) - aᵀ mean(I) for every source channel: guided._solve
+        # a = (Σ + diag(ε))^-1 cov, b = mean(p) - aᵀ mean(I) for every source channel: torch_code.solve
         # written out for four guide channels; channels past N are 0 with ε = 1, so they give a = 0.
         # Σ is loaded and factorised once per pixel, then each source channel is solved with it.
         blk, b = _split(tl.program_id(0), n_blk)
@@ -425,7 +425,7 @@ if triton is not None:
             a31 = _plane(base, N + Cs + 7, HW, m) - mi3 * mi1
             a32 = _plane(base, N + Cs + 8, HW, m) - mi3 * mi2
             e3, a33 = _pivot(_plane(base, N + Cs + 9, HW, m), mi3, eps_ptr + b * N + 3, unit, tiny)
-        # LDLᵀ with E = L·D (guided._solve's order of operations)
+        # LDLᵀ with E = L·D (torch_code.solve's order of operations)
         d0 = tl.maximum(a00, e0)
         l10 = a10 / d0
         l20 = a20 / d0
