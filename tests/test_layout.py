@@ -54,3 +54,17 @@ def test_public_functions_fit_on_a_screen():
                     if n > MAX_LINES:
                         long.append(f"{path.relative_to(PACKAGE)}:{node.lineno} {node.name}: {n} lines")
     assert long == []
+
+
+def test_every_module_imports_first_in_a_fresh_process():
+    """No import cycle, whatever a user imports first (the back ends import the filters' helpers)."""
+    import subprocess
+    import sys
+
+    names = [".".join(p.relative_to(PACKAGE.parent).with_suffix("").parts) for p in sorted(PACKAGE.rglob("*.py"))]
+    names = [n.removesuffix(".__init__") for n in names if not n.endswith("__main__")]
+    code = "import importlib, sys\nfor n in sys.argv[1:]:\n    importlib.import_module(n)\n    " \
+           "[sys.modules.pop(m) for m in list(sys.modules) if m == 'torchgi' or m.startswith('torchgi.')]\n"
+    proc = subprocess.run([sys.executable, "-c", code, *names], capture_output=True, text=True, timeout=300,
+                          check=False)
+    assert proc.returncode == 0, proc.stderr[-2000:]

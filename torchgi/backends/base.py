@@ -146,7 +146,12 @@ _OPS = {BoxOp: "box", GuidedOp: "guided", ATrousOp: "atrous", ImportanceOp: "imp
 
 def eager(desc: Op) -> str | None:
     """Why a compiled kernel cannot take ``desc`` (traced, or autograd through one of its
-    tensors), or None: kernels compute values, not graphs."""
+    tensors), or None: kernels compute values, not graphs.
+
+    Example:
+        >>> eager(BoxOp(torch.ones(1, 1, 2, 2, requires_grad=True), 1))
+        'autograd: an input requires grad'
+    """
     if is_tracing():
         return "tracing or exporting: the torch code is the traced graph"
     if torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in desc.tensors()):
@@ -262,7 +267,15 @@ LevelFn = Callable[[torch.Tensor, torch.Tensor | None, torch.Tensor | None, int]
 def iterate_levels(desc: ATrousOp, level: LevelFn) -> tuple[torch.Tensor, list[torch.Tensor]]:
     """The À-Trous level loop every back end shares: ``level(c, var, valid, i)`` filters level
     ``i`` (step ``2^i``) and returns the colour, the propagated variance and the weight sum;
-    in-painted pixels (weight > 0) become sources. Returns the colour and the details."""
+    in-painted pixels (weight > 0) become sources. Returns the colour and the details.
+
+    Example:
+        >>> c = torch.ones(1, 1, 4, 4)
+        >>> desc = ATrousOp(c, None, None, None, None, torch.ones(1, 1, 1, 1), None, None, iterations=3)
+        >>> out, _ = iterate_levels(desc, lambda c, var, valid, i: (c * 2, var, torch.ones_like(c)))
+        >>> float(out.max())   # three levels, each doubling
+        8.0
+    """
     c, var, valid = desc.color, desc.variance, desc.valid
     details = []
     for i in range(desc.iterations):
@@ -276,7 +289,14 @@ def iterate_levels(desc: ATrousOp, level: LevelFn) -> tuple[torch.Tensor, list[t
 
 
 def blur3(v: torch.Tensor) -> torch.Tensor:
-    """3x3 binomial blur ([1,2,1]/4 ⊗ [1,2,1]/4) with edge replication, by shifted views."""
+    """3x3 binomial blur ([1,2,1]/4 ⊗ [1,2,1]/4) of ``v (B, C, H, W)`` with edge replication, by
+    shifted views.
+
+    Example:
+        >>> v = torch.zeros(1, 1, 3, 3); v[..., 1, 1] = 16.0
+        >>> blur3(v)[0, 0].tolist()
+        [[1.0, 2.0, 1.0], [2.0, 4.0, 2.0], [1.0, 2.0, 1.0]]
+    """
     p = torch.nn.functional.pad(v, (1, 1, 1, 1), mode="replicate")
     H, W = v.shape[-2], v.shape[-1]
     rows = 0.25 * p[..., :, 0:W] + 0.5 * p[..., :, 1 : W + 1] + 0.25 * p[..., :, 2 : W + 2]
@@ -286,7 +306,14 @@ def blur3(v: torch.Tensor) -> torch.Tensor:
 def colour_scale(desc: ATrousOp, i: int, var: torch.Tensor | None, factor_only: bool = False) -> torch.Tensor | float | None:
     """Level ``i``'s colour-weight scale: None (off), ``1 / (σ² · blur(Var))`` summed over channels
     ``(B,1,H,W)`` with a variance, else ``2^i / σ_rt`` ``(B,1,1,1)`` — or the factor ``2^i`` alone
-    (``factor_only``: a kernel that multiplies by ``1/σ_rt`` itself)."""
+    (``factor_only``: a kernel that multiplies by ``1/σ_rt`` itself).
+
+    Example:
+        >>> desc = ATrousOp(torch.ones(1, 1, 2, 2), None, None, None, None, torch.full((1, 1, 1, 1), 0.5), None,
+        ...                 None, iterations=3, fill=1)
+        >>> colour_scale(desc, 0, None), float(colour_scale(desc, 2, None)), colour_scale(desc, 2, None, True)
+        (None, 2.0, 4.0)
+    """
     if not desc.color_weight or i < desc.fill:
         return None
     if var is not None:

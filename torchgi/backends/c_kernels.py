@@ -49,7 +49,7 @@ from torchgi.backends.base import (
     iterate_levels,
 )
 from torchgi.core.dtypes import variance_rounding
-from torchgi.filters.taps import kernel_5x5
+from torchgi.core.taps import kernel_5x5
 
 __all__ = ["NAME", "describe", "library", "padded", "supports"]
 
@@ -185,7 +185,12 @@ _WHY_NOT = {"device": "the C kernels take CPU tensors", "dtype": "the C kernels 
 
 def supports(op: str, desc: BoxOp | GuidedOp | ATrousOp | ImportanceOp | AllocateOp) -> str | None:
     """None when the kernels take ``desc``: eager float32 CPU tensors (float32/float64
-    importance for the allocation, fewer than 2^31 pixels per image), a built library; else why not."""
+    importance for the allocation, fewer than 2^31 pixels per image), a built library; else why not.
+
+    Example:
+        >>> supports("box", BoxOp(torch.ones(1, 1, 2, 2, dtype=torch.float64), 1))
+        'the C kernels take float32'
+    """
     ts = [t for t in desc.tensors() if t is not None]
     if any(t.device.type != "cpu" for t in ts):
         return _WHY_NOT["device"]
@@ -263,7 +268,12 @@ def _taps() -> torch.Tensor:
 
 def empty_planes(like: torch.Tensor, C: int) -> torch.Tensor:
     """A :func:`padded` ``(B, C, H, W)`` buffer for the planes of ``like`` (the feature planes
-    :func:`atrous_level` reads)."""
+    :func:`atrous_level` reads).
+
+    Example:
+        >>> empty_planes(torch.zeros(2, 3, 4, 5), 6).shape
+        torch.Size([2, 6, 4, 5])
+    """
     B, _, H, W = like.shape
     return padded(B, C, H, W)
 
@@ -407,12 +417,25 @@ def _guided(
 
 # ---------------------------------------------------------------------------------------- ops
 def box(desc: BoxOp) -> torch.Tensor:
-    """:class:`~torchgi.backends.base.BoxOp` by the guided kernel's box passes."""
+    """:class:`~torchgi.backends.base.BoxOp` by the guided kernel's box passes.
+
+    Example:
+        >>> library() is None or box(BoxOp(torch.arange(3.0).view(1, 1, 1, 3), 1)).tolist() == [[[[0.5, 1.0, 1.5]]]]
+        True
+    """
     return _box(desc.x, desc.radius)
 
 
 def guided(desc: GuidedOp) -> torch.Tensor:
-    """:class:`~torchgi.backends.base.GuidedOp` in two kernels (coefficients, apply)."""
+    """:class:`~torchgi.backends.base.GuidedOp` in two kernels (coefficients, apply).
+
+    Example:
+        >>> p = torch.rand(1, 1, 6, 6); m = p.mean((2, 3), keepdim=True)
+        >>> out = library() is None or guided(GuidedOp(torch.ones(1, 1, 6, 6), p, torch.ones(1, 1, 1, 1), m, 0,
+        ...                                           torch.zeros(1, 1, 1, 1)))
+        >>> out is True or torch.allclose(out, p, atol=1e-6)   # r = 0 and a constant guide: the source
+        True
+    """
     return _guided(desc.guide, desc.src, desc.mean_guide, desc.mean_src, desc.mean_src, desc.radius, desc.eps,
                    coefficients_only=desc.coefficients_only, holder=desc.workspace)
 
@@ -420,7 +443,14 @@ def guided(desc: GuidedOp) -> torch.Tensor:
 def atrous(desc: ATrousOp) -> tuple[torch.Tensor, list[torch.Tensor]]:
     """:class:`~torchgi.backends.base.ATrousOp`, a level per kernel call: the guides divided by
     the square roots of their σ's once, into :func:`padded` planes; the kernel scales the normals'
-    distances by ``1 / step²``."""
+    distances by ``1 / step²``.
+
+    Example:
+        >>> c = torch.full((1, 3, 8, 8), 0.5)
+        >>> desc = ATrousOp(c, None, None, None, None, torch.ones(1, 1, 1, 1), None, None, iterations=2)
+        >>> library() is None or torch.allclose(atrous(desc)[0], c)   # a constant image stays constant
+        True
+    """
     x = desc.position
     if x is not None:
         x = x - x.mean(dim=(2, 3), keepdim=True)  # offsets cancel in differences; keep them small
@@ -441,13 +471,25 @@ def atrous(desc: ATrousOp) -> tuple[torch.Tensor, list[torch.Tensor]]:
 
 
 def importance(desc: ImportanceOp) -> torch.Tensor:
-    """:class:`~torchgi.backends.base.ImportanceOp` straight from the normal / position planes."""
+    """:class:`~torchgi.backends.base.ImportanceOp` straight from the normal / position planes.
+
+    Example:
+        >>> n = torch.zeros(1, 3, 4, 4); n[:, 2] = 1   # flat: nothing to sample
+        >>> library() is None or float(importance(ImportanceOp(n, torch.zeros(1, 3, 4, 4), 0.1, 0.1, None, 3)).max()) == 0
+        True
+    """
     return _importance(desc.normal, desc.position, desc.sigma_normal, desc.sigma_position, desc.hit, desc.window)
 
 
 def allocate(desc: AllocateOp) -> torch.Tensor:
     """:class:`~torchgi.backends.base.AllocateOp`: the same double arithmetic, the remainders
-    ranked by 2^16 buckets, then a sort of the bucket holding the cut."""
+    ranked by 2^16 buckets, then a sort of the bucket holding the cut.
+
+    Example:
+        >>> q = torch.tensor([[0.0, 1.0, 3.0]])
+        >>> library() is None or allocate(AllocateOp(q, None, torch.tensor([3]), 7, 1)).tolist() == [[1, 2, 4]]
+        True
+    """
     n = desc.n_eligible
     return _allocate(desc.q, desc.eligible, n.tolist(), (desc.budget - desc.min_samples * n).tolist(),
                      desc.min_samples)

@@ -25,7 +25,7 @@ import torch.nn.functional as F
 
 from torchgi.backends.base import AllocateOp, ATrousOp, BoxOp, GuidedOp, ImportanceOp, colour_scale, iterate_levels
 from torchgi.core.dtypes import variance_rounding
-from torchgi.filters.taps import Padded, kernel_5x5
+from torchgi.core.taps import Padded, kernel_5x5
 
 __all__ = [
     "NAME", "PlaneBoxer", "apply_coefficients", "box_cumsum", "channel_planes", "describe", "solve", "squared_distance",
@@ -39,18 +39,33 @@ _BLOCK_W, _BLOCK_H = 16, 16
 
 
 def supports(op: str, desc: object) -> str | None:
-    """The torch code takes every call."""
+    """The torch code takes every call.
+
+    Example:
+        >>> supports("box", BoxOp(torch.ones(1, 1, 2, 2, dtype=torch.float64), 1)) is None
+        True
+    """
     return None
 
 
 def describe() -> str:
-    """One line for :func:`torchgi.backends.status`."""
+    """One line for :func:`torchgi.backends.status`.
+
+    Example:
+        >>> describe().startswith("always available")
+        True
+    """
     return "always available: the reference, autograd, tracing and export"
 
 
 def in_place(*tensors: torch.Tensor | None) -> bool:
     """The in-place CPU paths (:class:`PlaneBoxer`, the guided workspace) take eager CPU calls
-    without autograd or tracing."""
+    without autograd or tracing.
+
+    Example:
+        >>> in_place(torch.ones(2)), in_place(torch.ones(2, requires_grad=True))
+        (True, False)
+    """
     from torchgi.core.check import is_tracing
 
     ts = [t for t in tensors if t is not None]
@@ -66,7 +81,12 @@ def _counts(n: int | torch.Tensor, r: int, device: torch.device) -> tuple[torch.
 
 
 def box_cumsum(x: torch.Tensor, r: int) -> torch.Tensor:
-    """Separable count-normalised box mean of ``(..., H, W)`` by cumsum and gathers."""
+    """Separable count-normalised box mean of ``(..., H, W)`` by cumsum and gathers.
+
+    Example:
+        >>> box_cumsum(torch.arange(3.0).view(1, 1, 1, 3), 1)
+        tensor([[[[0.5000, 1.0000, 1.5000]]]])
+    """
     H, W = x.shape[-2], x.shape[-1]
     s = F.pad(torch.cumsum(x, -1), (1, 0))
     hi, lo = _counts(W, r, x.device)
@@ -205,6 +225,12 @@ def solve(
     each ε_i is raised to ``16 · finfo.eps · E[I_i²]`` per pixel (plus the smallest normal
     number) and pivots are clamped there, so flat guides and ``eps = 0`` give finite, exact
     box means instead of amplified rounding noise.
+
+    Example:
+        >>> one = torch.ones(1, 1, 1, 1)   # E[I] = 0, E[I²] = 1, E[p] = 0, E[Ip] = 0.5: a = 0.5 / (1 + ε)
+        >>> a, b = solve([0 * one], 0 * one, {(0, 0): one}, [0.5 * one], torch.zeros(1, 1, 1, 1))
+        >>> round(float(a[0]), 5), float(b)   # ε raised to the rounding level, 16 · eps(float32)
+        (0.5, 0.0)
     """
     n = len(mI)
     unit = variance_rounding(mp.dtype)
@@ -297,7 +323,13 @@ def _guided_reference(
 
 
 def apply_coefficients(coeffs: torch.Tensor, I: torch.Tensor) -> torch.Tensor:
-    """``b + Σ_i a_i I_i`` for coefficients ``(B, n + 1, Cs, H, W)`` and a centred guide ``(B, n, H, W)``."""
+    """``b + Σ_i a_i I_i`` for coefficients ``(B, n + 1, Cs, H, W)`` and a centred guide ``(B, n, H, W)``.
+
+    Example:
+        >>> coeffs = torch.tensor([2.0, 1.0]).view(1, 2, 1, 1, 1)   # a = 2, b = 1
+        >>> apply_coefficients(coeffs, torch.full((1, 1, 1, 1), 3.0)).item()
+        7.0
+    """
     n = I.shape[1]
     out = coeffs[:, n]
     for i in range(n):
@@ -390,7 +422,12 @@ def _guided_fast(
 def squared_distance(a: list[torch.Tensor], b: list[torch.Tensor]) -> torch.Tensor:
     """Σ (a - b)² over channels ``(B,1,H,W)``: either one ``(B,C,H,W)`` tensor each (a channel
     reduction: few ops, compact ONNX graphs) or lists of ``(B,1,H,W)`` planes (pointwise only:
-    what ``torch.compile`` fuses into one loop)."""
+    what ``torch.compile`` fuses into one loop).
+
+    Example:
+        >>> squared_distance([torch.ones(1, 2, 1, 1)], [torch.zeros(1, 2, 1, 1)]).item()
+        2.0
+    """
     out = (a[0] - b[0]).square().sum(1, keepdim=True)
     for u, v in zip(a[1:], b[1:]):
         out = out + (u - v).square()
@@ -398,7 +435,12 @@ def squared_distance(a: list[torch.Tensor], b: list[torch.Tensor]) -> torch.Tens
 
 
 def channel_planes(t: torch.Tensor, split: bool) -> list[torch.Tensor]:
-    """``t (B,C,H,W)`` as a list of channel planes (``split``) or as ``[t]``."""
+    """``t (B,C,H,W)`` as a list of channel planes (``split``) or as ``[t]``.
+
+    Example:
+        >>> [p.shape[1] for p in channel_planes(torch.ones(1, 3, 2, 2), True)]
+        [1, 1, 1]
+    """
     return [t[:, k : k + 1] for k in range(t.shape[1])] if split else [t]
 
 
@@ -486,7 +528,12 @@ def _compiled_core():
 # ---------------------------------------------------------------------------------------- ops
 def box(desc: BoxOp) -> torch.Tensor:
     """:class:`~torchgi.backends.base.BoxOp` in torch: :class:`PlaneBoxer` eagerly on the CPU,
-    else :func:`box_cumsum`."""
+    else :func:`box_cumsum`.
+
+    Example:
+        >>> box(BoxOp(torch.arange(3.0).view(1, 1, 1, 3), 1))
+        tensor([[[[0.5000, 1.0000, 1.5000]]]])
+    """
     x = desc.x
     if not in_place(x) or x.numel() == 0:
         return box_cumsum(x, desc.radius)
@@ -498,7 +545,15 @@ def box(desc: BoxOp) -> torch.Tensor:
 
 def guided(desc: GuidedOp) -> torch.Tensor:
     """:class:`~torchgi.backends.base.GuidedOp` in torch: the in-place CPU path eagerly on the
-    CPU, else the differentiable reference."""
+    CPU, else the differentiable reference.
+
+    Example:
+        >>> p = torch.rand(1, 1, 6, 6); m = p.mean((2, 3), keepdim=True)
+        >>> flat = torch.ones(1, 1, 6, 6)   # a constant guide: the box mean of the box mean
+        >>> out = guided(GuidedOp(flat, p, torch.ones(1, 1, 1, 1), m, 1, torch.zeros(1, 1, 1, 1)))
+        >>> torch.allclose(out, box_cumsum(box_cumsum(p, 1), 1), atol=1e-6)
+        True
+    """
     g, p, e = desc.guide, desc.src, desc.eps
     if in_place(g, p, e):
         return _guided_fast(g, p, desc.mean_guide, desc.mean_src, desc.radius, e, desc.workspace,
@@ -509,7 +564,14 @@ def guided(desc: GuidedOp) -> torch.Tensor:
 
 def atrous(desc: ATrousOp) -> tuple[torch.Tensor, list[torch.Tensor]]:
     """:class:`~torchgi.backends.base.ATrousOp` in torch: per level, the guides divided by the
-    square roots of their σ's (normals also by the step) so ``w_n · w_x = exp(-|f(p) - f(q)|²)``."""
+    square roots of their σ's (normals also by the step) so ``w_n · w_x = exp(-|f(p) - f(q)|²)``.
+
+    Example:
+        >>> c = torch.full((1, 3, 8, 8), 0.5)   # a constant image stays constant
+        >>> out, _ = atrous(ATrousOp(c, None, None, None, None, torch.ones(1, 1, 1, 1), None, None, iterations=2))
+        >>> torch.equal(out, c)
+        True
+    """
     x = desc.position
     if x is not None:
         x = x - x.mean(dim=(2, 3), keepdim=True)  # offsets cancel in differences; keep them small
@@ -528,7 +590,13 @@ def atrous(desc: ATrousOp) -> tuple[torch.Tensor, list[torch.Tensor]]:
 
 def importance(desc: ImportanceOp) -> torch.Tensor:
     """:class:`~torchgi.backends.base.ImportanceOp` in torch: one feature vector per pixel,
-    ``G_n · G_x = exp(-|f_p - f_q|²)``."""
+    ``G_n · G_x = exp(-|f_p - f_q|²)``.
+
+    Example:
+        >>> n = torch.zeros(1, 3, 4, 4); n[:, 2] = 1   # flat: nothing to sample
+        >>> float(importance(ImportanceOp(n, torch.zeros(1, 3, 4, 4), 0.1, 0.1, None, 3)).max())
+        0.0
+    """
     n, x = desc.normal, desc.position
     x = x - x.mean(dim=(2, 3), keepdim=True)
     f = torch.cat([n / desc.sigma_normal**0.5, x / desc.sigma_position**0.5], 1)
@@ -538,7 +606,13 @@ def importance(desc: ImportanceOp) -> torch.Tensor:
 
 
 def allocate(desc: AllocateOp) -> torch.Tensor:
-    """:class:`~torchgi.backends.base.AllocateOp` in torch (float64 shares, ``kthvalue``)."""
+    """:class:`~torchgi.backends.base.AllocateOp` in torch (float64 shares, ``kthvalue``).
+
+    Example:
+        >>> q = torch.tensor([[0.0, 1.0, 3.0]])
+        >>> allocate(AllocateOp(q, None, torch.tensor([3]), 7, 1)).tolist()
+        [[1, 2, 4]]
+    """
     q, eligible, n_eligible, min_samples = desc.q, desc.eligible, desc.n_eligible, desc.min_samples
     if eligible is None:
         eligible = torch.ones_like(q, dtype=torch.bool)

@@ -32,7 +32,7 @@ import torch
 
 from torchgi.backends.base import ATrousOp, BoxOp, GuidedOp, colour_scale, eager, iterate_levels
 from torchgi.core.dtypes import variance_rounding
-from torchgi.filters.taps import kernel_5x5
+from torchgi.core.taps import kernel_5x5
 
 try:  # shipped with CUDA builds of torch
     import triton
@@ -85,11 +85,16 @@ def describe() -> str:
 def supports(op: str, desc: BoxOp | GuidedOp | ATrousOp) -> str | None:
     """None when the kernels take ``desc``: an À-Trous level, the guided or box filter of eager
     float32 CUDA tensors (CPU ones under the interpreter), at most 4 À-Trous colour channels;
-    else why not."""
-    if triton is None:
-        return "Triton not installed"
+    else why not.
+
+    Example:
+        >>> supports("importance", None)   # no Triton kernel of the importance map
+        'no Triton kernel for importance'
+    """
     if op not in ("box", "guided", "atrous"):
         return f"no Triton kernel for {op}"
+    if triton is None:
+        return "Triton not installed"
     ts = [t for t in desc.tensors() if t is not None]
     if any(t.device.type != "cuda" and not _INTERPRET for t in ts):
         return "the Triton kernels take CUDA tensors"
@@ -591,19 +596,39 @@ def _guided(
 
 # ---------------------------------------------------------------------------------------- ops
 def box(desc: BoxOp) -> torch.Tensor:
-    """:class:`~torchgi.backends.base.BoxOp` in two kernels (sums in double)."""
+    """:class:`~torchgi.backends.base.BoxOp` in two kernels (sums in double).
+
+    Example:
+        >>> x = torch.arange(3.0, device="cuda").view(1, 1, 1, 3)   # doctest: +SKIP
+        >>> box(BoxOp(x, 1)).tolist()                                 # doctest: +SKIP
+        [[[[0.5, 1.0, 1.5]]]]
+    """
     return _box(desc.x, desc.radius)
 
 
 def guided(desc: GuidedOp) -> torch.Tensor:
-    """:class:`~torchgi.backends.base.GuidedOp` in six kernels."""
+    """:class:`~torchgi.backends.base.GuidedOp` in six kernels.
+
+    Example:
+        >>> p = torch.rand(1, 3, 16, 16, device="cuda"); g = torch.rand(1, 4, 16, 16, device="cuda")  # doctest: +SKIP
+        >>> mp, mg = p.mean((2, 3), keepdim=True), g.mean((2, 3), keepdim=True)                        # doctest: +SKIP
+        >>> guided(GuidedOp(g, p, mg, mp, 4, torch.full((1, 4, 1, 1), 0.01, device="cuda"))).shape   # doctest: +SKIP
+        torch.Size([1, 3, 16, 16])
+    """
     return _guided(desc.guide, desc.src, desc.mean_guide, desc.mean_src, desc.mean_src, desc.radius, desc.eps,
                    coefficients_only=desc.coefficients_only)
 
 
 def atrous(desc: ATrousOp) -> tuple[torch.Tensor, list[torch.Tensor]]:
     """:class:`~torchgi.backends.base.ATrousOp`, a level per launch on the raw guides with the
-    images' inverse σ's (the kernel scales the distances; normals also by ``1 / step²``)."""
+    images' inverse σ's (the kernel scales the distances; normals also by ``1 / step²``).
+
+    Example:
+        >>> c = torch.full((1, 3, 8, 8), 0.5, device="cuda")                                         # doctest: +SKIP
+        >>> one = torch.ones(1, 1, 1, 1, device="cuda")                                             # doctest: +SKIP
+        >>> torch.allclose(atrous(ATrousOp(c, None, None, None, None, one, None, None, 2))[0], c)   # doctest: +SKIP
+        True
+    """
     B, ct, dev = desc.color.shape[0], desc.color.dtype, desc.color.device
     inv = torch.stack([torch.ones(B, dtype=ct, device=dev) if t is None else t.reshape(B)
                        for t in (desc.inv_color, desc.inv_normal, desc.inv_position)], 1)

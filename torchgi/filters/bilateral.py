@@ -18,7 +18,7 @@ from torchgi.core.check import (
     finite_or_sanitized_all,
 )
 from torchgi.core.dtypes import compute_dtype
-from torchgi.filters.taps import Padded
+from torchgi.core.taps import Padded
 
 __all__ = ["CrossBilateral", "cross_bilateral"]
 

@@ -3,7 +3,7 @@
     W_p = Σ_{q ∈ window(p)} G_n(p,q) · G_x(p,q),   W̃_p = W_p / |window(p)|,   q_p = 1 - W̃_p
 
 with ``G_n = exp(-|n_p - n_q|² / σ_n)`` and ``G_x = exp(-|x_p - x_q|² / σ_x)``, the À-Trous
-geometry weights at step 1, read through the same shifted-view taps (:mod:`torchgi.filters.taps`),
+geometry weights at step 1, read through the same shifted-view taps (:mod:`torchgi.core.taps`),
 in the back end :mod:`torchgi.backends` picks (eager float32 CPU calls: the C kernel).
 """
 
