@@ -29,7 +29,7 @@ from torchgi.core.errors import OptionError
 
 __all__ = [
     "NAMES", "ORDER", "ATrousOp", "AllocateOp", "BoxOp", "GuidedOp", "ImportanceOp", "blur3", "colour_scale", "eager",
-    "enabled", "iterate_levels", "run", "select", "status", "use",
+    "enabled", "iterate_levels", "run", "scaled_guides", "select", "status", "use",
 ]
 
 NAMES = ("torch", "c", "triton")
@@ -286,6 +286,25 @@ def iterate_levels(desc: ATrousOp, level: LevelFn) -> tuple[torch.Tensor, list[t
         if valid is not None:
             valid = den > 0
     return c, details
+
+
+def scaled_guides(desc: ATrousOp) -> list[tuple[torch.Tensor, torch.Tensor, bool]]:
+    """The geometry guides of ``desc`` as ``(guide (B,3,H,W), 1/√σ (B,1,1,1), per_step)``: normal
+    (its distances also divided by the level's step², ``per_step``) and position, centred per
+    image (offsets cancel in differences; centring keeps them small). Absent weights are left out.
+
+    Example:
+        >>> n = torch.zeros(1, 3, 2, 2); x = torch.full((1, 3, 2, 2), 5.0)
+        >>> desc = ATrousOp(torch.ones(1, 1, 2, 2), n, x, None, None, torch.ones(1, 1, 1, 1), None,
+        ...                 torch.full((1, 1, 1, 1), 4.0), iterations=1)
+        >>> [(float(g.abs().max()), float(s), per_step) for g, s, per_step in scaled_guides(desc)]
+        [(0.0, 2.0, False)]
+    """
+    x = desc.position
+    if x is not None:
+        x = x - x.mean(dim=(2, 3), keepdim=True)
+    return ([(desc.normal, desc.inv_normal.sqrt(), True)] if desc.inv_normal is not None else []) + \
+        ([(x, desc.inv_position.sqrt(), False)] if desc.inv_position is not None else [])
 
 
 def blur3(v: torch.Tensor) -> torch.Tensor:

@@ -47,6 +47,7 @@ from torchgi.backends.base import (
     colour_scale,
     eager,
     iterate_levels,
+    scaled_guides,
 )
 from torchgi.core.dtypes import variance_rounding
 from torchgi.core.taps import kernel_5x5
@@ -451,11 +452,7 @@ def atrous(desc: ATrousOp) -> tuple[torch.Tensor, list[torch.Tensor]]:
         >>> library() is None or torch.allclose(atrous(desc)[0], c)   # a constant image stays constant
         True
     """
-    x = desc.position
-    if x is not None:
-        x = x - x.mean(dim=(2, 3), keepdim=True)  # offsets cancel in differences; keep them small
-    guides = ([(desc.normal, desc.inv_normal.sqrt(), True)] if desc.inv_normal is not None else []) + \
-        ([(x, desc.inv_position.sqrt(), False)] if desc.inv_position is not None else [])
+    guides = scaled_guides(desc)
     feat = None
     if guides:
         feat = empty_planes(desc.color, 3 * len(guides))

@@ -23,7 +23,16 @@ import itertools
 import torch
 import torch.nn.functional as F
 
-from torchgi.backends.base import AllocateOp, ATrousOp, BoxOp, GuidedOp, ImportanceOp, colour_scale, iterate_levels
+from torchgi.backends.base import (
+    AllocateOp,
+    ATrousOp,
+    BoxOp,
+    GuidedOp,
+    ImportanceOp,
+    colour_scale,
+    iterate_levels,
+    scaled_guides,
+)
 from torchgi.core.dtypes import variance_rounding
 from torchgi.core.taps import Padded, kernel_5x5
 
@@ -572,11 +581,7 @@ def atrous(desc: ATrousOp) -> tuple[torch.Tensor, list[torch.Tensor]]:
         >>> torch.equal(out, c)
         True
     """
-    x = desc.position
-    if x is not None:
-        x = x - x.mean(dim=(2, 3), keepdim=True)  # offsets cancel in differences; keep them small
-    guides = ([(desc.normal, desc.inv_normal.sqrt(), True)] if desc.inv_normal is not None else []) + \
-        ([(x, desc.inv_position.sqrt(), False)] if desc.inv_position is not None else [])
+    guides = scaled_guides(desc)
     level_fn = _compiled_iteration() if desc.fused else _iteration
 
     def level(c, var, valid, i):
