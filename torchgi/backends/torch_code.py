@@ -30,6 +30,7 @@ from torchgi.backends.base import (
     GuidedOp,
     ImportanceOp,
     colour_scale,
+    eager,
     iterate_levels,
     scaled_guides,
 )
@@ -67,20 +68,16 @@ def describe() -> str:
     return "always available: the reference, autograd, tracing and export"
 
 
-def in_place(*tensors: torch.Tensor | None) -> bool:
+def in_place(desc: BoxOp | GuidedOp) -> bool:
     """The in-place CPU paths (:class:`PlaneBoxer`, the guided workspace) take eager CPU calls
-    without autograd or tracing.
+    (no autograd, no tracing: :func:`~torchgi.backends.base.eager`).
 
     Example:
-        >>> in_place(torch.ones(2)), in_place(torch.ones(2, requires_grad=True))
+        >>> in_place(BoxOp(torch.ones(1, 1, 2, 2), 1)), in_place(BoxOp(torch.ones(1, 1, 2, 2, requires_grad=True), 1))
         (True, False)
     """
-    from torchgi.core.check import is_tracing
+    return all(t.device.type == "cpu" for t in desc.tensors() if t is not None) and eager(desc) is None
 
-    ts = [t for t in tensors if t is not None]
-    if is_tracing() or any(t.device.type != "cpu" for t in ts):
-        return False
-    return not (torch.is_grad_enabled() and any(t.requires_grad for t in ts))
 
 def _counts(n: int | torch.Tensor, r: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
     j = torch.arange(n, device=device)
@@ -544,7 +541,7 @@ def box(desc: BoxOp) -> torch.Tensor:
         tensor([[[[0.5000, 1.0000, 1.5000]]]])
     """
     x = desc.x
-    if not in_place(x) or x.numel() == 0:
+    if not in_place(desc) or x.numel() == 0:
         return box_cumsum(x, desc.radius)
     B, C, H, W = x.shape
     out = torch.empty(B, C, H, W, dtype=x.dtype)
@@ -564,7 +561,7 @@ def guided(desc: GuidedOp) -> torch.Tensor:
         True
     """
     g, p, e = desc.guide, desc.src, desc.eps
-    if in_place(g, p, e):
+    if in_place(desc):
         return _guided_fast(g, p, desc.mean_guide, desc.mean_src, desc.radius, e, desc.workspace,
                             desc.coefficients_only)
     out = _guided_reference(g - desc.mean_guide, p - desc.mean_src, desc.radius, e, desc.coefficients_only)
