@@ -29,7 +29,7 @@ from torchgi.core.errors import OptionError
 
 __all__ = [
     "NAMES", "ORDER", "ATrousOp", "AllocateOp", "BoxOp", "GuidedOp", "ImportanceOp", "blur3", "colour_scale", "eager",
-    "enabled", "iterate_levels", "run", "scaled_guides", "select", "status", "use",
+    "enabled", "float32_eager", "iterate_levels", "run", "scaled_guides", "select", "status", "use",
 ]
 
 NAMES = ("torch", "c", "triton")
@@ -156,6 +156,25 @@ def eager(desc: Op) -> str | None:
         return "tracing or exporting: the torch code is the traced graph"
     if torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in desc.tensors()):
         return "autograd: an input requires grad"
+    return None
+
+
+def float32_eager(op: str, desc: Op, who: str) -> str | None:
+    """Why the compiled kernels of ``who`` ("C", "Triton") cannot take ``desc`` beyond its
+    device: a tensor that is not float32, a call that is traced or needs autograd (:func:`eager`),
+    an empty box input; None when none of these holds.
+
+    Example:
+        >>> float32_eager("box", BoxOp(torch.ones(1, 1, 2, 2, dtype=torch.float64), 1), "C")
+        'the C kernels take float32'
+    """
+    if any(t is not None and t.dtype != torch.float32 for t in desc.tensors()):
+        return f"the {who} kernels take float32"
+    why = eager(desc)
+    if why is not None:
+        return why
+    if op == "box" and desc.x.numel() == 0:
+        return "an empty tensor: nothing to compute"
     return None
 
 

@@ -45,7 +45,7 @@ from torchgi.backends.base import (
     GuidedOp,
     ImportanceOp,
     colour_scale,
-    eager,
+    float32_eager,
     iterate_levels,
     scaled_guides,
 )
@@ -180,10 +180,6 @@ def describe() -> str:
     return _status
 
 
-_WHY_NOT = {"device": "the C kernels take CPU tensors", "dtype": "the C kernels take float32",
-            "empty": "an empty tensor: nothing to compute"}
-
-
 def supports(op: str, desc: BoxOp | GuidedOp | ATrousOp | ImportanceOp | AllocateOp) -> str | None:
     """None when the kernels take ``desc``: eager float32 CPU tensors (float32/float64
     importance for the allocation, fewer than 2^31 pixels per image), a built library; else why not.
@@ -194,18 +190,14 @@ def supports(op: str, desc: BoxOp | GuidedOp | ATrousOp | ImportanceOp | Allocat
     """
     ts = [t for t in desc.tensors() if t is not None]
     if any(t.device.type != "cpu" for t in ts):
-        return _WHY_NOT["device"]
+        return "the C kernels take CPU tensors"
     if op == "allocate":
         if desc.q.dtype not in (torch.float32, torch.float64) or desc.q.shape[1] >= 2**31:
             return "the C allocation takes float32/float64 with fewer than 2^31 pixels per image"
     else:
-        if any(t.dtype != torch.float32 for t in ts):
-            return _WHY_NOT["dtype"]
-        why = eager(desc)
+        why = float32_eager(op, desc, "C")
         if why is not None:
             return why
-        if op == "box" and desc.x.numel() == 0:
-            return _WHY_NOT["empty"]
     return None if library() is not None else _status
 
 
@@ -458,6 +450,7 @@ def atrous(desc: ATrousOp) -> tuple[torch.Tensor, list[torch.Tensor]]:
         feat = empty_planes(desc.color, 3 * len(guides))
         for k, (g, s, _) in enumerate(guides):
             torch.mul(g, s, out=feat[:, 3 * k : 3 * k + 3])
+
     def level(c, var, valid, i):
         step = 2**i
         scale = colour_scale(desc, i, var)

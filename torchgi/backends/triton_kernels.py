@@ -30,7 +30,7 @@ import os
 
 import torch
 
-from torchgi.backends.base import ATrousOp, BoxOp, GuidedOp, colour_scale, eager, iterate_levels
+from torchgi.backends.base import ATrousOp, BoxOp, GuidedOp, colour_scale, float32_eager, iterate_levels
 from torchgi.core.dtypes import variance_rounding
 from torchgi.core.taps import kernel_5x5
 
@@ -55,6 +55,8 @@ def _unroll(C: int, variance: bool) -> int:
     to propagate or 4 channels, where two need over 128 registers (offline ptxas for sm_90;
     tests/test_gpu.py checks the limit)."""
     return 1 if variance or C > 3 else _UNROLL
+
+
 MAX_CHANNELS = 4  # colour channels the kernel takes
 
 
@@ -98,13 +100,9 @@ def supports(op: str, desc: BoxOp | GuidedOp | ATrousOp) -> str | None:
     ts = [t for t in desc.tensors() if t is not None]
     if any(t.device.type != "cuda" and not _INTERPRET for t in ts):
         return "the Triton kernels take CUDA tensors"
-    if any(t.dtype != torch.float32 for t in ts):
-        return "the Triton kernels take float32"
-    why = eager(desc)
+    why = float32_eager(op, desc, "Triton")
     if why is not None:
         return why
-    if op == "box" and desc.x.numel() == 0:
-        return "an empty tensor: nothing to compute"
     if op == "atrous" and desc.color.shape[1] > MAX_CHANNELS:
         return f"the À-Trous kernel takes at most {MAX_CHANNELS} colour channels"
     return None
