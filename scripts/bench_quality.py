@@ -87,17 +87,26 @@ def peers() -> dict:
     except ImportError:
         pass
     try:
-        import pyoidn
+        import pyoidn  # noqa: F401
 
-        def oidn(gb):
-            hwc = lambda t: t[0].permute(1, 2, 0).contiguous()
-            y = pyoidn.denoise(hwc(gb.color), hwc(gb.albedo), hwc(gb.normal), hdr=True, quality="high")
-            return y.permute(2, 0, 1)[None]
-
-        out["OIDN (pyoidn)"] = oidn
+        for q in ("fast", "high"):
+            out[f"OIDN {q}"] = lambda gb, q=q: oidn(gb, q, False)
+            out[f"OIDN {q}, emission added back"] = lambda gb, q=q: oidn(gb, q, True)
     except ImportError:
         pass
     return out
+
+
+def oidn(gb, quality: str, split_emission: bool):
+    """Intel Open Image Denoise (pyoidn): colour + albedo + normal, HDR; with ``split_emission``
+    it denoises colour minus emission and adds the emission back (the issue's second protocol)."""
+    import pyoidn
+
+    hwc = lambda t: t[0].permute(1, 2, 0).contiguous()
+    color = gb.color - gb.emission if split_emission else gb.color
+    y = pyoidn.denoise(hwc(color), hwc(gb.albedo), hwc(gb.normal), hdr=True, quality=quality)
+    y = y.permute(2, 0, 1)[None]
+    return y + gb.emission if split_emission else y
 
 
 def rendered(fn):
@@ -107,51 +116,104 @@ def rendered(fn):
     return out, time.perf_counter() - t0
 
 
+MITSUBA_CORNELL = "mitsuba_cornell"  # Mitsuba 3's own Cornell box, rendered by Mitsuba (box pixel filter)
+
+
+def cases(args):
+    """``(name, reference colour, noisy(spp) -> GBuffer, torchgi scene or None)`` per scene."""
+    names = [n for n in args.scenes if n != MITSUBA_CORNELL]
+    for name, scene in available_scenes(names, args.size):
+        ref = torchgi.render(scene, spp=args.ref_spp, bounces=args.bounces, seed=999).color
+        yield name, ref, (lambda spp, s=scene: torchgi.render(s, spp=spp, bounces=args.bounces, seed=1)), scene
+    if MITSUBA_CORNELL in args.scenes:
+        from torchgi.render import mitsuba
+
+        box = mitsuba.cornell_box(args.size)
+        ref = mitsuba.render_gbuffer(box, spp=args.ref_spp, bounces=args.bounces, seed=999).color
+        yield MITSUBA_CORNELL, ref, (lambda spp: mitsuba.render_gbuffer(box, spp=spp, bounces=args.bounces, seed=1)), None
+
+
+def methods_for(scene, noisy, t_noisy, spp, args, peer_fns) -> dict:
+    """Every method's ``(fn, seconds its input took to render)`` for one noisy render."""
+    methods = {
+        "noisy": (lambda gb=noisy: gb.color, t_noisy),
+        "torchgi blend": (lambda gb=noisy, d=Denoiser("blend"): d(gb), t_noisy),
+        "torchgi guided": (lambda gb=noisy, d=Denoiser("guided"): d(gb), t_noisy),
+        "torchgi atrous": (lambda gb=noisy: Denoiser("atrous")(gb), t_noisy),
+        "torchgi atrous+variance": ((lambda gb=noisy: svgf_atrous(gb)) if noisy.variance is not None and spp > 1
+                                    else None, t_noisy),
+        "torchgi bilateral": (lambda gb=noisy: Denoiser("bilateral")(gb), t_noisy),
+    }
+    if scene is not None:  # the methods that render: torchgi scenes only
+        (adaptive, _), t_adaptive = rendered(
+            lambda: adaptive_render(scene, rate=float(spp), bounces=args.bounces, seed=1))
+        methods["torchgi adaptive+guided"] = (lambda gb=adaptive, d=Denoiser("guided"): d(gb), t_adaptive)
+        methods["torchgi adaptive+atrous"] = (lambda gb=adaptive: Denoiser("atrous")(gb), t_adaptive)
+        if spp > 1:
+            (guide, eye), t_guide = rendered(
+                lambda: torchgi.render.render_guide_rays(scene, spp=spp, bounces=args.bounces, seed=1))
+            methods["torchgi guided+guide rays"] = (
+                lambda g=guide, e=eye, d=Denoiser("guided"): d.supersample(g, e), t_guide)
+    methods.update({k: (lambda gb=noisy, f=f: f(gb), t_noisy) for k, f in peer_fns.items()})
+    return methods
+
+
+def scores(out, ref) -> dict:
+    return {
+        "relmse": float(metrics.relmse(out, ref)),
+        "psnr_db": float(metrics.psnr(out, ref, tonemap_method="reinhard")),
+        "ssim": float(metrics.ssim(metrics.tonemap(out), metrics.tonemap(ref), data_range=1.0)),
+        "flip": float(metrics.flip(out.clamp_min(0), ref.clamp_min(0))),
+    }
+
+
 def run(args) -> list[dict]:
     rows = []
     peer_fns = peers()
-    for name, scene in available_scenes(args.scenes, args.size):
-        ref = torchgi.render(scene, spp=args.ref_spp, bounces=args.bounces, seed=999)
+    out_dir = Path(args.out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for name, ref, noisy_fn, scene in cases(args):
         for spp in args.spp:
-            noisy, t_noisy = rendered(lambda: torchgi.render(scene, spp=spp, bounces=args.bounces, seed=1))
-            methods = {
-                "noisy": (lambda gb=noisy: gb.color, t_noisy),
-                "torchgi guided": (lambda gb=noisy, d=Denoiser("guided"): d(gb), t_noisy),
-                "torchgi atrous": (lambda gb=noisy: Denoiser("atrous")(gb), t_noisy),
-                "torchgi atrous+variance": ((lambda gb=noisy: svgf_atrous(gb)) if spp > 1 else None, t_noisy),
-                "torchgi bilateral": (lambda gb=noisy: Denoiser("bilateral")(gb), t_noisy),
-            }
-            (adaptive, _), t_adaptive = rendered(
-                lambda: adaptive_render(scene, rate=float(spp), bounces=args.bounces, seed=1))
-            methods["torchgi adaptive+guided"] = (lambda gb=adaptive, d=Denoiser("guided"): d(gb), t_adaptive)
-            methods["torchgi adaptive+atrous"] = (lambda gb=adaptive: Denoiser("atrous")(gb), t_adaptive)
-            if spp > 1:
-                (guide, eye), t_guide = rendered(
-                    lambda: torchgi.render.render_guide_rays(scene, spp=spp, bounces=args.bounces, seed=1))
-                methods["torchgi guided+guide rays"] = (
-                    lambda g=guide, e=eye, d=Denoiser("guided"): d.supersample(g, e), t_guide)
-            methods.update({k: (lambda gb=noisy, f=f: f(gb), t_noisy) for k, f in peer_fns.items()})
-            for method, (fn, render_s) in methods.items():
+            noisy, t_noisy = rendered(lambda: noisy_fn(spp))
+            choice_map(noisy, out_dir / f"blend_choice_{name}_{spp}spp.png")
+            for method, (fn, render_s) in methods_for(scene, noisy, t_noisy, spp, args, peer_fns).items():
                 if fn is None:
-                    continue  # SVGF needs a variance: none at 1 spp
+                    continue  # SVGF needs a variance: none at 1 spp or from Mitsuba
                 out, ms = timed(fn)
-                row = {
-                    "scene": name, "spp": spp, "method": method, "ms": ms, "render_s": render_s,
-                    "relmse": float(metrics.relmse(out, ref.color)),
-                    "psnr_db": float(metrics.psnr(out, ref.color, tonemap_method="reinhard")),
-                    "ssim": float(metrics.ssim(metrics.tonemap(out), metrics.tonemap(ref.color), data_range=1.0)),
-                    "flip": float(metrics.flip(out.clamp_min(0), ref.color.clamp_min(0))),
-                }
+                row = {"scene": name, "size": args.size, "spp": spp, "method": method, "ms": ms,
+                       "render_s": render_s, **scores(out, ref)}
                 rows.append(row)
                 print({k: (round(v, 4) if isinstance(v, float) else v) for k, v in row.items()}, flush=True)
     return rows
 
 
+def choice_map(gb, path: Path) -> None:
+    """The blend's per-pixel choice as a picture: noisy | blend | the expected radius of its
+    weights (``Denoiser.weights``; the noisy light counts 0 px, a colour-guided candidate its
+    radius), 0 to the largest radius as black to yellow."""
+    import matplotlib
+
+    from torchgi.filters.blend import default_net
+    from torchgi.io.png import write_png
+
+    d = Denoiser("blend")
+    out, w = d(gb), d.weights(gb)
+    radii = torch.tensor(default_net().candidate_radii(), dtype=w.dtype).view(1, -1, 1, 1)
+    radius = (w * radii).sum(1)[0] / radii.max()
+    rgb = matplotlib.colormaps["inferno"](radius.clamp(0, 1).numpy())[..., :3]
+    rad = torch.from_numpy(rgb).permute(2, 0, 1).float()
+    tone = lambda x: metrics.tonemap(x)[0].clamp(0, 1) ** (1 / 2.2)
+    row = torch.cat([tone(gb.color), tone(out), rad], -1)
+    write_png(path, (row * 255).round().byte().permute(1, 2, 0).numpy(), overwrite=True)  # the run's own output
+
+
 CLASSICAL = ("kornia guided_blur", "kornia joint_bilateral", "skimage nl_means")
+OIDN_HIGH = ("OIDN high", "OIDN high, emission added back")
 
 
-def claims(rows: list[dict]) -> list[str]:
-    """Per scene and spp: Bauszat Fig. 8's ordering, and torchgi's best against the peers."""
+def claims(rows: list[dict], default: str) -> list[str]:
+    """Per scene and spp: Bauszat Fig. 8's ordering, torchgi's best against the peers, and
+    issue 17's lines for the default Denoiser (``default``: its method's row)."""
     lines = []
     for scene, spp in dict.fromkeys((r["scene"], r["spp"]) for r in rows):
         by = {r["method"]: r for r in rows if r["scene"] == scene and r["spp"] == spp}
@@ -165,10 +227,17 @@ def claims(rows: list[dict]) -> list[str]:
         if best_peer is not None:
             line += (f"; best classical peer {best_peer['method']} {best_peer['relmse']:.4g} "
                      f"({'beaten' if ours['relmse'] < best_peer['relmse'] else 'NOT beaten'})")
-        if "OIDN (pyoidn)" in by:
-            o = by["OIDN (pyoidn)"]
-            line += f"; OIDN {o['relmse']:.4g} in {o['ms']:.3g} ms = {o['ms'] / ours['ms']:.1f}x torchgi's time"
         lines.append(line)
+        highs = [by[m] for m in OIDN_HIGH if m in by]
+        if highs:
+            o, d = min(highs, key=lambda r: r["relmse"]), by[default]
+            bound = 1.0 if spp == 1 else 1.3
+            ok = d["relmse"] <= bound * o["relmse"]
+            lines.append(
+                f"{scene} {spp} spp: default Denoiser ({default}) {d['relmse']:.4g} / OIDN high (best protocol: "
+                f"{o['method']}) {o['relmse']:.4g} = {d['relmse'] / o['relmse']:.2f}x (issue 17 bound {bound}x: "
+                f"{'met' if ok else 'NOT met'}); OIDN high {by['OIDN high']['ms']:.3g} ms = "
+                f"{by['OIDN high']['ms'] / d['ms']:.1f}x the default's {d['ms']:.3g} ms (bound 10x)")
     return lines
 
 
@@ -198,7 +267,8 @@ def plot(rows: list[dict], out: Path) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="out/bench")
-    ap.add_argument("--scenes", nargs="+", default=["cornell", "cornell_glossy", "sky", "grass", "bunny"])
+    ap.add_argument("--scenes", nargs="+",
+                    default=["cornell", "cornell_glossy", "sky", "grass", "bunny", MITSUBA_CORNELL])
     ap.add_argument("--spp", type=int, nargs="+", default=[1, 4])
     ap.add_argument("--size", type=int, default=256)
     ap.add_argument("--ref-spp", type=int, default=1024)
@@ -209,8 +279,8 @@ def main() -> None:
     meta = metadata(torch.get_num_threads())
     out = Path(args.out)
     write_results(rows, meta, out, "quality")
-    md = markdown_table(rows, ["scene", "spp", "method", "ms", "render_s", "relmse", "psnr_db", "ssim", "flip"])
-    checks = claims(rows)
+    md = markdown_table(rows, ["scene", "size", "spp", "method", "ms", "render_s", "relmse", "psnr_db", "ssim", "flip"])
+    checks = claims(rows, f"torchgi {Denoiser().method}")
     (out / "quality.md").write_text(md + "\n\n" + "\n".join(f"- {c}" for c in checks) + "\n")
     plot(rows, out)
     print(md)

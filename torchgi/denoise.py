@@ -38,10 +38,10 @@ from torchgi.supersample import EyeSamples
 
 __all__ = ["DENOISERS", "METHODS", "QUALITIES", "Denoiser", "DeployedDenoiser"]
 
-METHODS = ("guided", "atrous", "bilateral", "none")
+METHODS = ("blend", "guided", "atrous", "bilateral", "none")
 QUALITIES = ("fast", "balanced", "high")
 # fireflies are clamped at this many times their local level before each method's filter
-_FIREFLY = {"guided": GUIDED.firefly, "atrous": ATROUS.firefly, "bilateral": BILATERAL.firefly, "none": GUIDED.firefly}
+_FIREFLY = {"blend": GUIDED.firefly, "guided": GUIDED.firefly, "atrous": ATROUS.firefly, "bilateral": BILATERAL.firefly, "none": GUIDED.firefly}
 _INPUTS = ("color", "albedo", "normal", "position", "depth", "emission", "direct", "indirect", "variance", "spp",
            "hit")
 
@@ -179,6 +179,7 @@ class Denoiser(torch.nn.Module):
         check_option(method, "method", METHODS)
         check_option(quality, "quality", QUALITIES)
         known = {
+            "blend": (),
             "guided": ("radius", "eps", "subsample"),
             "atrous": ("iterations", "sigma_normal", "sigma_position", "sigma_color"),
             "bilateral": ("radius", "sigma_space", "sigma_color"),
@@ -192,6 +193,8 @@ class Denoiser(torch.nn.Module):
         self.filter_direct = filter_direct
         self.filter_params = dict(filter_params)
         self._workspace: dict = {}  # the guided filter's CPU buffers, kept between calls
+        self._nets: dict = {}  # the blend's network per device
+        self._capture: dict | None = None  # set by weights()
 
     @classmethod
     def from_config(cls, config: Mapping[str, Any] | str) -> Denoiser:
@@ -213,6 +216,8 @@ class Denoiser(torch.nn.Module):
             DeployedDenoiser(method='guided', radius=2, eps=0.0001)
         """
         p = self.filter_params
+        if self.method == "blend":
+            return DeployedDenoiser("blend", {"spp": float(spp)}, net=self._net(torch.device("cpu")))
         if self.method == "guided":
             params = {"radius": self._radius(spp, GUIDED.radius), "eps": p.get("eps", GUIDED.eps)}
             if p.get("subsample", 1) > 1:
@@ -227,7 +232,7 @@ class Denoiser(torch.nn.Module):
                 "sigma_color": p.get("sigma_color", ATROUS.deployed_sigma_color),
             }
         else:
-            raise ValueError(f"method: only 'guided' and 'atrous' deploy to ONNX, not {self.method!r}")
+            raise ValueError(f"method: only 'blend', 'guided' and 'atrous' deploy to ONNX, not {self.method!r}")
         return DeployedDenoiser(self.method, params)
 
     def extra_repr(self) -> str:
@@ -312,6 +317,39 @@ class Denoiser(torch.nn.Module):
                         distribute(light, gb.normal, gb.depth, samples))
         return out if self.hdr else out.clamp(0, 1)
 
+    def weights(self, gb: GBuffer) -> torch.Tensor:
+        """Method "blend": the ``(B, K, H, W)`` per-pixel weights it gives its ``K`` candidates
+        for ``gb`` (what it chose, summing to 1 per pixel; the candidates' radii in px are
+        ``BlendNet.candidate_radii()`` of :func:`torchgi.filters.blend.default_net`).
+
+        Example:
+            >>> from torchgi.render import render, scenes
+            >>> Denoiser("blend").weights(render(scenes.cornell(16), spp=1)).shape
+            torch.Size([1, 7, 16, 16])
+        """
+        if self.method != "blend":
+            raise ValueError(f"weights: only method='blend' blends candidates, not {self.method!r}")
+        self._capture = {}
+        try:
+            self._denoise(gb)
+            captured = self._capture
+        finally:
+            self._capture = None
+        if "weights" not in captured:
+            raise ValueError("gb: its colour is noise-free or empty, so nothing was filtered")
+        return captured["weights"]
+
+    def _net(self, device: torch.device):
+        """The blend's network on ``device`` (the shipped weights, one copy per device)."""
+        from torchgi.filters.blend import default_net
+
+        if device not in self._nets:
+            import copy
+
+            net = default_net()
+            self._nets[device] = net if device == torch.device("cpu") else copy.deepcopy(net).to(device)
+        return self._nets[device]
+
     def _radius(self, spp: float, base: int) -> int:
         """Filter radius: given, or ``base · quality / sqrt(spp)`` (at least 2) px."""
         scale = PIPELINE.quality_scale(self.quality)
@@ -359,6 +397,14 @@ class Denoiser(torch.nn.Module):
 
         p = self.filter_params
         spp = self._spp(gb, surface)
+        if self.method == "blend":
+            from torchgi.filters.blend import blend
+
+            out, w = blend(x, guide_from_gbuffer(gb, drop_constant=False), spp=spp, net=self._net(x.device),
+                           return_weights=True)
+            if self._capture is not None:
+                self._capture["weights"] = w
+            return out
         if self.method == "guided":  # the workspace of the CPU path is kept between calls
             guide = guide_from_gbuffer(gb)
             return _guided(x, guide, self._radius(spp, GUIDED.radius), p.get("eps", GUIDED.eps), False,
@@ -389,21 +435,23 @@ class Denoiser(torch.nn.Module):
 class DeployedDenoiser(torch.nn.Module):
     """A :class:`Denoiser` with every choice fixed, as plain tensor code for ONNX export.
 
-    ``forward(color, emission, albedo, normal, depth)`` for "guided" and
+    ``forward(color, emission, albedo, normal, depth)`` for "blend" and "guided" and
     ``forward(color, emission, albedo, normal, position)`` for "atrous", all ``(B, C, H, W)``:
     the Denoiser's pipeline (module docstring) with the fixed parameters; surfaces are the pixels
     of non-zero albedo. ``emission`` is required (zeros when no light source is in view). Built
     by :meth:`Denoiser.deploy`.
     """
 
-    def __init__(self, method: str, params: dict[str, Any]) -> None:
+    def __init__(self, method: str, params: dict[str, Any], net: torch.nn.Module | None = None) -> None:
         super().__init__()
-        check_option(method, "method", ("guided", "atrous"))
-        self.method, self.params = method, dict(params)
+        check_option(method, "method", ("blend", "guided", "atrous"))
+        if (net is None) != (method != "blend"):
+            raise ValueError("net: the blend's network is required for method='blend' and only for it")
+        self.method, self.params, self.net = method, dict(params), net
 
     @property
     def input_names(self) -> tuple[str, ...]:
-        last = "depth" if self.method == "guided" else "position"
+        last = "position" if self.method == "atrous" else "depth"
         return ("color", "emission", "albedo", "normal", last)
 
     def forward(self, color: torch.Tensor, emission: torch.Tensor, albedo: torch.Tensor, normal: torch.Tensor,
@@ -413,6 +461,10 @@ class DeployedDenoiser(torch.nn.Module):
         surface = _surface(None, albedo)
 
         def filter_fn(x: torch.Tensor) -> torch.Tensor:
+            if self.method == "blend":
+                from torchgi.filters.blend import blend
+
+                return blend(x, guide_from(normal, geometry, depth_scale="image"), spp=self.params["spp"], net=self.net)
             if self.method == "guided":
                 return guided(x, guide_from(normal, geometry, depth_scale="image"), radius=self.params["radius"],
                               eps=self.params["eps"], subsample=self.params.get("subsample", 1))

@@ -133,9 +133,9 @@ def export_denoiser(
     g = torch.Generator().manual_seed(0)
     B, H, W = 2, 24, 32
     examples = [torch.rand(B, 3, H, W, generator=g) for _ in range(4)] + [
-        torch.rand(B, 1 if method == "guided" else 3, H, W, generator=g)]
+        torch.rand(B, 3 if method == "atrous" else 1, H, W, generator=g)]
     return export_onnx(module, examples, path, input_names=list(module.input_names), overwrite=overwrite,
-                       optimize=method == "guided")
+                       optimize=method != "atrous")
 
 
 class OrtDenoiser:

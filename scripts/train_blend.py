@@ -1,0 +1,147 @@
+"""Train the learned blend of ``torchgi.filters.blend`` (issue 17) on project-rendered data.
+
+    torchgi datagen configs/data_gen/blend.yaml --out out/datagen-blend --workers 2
+    python scripts/train_blend.py --data out/datagen-blend --out torchgi/filters/blend_weights.json
+    python scripts/train_blend.py --data out/datagen-blend --holdout dragon --out out/blend-val.json  # design runs
+
+The data are the shards of ``configs/data_gen/blend.yaml``: four scenes that are never benchmark
+scenes. Each noisy shard goes through the Denoiser's own pipeline up to its filter (demodulation,
+light sources, firefly clamp: :func:`torchgi.denoise._restore` with a recording filter), so the
+network sees exactly what ``Denoiser("blend")`` hands it; the candidates and features are computed
+once per shard, then the per-pixel MLP is trained on random crops with Adam, the loss the
+benchmark's relMSE of the remodulated image against the reference. Fixed seeds throughout; with
+``--holdout SCENE`` that scene's shards are left out of training and reported as validation
+(how the design was chosen without the benchmark scenes). Writes the weights with their config,
+the training config, the git commit and the SHA-256 of the data's ``index.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import re
+import subprocess
+import time
+from pathlib import Path
+
+import torch
+
+from torchgi import metrics
+from torchgi.buffers import GBuffer
+from torchgi.data import ShardDataset
+from torchgi.denoise import Denoiser, _demodulator, _restore, _surface
+from torchgi.filters import guide_from_gbuffer
+from torchgi.filters.blend import BlendNet, blend_candidates, blend_features
+
+FEATURES = ("color", "albedo", "normal", "depth", "emission", "variance")
+
+
+def prepared(sample: dict, net: BlendNet) -> dict:
+    """One shard through the Denoiser's pipeline: candidates, features, the demodulator and the
+    light added back, and the target, all ``(1, ., H, W)``."""
+    t = {k: sample[k][None] for k in FEATURES}
+    H, W = t["color"].shape[-2:]
+    gb = GBuffer(**t, spp=torch.full((1, 1, H, W), int(sample["spp"]), dtype=torch.int32))
+    surface = _surface(gb.hit, gb.albedo)
+    seen = {}
+
+    def record(x):
+        seen["x"] = x
+        return torch.zeros_like(x)
+
+    kept = _restore(gb.color, gb.emission, None, gb.albedo, surface, record, "blend")
+    guide = guide_from_gbuffer(gb, drop_constant=False)
+    spp = Denoiser("blend")._spp(gb, surface)
+    cands = blend_candidates(seen["x"], guide, radii=net.radii, eps=net.eps, colour_radii=net.colour_radii,
+                             colour_scale=net.colour_scale, plane_radii=net.plane_radii)
+    return {"cands": torch.stack(cands, 1), "feats": blend_features(cands, guide, spp, net.reference),
+            "demod": _demodulator(gb.albedo, surface), "kept": kept, "target": sample["target"][None],
+            "name": sample["name"], "spp": int(sample["spp"])}
+
+
+def output(net: BlendNet, d: dict) -> torch.Tensor:
+    """The remodulated image of ``d`` (crops of :func:`prepared` entries) under ``net``."""
+    w = torch.softmax(net(d["feats"]), 1)
+    light = (w[:, :, None] * d["cands"]).sum(1).clamp_min(0)
+    return light * d["demod"] + d["kept"]
+
+
+def crops(data: list[dict], size: int, count: int, g: torch.Generator) -> dict:
+    """``count`` random ``size²`` crops from random shards, stacked."""
+    keys = ("cands", "feats", "demod", "kept", "target")
+    out = {k: [] for k in keys}
+    for _ in range(count):
+        d = data[int(torch.randint(len(data), (1,), generator=g))]
+        H, W = d["target"].shape[-2:]
+        y, x = (int(torch.randint(n - size + 1, (1,), generator=g)) for n in (H, W))
+        for k in keys:
+            out[k].append(d[k][..., y : y + size, x : x + size])
+    return {k: torch.cat(v) for k, v in out.items()}
+
+
+def evaluate(net: BlendNet, data: list[dict]) -> list[dict]:
+    with torch.no_grad():
+        return [{"name": d["name"], "spp": d["spp"], "blend": float(metrics.relmse(output(net, d), d["target"])),
+                 "best single": min(float(metrics.relmse(d["cands"][:, k].clamp_min(0) * d["demod"] + d["kept"],
+                                                         d["target"])) for k in range(d["cands"].shape[1]))}
+                for d in data]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", default="out/datagen-blend")
+    ap.add_argument("--out", default="torchgi/filters/blend_weights.json")
+    ap.add_argument("--holdout", default=None, help="a scene name left out of training and reported")
+    ap.add_argument("--steps", type=int, default=3000)
+    ap.add_argument("--crop", type=int, default=48)
+    ap.add_argument("--batch", type=int, default=16)
+    ap.add_argument("--lr", type=float, default=3e-3)
+    ap.add_argument("--hidden", type=int, default=32)
+    ap.add_argument("--context", type=int, nargs="*", default=[2, 8])
+    ap.add_argument("--radii", type=int, nargs="+", default=[1, 2, 4, 8])
+    ap.add_argument("--colour-radii", type=int, nargs="*", default=[4, 8])
+    ap.add_argument("--plane-radii", type=int, nargs="*", default=[])
+    ap.add_argument("--coarse", type=int, default=0)
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args()
+    torch.set_num_threads(2)
+    torch.manual_seed(args.seed)
+    t0 = time.perf_counter()
+    net = BlendNet(hidden=args.hidden, context=args.context, radii=args.radii, colour_radii=args.colour_radii,
+                   plane_radii=args.plane_radii, coarse=args.coarse)
+    ds = ShardDataset(args.data, features=FEATURES)
+    data = [prepared(ds[i], net) for i in range(len(ds))]
+    held = [re.match(r"(.*)_v\d+s\d+_", d["name"]).group(1) == args.holdout for d in data]
+    train = [d for d, h in zip(data, held) if not h]
+    val = [d for d, h in zip(data, held) if h]
+    print(f"{len(train)} training shards, {len(val)} held out; prepared in {time.perf_counter() - t0:.0f} s", flush=True)
+    opt = torch.optim.Adam(net.parameters(), lr=args.lr)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, args.steps)
+    g = torch.Generator().manual_seed(args.seed)
+    for step in range(args.steps):
+        b = crops(train, args.crop, args.batch, g)
+        loss = metrics.relmse(output(net, b), b["target"])
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        sched.step()
+        if step % 250 == 0 or step == args.steps - 1:
+            print(f"step {step} loss {float(loss):.5f} ({time.perf_counter() - t0:.0f} s)", flush=True)
+    for part, rows in (("train", evaluate(net, train)), ("held out", evaluate(net, val))):
+        for r in rows:
+            print(part, r["name"], r["spp"], f"blend {r['blend']:.5f} best single candidate {r['best single']:.5f}")
+    index = Path(args.data) / "index.json"
+    commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=False).stdout.strip()
+    provenance = {
+        "script": "scripts/train_blend.py", "args": vars(args), "commit": commit,
+        "data_index_sha256": hashlib.sha256(index.read_bytes()).hexdigest(),
+        "data_config": json.loads(index.read_text())["config"], "training_shards": [d["name"] for d in train],
+        "seconds": round(time.perf_counter() - t0, 1),
+    }
+    net.save(args.out, provenance)
+    print(f"wrote {args.out} in {time.perf_counter() - t0:.0f} s")
+
+
+if __name__ == "__main__":
+    main()

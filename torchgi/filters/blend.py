@@ -1,0 +1,293 @@
+"""Per-pixel blend of guided-filter outputs, the weights from a small learned network (issue 17).
+
+One filter setting cannot fit a whole image: flat walls want a wide window, shading edges,
+contact shadows and thin geometry a narrow one. Following Kalantari et al. 2015 (a learned
+per-pixel choice of filter parameters) and Li, Wu & Chuang 2012 (per-pixel blending of several
+filter outputs), :func:`blend` filters the source with the guided filter at several radii, adds a
+second guided pass whose guide also holds the log-luminance of a first-pass estimate (so shadow
+and shading edges that normal and depth do not show are kept), and mixes these *candidates*
+per pixel with softmax weights
+
+    out = Σ_k w_k · c_k,   w = softmax(MLP(features)),
+
+where the features are scale-free local statistics (log-luminance ratios between candidates,
+their local disagreement, the source's local relative variance, the guide's local edge energy
+and log2 of the sample count). The network is a per-pixel MLP (1x1 convolutions), a few thousand
+weights, trained by ``scripts/train_blend.py`` on project-rendered scenes that are never
+benchmark scenes; the weights ship beside this module (``blend_weights.json``) with their
+training config, commit and data hash.
+
+Everything is plain tensor code on top of :func:`~torchgi.filters.guided` and
+:func:`~torchgi.filters.box` (so the compiled back ends run the filters): differentiable with
+respect to the source, guide and the network's weights, ONNX-exportable, float16 in and out.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import nn
+
+from torchgi.core.check import check_floating, check_same_device, check_same_floating, check_shape
+from torchgi.core.dtypes import compute_dtype
+from torchgi.core.errors import RangeError
+from torchgi.filters.box import box
+from torchgi.filters.guided import guided
+
+__all__ = ["Blend", "BlendNet", "blend", "blend_candidates", "blend_features", "default_net"]
+
+WEIGHTS = Path(__file__).with_name("blend_weights.json")
+_PLANE_PX = 256.0  # pixels per guide unit of the screen coordinates in the plane guide
+
+
+def _luminance(x: torch.Tensor) -> torch.Tensor:
+    """``(B,1,H,W)`` channel mean of ``x (B,C,H,W)`` (light is >= 0; the mean is scale-free)."""
+    return x.mean(1, keepdim=True)
+
+
+def _floor(x: torch.Tensor) -> torch.Tensor:
+    """``(B,1,1,1)``: 1 % of each image's mean luminance (at least 1e-6), the level below which
+    log-luminance features stop resolving differences."""
+    return (0.01 * x.mean(dim=(1, 2, 3), keepdim=True)).clamp_min(1e-6)
+
+
+def blend_candidates(
+    x: torch.Tensor, guide: torch.Tensor, *, radii: Sequence[int], eps: float, colour_radii: Sequence[int],
+    colour_scale: float, plane_radii: Sequence[int] = (),
+) -> list[torch.Tensor]:
+    """The candidates :func:`blend` mixes: ``x`` itself, the guided filter of ``x`` at each of
+    ``radii``, and a colour-guided pass: the guided filter at ``colour_radius`` with the guide's
+    first ``G - 1`` channels plus ``colour_scale · log(L + floor)`` of the radius-``radii[1]``
+    output (``L`` its luminance).
+
+    Args:
+        x: ``(B, C, H, W)`` source (demodulated light, >= 0).
+        guide: ``(B, G, H, W)``, ``1 <= G <= 4``, as for :func:`~torchgi.filters.guided`.
+        radii: guided-filter radii (px), at least 2.
+        eps: the guided filter's ε (guide units squared).
+        colour_radius: radius (px) of the colour-guided pass.
+        colour_scale: weight of the log-luminance guide channel (guide units per e-fold).
+
+    Returns:
+        ``len(radii) + 2`` tensors ``(B, C, H, W)`` in the dtype of ``x``.
+
+    Example:
+        >>> x, g = torch.rand(1, 3, 16, 16), torch.rand(1, 4, 16, 16)
+        >>> len(blend_candidates(x, g, radii=(1, 2, 4), eps=1e-4, colour_radii=(4,), colour_scale=0.1))
+        5
+    """
+    out = [x] + [guided(x, guide, radius=r, eps=eps) for r in radii]
+    floor = _floor(x)
+    lum = torch.log(_luminance(out[2]).clamp_min(0) + floor) * colour_scale
+    keep = guide[:, : min(guide.shape[1], 3)]
+    colour_guide = torch.cat([keep, lum], 1)
+    out += [guided(x, colour_guide, radius=r, eps=eps) for r in colour_radii]
+    if plane_radii:
+        H, W = x.shape[-2:]
+        v = torch.arange(H, dtype=x.dtype, device=x.device).view(1, 1, H, 1).expand(x.shape[0], 1, H, W)
+        u = torch.arange(W, dtype=x.dtype, device=x.device).view(1, 1, 1, W).expand(x.shape[0], 1, H, W)
+        plane_guide = torch.cat([u / _PLANE_PX, v / _PLANE_PX, guide[:, -1:]], 1)
+        out += [guided(x, plane_guide, radius=r, eps=eps) for r in plane_radii]
+    return out
+
+
+def blend_features(
+    candidates: Sequence[torch.Tensor], guide: torch.Tensor, spp: float | torch.Tensor, reference: int
+) -> torch.Tensor:
+    """``(B, F, H, W)`` scale-free per-pixel features of the candidates (``F = K + 4`` for ``K``
+    candidates): ``log`` luminance ratios of every candidate but ``reference`` to it; the local
+    (3x3) relative variance of the first candidate (the source); the 5x5 disagreement of the
+    second and second-to-last candidates; the guide's 3x3 edge energy; ``log2(spp)``; and a
+    constant 1 (a bias the ONNX graph keeps).
+
+    Example:
+        >>> c = [torch.rand(1, 3, 8, 8) for _ in range(4)]
+        >>> blend_features(c, torch.rand(1, 4, 8, 8), 4.0, reference=2).shape
+        torch.Size([1, 8, 8, 8])
+    """
+    lums = [_luminance(c).clamp_min(0) for c in candidates]
+    floor = _floor(candidates[0])
+    log_ref = torch.log(lums[reference] + floor)
+    feats = [torch.log(lum + floor) - log_ref for k, lum in enumerate(lums) if k != reference]
+    src = lums[0]
+    var = (box(src.square(), 1) - box(src, 1).square()).clamp_min(0)
+    feats.append(0.5 * torch.log(var + floor.square()) - log_ref)
+    diff = box((lums[1] - lums[-2]).square(), 2)
+    feats.append(0.5 * torch.log(diff + floor.square()) - log_ref)
+    dx = torch.nn.functional.pad((guide[..., :, 1:] - guide[..., :, :-1]).square().sum(1, keepdim=True), (0, 1))
+    dy = torch.nn.functional.pad((guide[..., 1:, :] - guide[..., :-1, :]).square().sum(1, keepdim=True), (0, 0, 0, 1))
+    feats.append(torch.log(box(dx + dy, 1) + 1e-4))
+    ones = torch.ones_like(src)
+    spp_t = torch.as_tensor(spp, dtype=src.dtype, device=src.device).reshape(-1, 1, 1, 1)
+    feats.append(ones * torch.log2(spp_t.clamp_min(1)))
+    feats.append(ones)
+    return torch.cat(feats, 1)
+
+
+class BlendNet(nn.Module):
+    """The per-pixel MLP of :func:`blend`: ``features (B, F, H, W)`` → logits ``(B, K, H, W)``
+    (1x1 convolutions, ReLU), and the candidate set it was trained for.
+
+    Args:
+        features: ``F``, the number of input features.
+        hidden: width of the two hidden layers.
+        radii, eps, colour_radius, colour_scale: the candidate set (:func:`blend_candidates`).
+        reference: index of the candidate the log-luminance features are relative to.
+
+    Example:
+        >>> net = BlendNet(radii=(1, 2, 4))
+        >>> net(torch.rand(1, net.features, 8, 8)).shape
+        torch.Size([1, 5, 8, 8])
+    """
+
+    def __init__(self, *, radii: Sequence[int] = (1, 2, 4, 8), eps: float = 1e-4,
+                 colour_radii: Sequence[int] = (4, 8), colour_scale: float = 0.1, reference: int = 3,
+                 hidden: int = 32, context: Sequence[int] = (2, 8), plane_radii: Sequence[int] = (),
+                 coarse: int = 0) -> None:
+        super().__init__()
+        if len(radii) < 2 or any(int(r) != r or r < 1 for r in radii):
+            raise RangeError(f"radii: expected at least two ints >= 1, got {list(radii)}")
+        self.radii, self.eps = tuple(int(r) for r in radii), float(eps)
+        self.colour_radii, self.colour_scale = tuple(int(r) for r in colour_radii), float(colour_scale)
+        self.plane_radii = tuple(int(r) for r in plane_radii)
+        self.candidates = 1 + len(self.radii) + len(self.colour_radii) + len(self.plane_radii)
+        if not 0 <= reference < self.candidates:
+            raise RangeError(f"reference: expected an index below {self.candidates}, got {reference}")
+        self.reference, self.hidden, self.context = int(reference), int(hidden), tuple(int(r) for r in context)
+        self.features = self.candidates + 4
+        inputs = self.features + (self.features - 2) * len(self.context)
+        self.coarse = int(coarse)
+        if self.coarse:  # 3x3 convolutions on 4x4 means of the features: context over ~40 px
+            self.coarse_net = nn.Sequential(
+                nn.Conv2d(self.features, coarse, 3, padding=1), nn.ReLU(), nn.Conv2d(coarse, coarse, 3, padding=1),
+                nn.ReLU(), nn.Conv2d(coarse, coarse, 3, padding=1), nn.ReLU())
+            inputs += coarse
+        self.mlp = nn.Sequential(
+            nn.Conv2d(inputs, hidden, 1), nn.ReLU(), nn.Conv2d(hidden, hidden, 1), nn.ReLU(),
+            nn.Conv2d(hidden, self.candidates, 1),
+        )
+
+    def forward(self, features: torch.Tensor) -> torch.Tensor:
+        # the varying features' local means (the last two are constant planes)
+        parts = [features] + [box(features[:, :-2], r) for r in self.context]
+        if self.coarse:
+            low = self.coarse_net(torch.nn.functional.avg_pool2d(features, 4, ceil_mode=True))
+            parts.append(torch.nn.functional.interpolate(low, size=features.shape[-2:], mode="bilinear",
+                                                         align_corners=False))
+        # the 1x1 convolutions as matrix products on pixels-last rows (3x faster than mkldnn's 1x1
+        # convolution on the CPU; the same weights)
+        h = torch.cat(parts, 1).permute(0, 2, 3, 1)
+        layers = [m for m in self.mlp if isinstance(m, nn.Conv2d)]
+        for i, conv in enumerate(layers):
+            h = torch.nn.functional.linear(h, conv.weight.flatten(1), conv.bias)
+            h = h.relu() if i < len(layers) - 1 else h
+        return h.permute(0, 3, 1, 2)
+
+    def candidate_radii(self) -> list[int]:
+        """Each candidate's window radius in px, in candidate order (the source itself: 0)."""
+        return [0, *self.radii, *self.colour_radii, *self.plane_radii]
+
+    def config(self) -> dict[str, Any]:
+        """The constructor arguments (what the weights file records)."""
+        return {"radii": list(self.radii), "eps": self.eps, "colour_radii": list(self.colour_radii),
+                "colour_scale": self.colour_scale, "reference": self.reference, "hidden": self.hidden,
+                "context": list(self.context), "plane_radii": list(self.plane_radii),
+                "coarse": self.coarse}
+
+    def save(self, path: str | Path, provenance: dict[str, Any]) -> None:
+        """Write config, weights (as lists) and ``provenance`` to a JSON file (no pickle)."""
+        state = {k: v.detach().double().tolist() for k, v in self.state_dict().items()}
+        Path(path).write_text(json.dumps({"config": self.config(), "provenance": provenance, "state": state}))
+
+    @classmethod
+    def load(cls, path: str | Path) -> BlendNet:
+        """Read a file written by :meth:`save`."""
+        data = json.loads(Path(path).read_text())
+        net = cls(**data["config"])
+        net.load_state_dict({k: torch.tensor(v, dtype=torch.float32) for k, v in data["state"].items()})
+        net.provenance = data.get("provenance", {})
+        return net.eval().requires_grad_(False)
+
+
+_DEFAULT: dict[str, BlendNet] = {}
+
+
+def default_net() -> BlendNet:
+    """The shipped network (``blend_weights.json``), read once per process."""
+    if "net" not in _DEFAULT:
+        if not WEIGHTS.is_file():
+            raise FileNotFoundError(f"{WEIGHTS}: the blend's weights are missing (python scripts/train_blend.py)")
+        _DEFAULT["net"] = BlendNet.load(WEIGHTS)
+    return _DEFAULT["net"]
+
+
+def _weights(net: BlendNet, candidates: Sequence[torch.Tensor], guide: torch.Tensor,
+             spp: float | torch.Tensor) -> torch.Tensor:
+    """``(B, K, H, W)`` softmax blend weights (computed in the network's dtype)."""
+    feats = blend_features(candidates, guide, spp, net.reference)
+    p = next(net.parameters())
+    return torch.softmax(net(feats.to(p.dtype)), 1)
+
+
+def blend(
+    x: torch.Tensor, guide: torch.Tensor, *, spp: float | torch.Tensor = 1.0, net: BlendNet | None = None,
+    return_weights: bool = False,
+) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
+    """Blend the guided-filter candidates of ``x`` per pixel with learned weights.
+
+    Args:
+        x: ``(B, C, H, W)`` source, >= 0 (the Denoiser's demodulated, firefly-clamped light).
+        guide: ``(B, G, H, W)``, ``1 <= G <= 4``, same dtype and device (e.g.
+            :func:`~torchgi.filters.guide_from`).
+        spp: samples per pixel the noise corresponds to, a float or ``(B,)`` tensor (>= 1).
+        net: the network; None = the shipped one (:func:`default_net`), moved to ``x``'s device.
+        return_weights: also return the ``(B, K, H, W)`` weights (the per-pixel choice).
+
+    Returns:
+        ``(B, C, H, W)`` in the dtype and on the device of ``x`` (float16 is computed in float32),
+        and the weights when asked.
+
+    Example:
+        >>> x, g = torch.rand(1, 3, 16, 16), torch.rand(1, 4, 16, 16)
+        >>> out, w = blend(x, g, spp=1.0, return_weights=True)
+        >>> out.shape, w.shape, bool(torch.allclose(w.sum(1), torch.ones(1, 16, 16)))
+        (torch.Size([1, 3, 16, 16]), torch.Size([1, 7, 16, 16]), True)
+    """
+    check_shape(x, "B C H W", "x")
+    check_floating(x, "x")
+    check_same_device({"x": x, "guide": guide})
+    check_same_floating({"x": x, "guide": guide})
+    if isinstance(spp, (int, float)) and not (math.isfinite(spp) and spp >= 1):
+        raise RangeError(f"spp: expected a finite number >= 1, got {spp!r}")
+    net = default_net() if net is None else net
+    if next(net.parameters()).device != x.device:
+        raise ValueError(f"net: on {next(net.parameters()).device}, x on {x.device} (move one of them)")
+    ct = compute_dtype(x.dtype)
+    xs, gs = x.to(ct), guide.to(ct)
+    cands = blend_candidates(xs, gs, radii=net.radii, eps=net.eps, colour_radii=net.colour_radii,
+                             colour_scale=net.colour_scale, plane_radii=net.plane_radii)
+    w = _weights(net, cands, gs, spp).to(ct)
+    out = sum(w[:, k : k + 1] * c for k, c in enumerate(cands))
+    out = out.to(x.dtype)
+    return (out, w.to(x.dtype)) if return_weights else out
+
+
+class Blend(nn.Module):
+    """Module form of :func:`blend`; the network is a submodule (moves with ``.to()``).
+
+    Example:
+        >>> Blend()(torch.rand(1, 3, 8, 8), torch.rand(1, 4, 8, 8), spp=2.0).shape
+        torch.Size([1, 3, 8, 8])
+    """
+
+    def __init__(self, net: BlendNet | None = None) -> None:
+        super().__init__()
+        self.net = net if net is not None else BlendNet.load(WEIGHTS)
+
+    def forward(self, x: torch.Tensor, guide: torch.Tensor, spp: float | torch.Tensor = 1.0) -> torch.Tensor:
+        return blend(x, guide, spp=spp, net=self.net)
