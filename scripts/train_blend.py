@@ -54,10 +54,11 @@ def prepared(sample: dict, net: BlendNet) -> dict:
     guide = guide_from_gbuffer(gb, drop_constant=False)
     spp = Denoiser("blend")._spp(gb, surface)
     cands = blend_candidates(seen["x"], guide, radii=net.radii, eps=net.eps, colour_radii=net.colour_radii,
-                             colour_scale=net.colour_scale, plane_radii=net.plane_radii)
+                             colour_scale=net.colour_scale, plane_radii=net.plane_radii,
+                             fine_radii=net.fine_radii, fine_eps=net.fine_eps)
     return {"cands": torch.stack(cands, 1), "feats": blend_features(cands, guide, spp, net.reference),
             "demod": _demodulator(gb.albedo, surface), "kept": kept, "target": sample["target"][None],
-            "name": sample["name"], "spp": int(sample["spp"])}
+            "name": sample["name"], "spp": int(sample["spp"]), "gbuffer": gb}
 
 
 def output(net: BlendNet, d: dict) -> torch.Tensor:
@@ -80,12 +81,39 @@ def crops(data: list[dict], size: int, count: int, g: torch.Generator) -> dict:
     return {k: torch.cat(v) for k, v in out.items()}
 
 
-def evaluate(net: BlendNet, data: list[dict]) -> list[dict]:
+def evaluate(net: BlendNet, data: list[dict], peers: bool) -> list[dict]:
+    """relMSE per shard of the blend, the best single candidate (chosen with the reference) and,
+    with ``peers``, ``Denoiser("guided")`` and OIDN "high" (colour + albedo + normal, HDR)."""
+    rows = []
     with torch.no_grad():
-        return [{"name": d["name"], "spp": d["spp"], "blend": float(metrics.relmse(output(net, d), d["target"])),
-                 "best single": min(float(metrics.relmse(d["cands"][:, k].clamp_min(0) * d["demod"] + d["kept"],
-                                                         d["target"])) for k in range(d["cands"].shape[1]))}
-                for d in data]
+        for d in data:
+            row = {"name": d["name"], "spp": d["spp"], "blend": float(metrics.relmse(output(net, d), d["target"])),
+                   "best single": min(float(metrics.relmse(d["cands"][:, k].clamp_min(0) * d["demod"] + d["kept"],
+                                                           d["target"])) for k in range(d["cands"].shape[1]))}
+            if peers:
+                gb = d["gbuffer"]
+                row["guided"] = float(metrics.relmse(Denoiser("guided")(gb), d["target"]))
+                row["oidn"] = float(metrics.relmse(oidn_high(gb), d["target"]))
+            rows.append(row)
+    return rows
+
+
+def oidn_high(gb: GBuffer) -> torch.Tensor:
+    import pyoidn
+
+    hwc = lambda t: t[0].permute(1, 2, 0).contiguous()
+    return pyoidn.denoise(hwc(gb.color), hwc(gb.albedo), hwc(gb.normal), hdr=True, quality="high").permute(2, 0, 1)[None]
+
+
+def report(rows: list[dict], part: str) -> None:
+    """Per shard, then the mean per spp."""
+    for r in rows:
+        print(part, r["name"], r["spp"], " ".join(f"{k} {v:.5f}" for k, v in r.items() if isinstance(v, float)))
+    for spp in sorted({r["spp"] for r in rows}):
+        sel = [r for r in rows if r["spp"] == spp]
+        keys = [k for k, v in sel[0].items() if isinstance(v, float)]
+        print(f"{part} mean at {spp} spp over {len(sel)} shards:",
+              " ".join(f"{k} {sum(r[k] for r in sel) / len(sel):.5f}" for k in keys))
 
 
 def main() -> None:
@@ -103,13 +131,17 @@ def main() -> None:
     ap.add_argument("--colour-radii", type=int, nargs="*", default=[4, 8])
     ap.add_argument("--plane-radii", type=int, nargs="*", default=[])
     ap.add_argument("--coarse", type=int, default=0)
+    ap.add_argument("--eps", type=float, default=1e-5)
+    ap.add_argument("--fine-radii", type=int, nargs="*", default=[2, 4])
+    ap.add_argument("--fine-eps", type=float, default=1e-7)
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
     torch.set_num_threads(2)
     torch.manual_seed(args.seed)
     t0 = time.perf_counter()
     net = BlendNet(hidden=args.hidden, context=args.context, radii=args.radii, colour_radii=args.colour_radii,
-                   plane_radii=args.plane_radii, coarse=args.coarse)
+                   plane_radii=args.plane_radii, coarse=args.coarse,
+                   fine_radii=args.fine_radii, fine_eps=args.fine_eps, eps=args.eps)
     ds = ShardDataset(args.data, features=FEATURES)
     data = [prepared(ds[i], net) for i in range(len(ds))]
     held = [re.match(r"(.*)_v\d+s\d+_", d["name"]).group(1) == args.holdout for d in data]
@@ -128,15 +160,16 @@ def main() -> None:
         sched.step()
         if step % 250 == 0 or step == args.steps - 1:
             print(f"step {step} loss {float(loss):.5f} ({time.perf_counter() - t0:.0f} s)", flush=True)
-    for part, rows in (("train", evaluate(net, train)), ("held out", evaluate(net, val))):
-        for r in rows:
-            print(part, r["name"], r["spp"], f"blend {r['blend']:.5f} best single candidate {r['best single']:.5f}")
+    report(evaluate(net, train, False), "train")
+    if val:
+        report(evaluate(net, val, True), "held out")
     index = Path(args.data) / "index.json"
     commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=False).stdout.strip()
     provenance = {
         "script": "scripts/train_blend.py", "args": vars(args), "commit": commit,
         "data_index_sha256": hashlib.sha256(index.read_bytes()).hexdigest(),
         "data_config": json.loads(index.read_text())["config"], "training_shards": [d["name"] for d in train],
+        "held_out_scene": args.holdout,
         "seconds": round(time.perf_counter() - t0, 1),
     }
     net.save(args.out, provenance)

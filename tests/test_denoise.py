@@ -22,7 +22,7 @@ def cornell():
     return torchgi.render(scene, spp=1, bounces=1, seed=1), torchgi.render(scene, spp=256, bounces=1, seed=2)
 
 
-@pytest.mark.parametrize("method", ["guided", "atrous", "bilateral"])
+@pytest.mark.parametrize("method", ["blend", "guided", "atrous", "bilateral"])
 def test_every_method_lowers_the_error(cornell, method):
     noisy, ref = cornell
     out = Denoiser(method)(noisy)
@@ -70,7 +70,7 @@ def test_isolated_emission_and_fireflies_do_not_pass_or_bleed(cornell):
         assert float(change.max()) < 0.1 * local, method
 
 
-@pytest.mark.parametrize("method", ["guided", "atrous", "bilateral"])
+@pytest.mark.parametrize("method", ["blend", "guided", "atrous", "bilateral"])
 def test_output_is_finite_and_non_negative(cornell, method):
     out = Denoiser(method)(cornell[0])
     assert torch.isfinite(out).all() and (out >= 0).all()
@@ -111,8 +111,14 @@ def test_bad_input(cornell):
     bad[0, 1, 5, 5] = float("nan")
     with pytest.raises(NonFiniteError, match="color"):
         Denoiser("guided")(color=bad, albedo=noisy.albedo, normal=noisy.normal)
+    with pytest.raises(NonFiniteError, match="color"):
+        Denoiser("blend")(color=bad, albedo=noisy.albedo, normal=noisy.normal, depth=noisy.depth)
+    with pytest.raises(ValueError, match="weights"):
+        Denoiser("guided").weights(noisy)
+    with pytest.raises(ValueError, match="filter parameter"):
+        Denoiser("blend", radius=3)
     empty = torch.zeros(0, 3, 8, 8)
-    for method in ("guided", "atrous", "bilateral"):
+    for method in ("blend", "guided", "atrous", "bilateral"):
         assert Denoiser(method)(color=empty, albedo=empty, normal=empty, position=empty).shape == (0, 3, 8, 8)
     with pytest.raises(NonFiniteError, match="normal"):
         Denoiser("atrous")(color=noisy.color, albedo=noisy.albedo, normal=noisy.normal / 0)
@@ -131,7 +137,7 @@ def _synthetic(device: torch.device, H: int = 40, W: int = 48) -> torchgi.GBuffe
                            position=torch.rand(1, 3, H, W, generator=g)).to(device)
 
 
-@pytest.mark.parametrize("method", ["guided", "atrous", "bilateral"])
+@pytest.mark.parametrize("method", ["blend", "guided", "atrous", "bilateral"])
 def test_the_pipeline_gives_the_same_result_on_every_device(device, method):
     cpu = Denoiser(method)(_synthetic(torch.device("cpu")))
     out = Denoiser(method)(_synthetic(device))
@@ -180,3 +186,16 @@ def test_radius_follows_the_measured_variance():
     torch.testing.assert_close(Denoiser("guided")(without), Denoiser("guided", radius=2)(without))
     low = gb.replace(variance=0.01 * (gb.color.square() + 1e-4))  # the noise of 25 samples: 0.8 -> 2
     torch.testing.assert_close(Denoiser("guided")(low), Denoiser("guided", radius=2)(low))
+
+
+def test_blend_weights_and_half_precision(cornell):
+    """``weights`` is the per-pixel choice the call made; float16 in, float16 out, close to float32."""
+    noisy, ref = cornell
+    d = Denoiser("blend")
+    w = d.weights(noisy)
+    assert w.shape == (1, 7, 48, 48) and torch.allclose(w.sum(1), torch.ones(1, 48, 48), atol=1e-5)
+    half = d(noisy.to(dtype=torch.float16))
+    assert half.dtype == torch.float16 and torch.isfinite(half).all()
+    full = d(noisy)
+    assert float(metrics.relmse(half.float(), full)) < 1e-3
+    assert float(metrics.relmse(full, ref.color)) < float(metrics.relmse(Denoiser("guided")(noisy), ref.color)) * 1.2

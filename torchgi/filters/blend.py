@@ -58,7 +58,7 @@ def _floor(x: torch.Tensor) -> torch.Tensor:
 
 def blend_candidates(
     x: torch.Tensor, guide: torch.Tensor, *, radii: Sequence[int], eps: float, colour_radii: Sequence[int],
-    colour_scale: float, plane_radii: Sequence[int] = (),
+    colour_scale: float, plane_radii: Sequence[int] = (), fine_radii: Sequence[int] = (), fine_eps: float = 1e-6,
 ) -> list[torch.Tensor]:
     """The candidates :func:`blend` mixes: ``x`` itself, the guided filter of ``x`` at each of
     ``radii``, and a colour-guided pass: the guided filter at ``colour_radius`` with the guide's
@@ -93,6 +93,7 @@ def blend_candidates(
         u = torch.arange(W, dtype=x.dtype, device=x.device).view(1, 1, 1, W).expand(x.shape[0], 1, H, W)
         plane_guide = torch.cat([u / _PLANE_PX, v / _PLANE_PX, guide[:, -1:]], 1)
         out += [guided(x, plane_guide, radius=r, eps=eps) for r in plane_radii]
+    out += [guided(x, guide, radius=r, eps=fine_eps) for r in fine_radii]
     return out
 
 
@@ -145,17 +146,18 @@ class BlendNet(nn.Module):
         torch.Size([1, 5, 8, 8])
     """
 
-    def __init__(self, *, radii: Sequence[int] = (1, 2, 4, 8), eps: float = 1e-4,
+    def __init__(self, *, radii: Sequence[int] = (1, 2, 4, 8), eps: float = 1e-5,
                  colour_radii: Sequence[int] = (4, 8), colour_scale: float = 0.1, reference: int = 3,
                  hidden: int = 32, context: Sequence[int] = (2, 8), plane_radii: Sequence[int] = (),
-                 coarse: int = 0) -> None:
+                 coarse: int = 0, fine_radii: Sequence[int] = (2, 4), fine_eps: float = 1e-7) -> None:
         super().__init__()
         if len(radii) < 2 or any(int(r) != r or r < 1 for r in radii):
             raise RangeError(f"radii: expected at least two ints >= 1, got {list(radii)}")
         self.radii, self.eps = tuple(int(r) for r in radii), float(eps)
         self.colour_radii, self.colour_scale = tuple(int(r) for r in colour_radii), float(colour_scale)
         self.plane_radii = tuple(int(r) for r in plane_radii)
-        self.candidates = 1 + len(self.radii) + len(self.colour_radii) + len(self.plane_radii)
+        self.fine_radii, self.fine_eps = tuple(int(r) for r in fine_radii), float(fine_eps)
+        self.candidates = 1 + len(self.radii) + len(self.colour_radii) + len(self.plane_radii) + len(self.fine_radii)
         if not 0 <= reference < self.candidates:
             raise RangeError(f"reference: expected an index below {self.candidates}, got {reference}")
         self.reference, self.hidden, self.context = int(reference), int(hidden), tuple(int(r) for r in context)
@@ -190,14 +192,14 @@ class BlendNet(nn.Module):
 
     def candidate_radii(self) -> list[int]:
         """Each candidate's window radius in px, in candidate order (the source itself: 0)."""
-        return [0, *self.radii, *self.colour_radii, *self.plane_radii]
+        return [0, *self.radii, *self.colour_radii, *self.plane_radii, *self.fine_radii]
 
     def config(self) -> dict[str, Any]:
         """The constructor arguments (what the weights file records)."""
         return {"radii": list(self.radii), "eps": self.eps, "colour_radii": list(self.colour_radii),
                 "colour_scale": self.colour_scale, "reference": self.reference, "hidden": self.hidden,
                 "context": list(self.context), "plane_radii": list(self.plane_radii),
-                "coarse": self.coarse}
+                "coarse": self.coarse, "fine_radii": list(self.fine_radii), "fine_eps": self.fine_eps}
 
     def save(self, path: str | Path, provenance: dict[str, Any]) -> None:
         """Write config, weights (as lists) and ``provenance`` to a JSON file (no pickle)."""
@@ -270,7 +272,8 @@ def blend(
     ct = compute_dtype(x.dtype)
     xs, gs = x.to(ct), guide.to(ct)
     cands = blend_candidates(xs, gs, radii=net.radii, eps=net.eps, colour_radii=net.colour_radii,
-                             colour_scale=net.colour_scale, plane_radii=net.plane_radii)
+                             colour_scale=net.colour_scale, plane_radii=net.plane_radii,
+                             fine_radii=net.fine_radii, fine_eps=net.fine_eps)
     w = _weights(net, cands, gs, spp).to(ct)
     out = sum(w[:, k : k + 1] * c for k, c in enumerate(cands))
     out = out.to(x.dtype)
