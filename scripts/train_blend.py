@@ -54,8 +54,8 @@ def prepared(sample: dict, net: BlendNet) -> dict:
     guide = guide_from_gbuffer(gb, drop_constant=False)
     spp = Denoiser("blend")._spp(gb, surface)
     cands = blend_candidates(seen["x"], guide, radii=net.radii, eps=net.eps, colour_radii=net.colour_radii,
-                             colour_scale=net.colour_scale, plane_radii=net.plane_radii,
-                             fine_radii=net.fine_radii, fine_eps=net.fine_eps)
+                             colour_scale=net.colour_scale, fine_radii=net.fine_radii,
+                             fine_eps=net.fine_eps)
     return {"cands": torch.stack(cands, 1), "feats": blend_features(cands, guide, spp, net.reference),
             "demod": _demodulator(gb.albedo, surface), "kept": kept, "target": sample["target"][None],
             "name": sample["name"], "spp": int(sample["spp"]), "gbuffer": gb}
@@ -129,8 +129,6 @@ def main() -> None:
     ap.add_argument("--context", type=int, nargs="*", default=[2, 8])
     ap.add_argument("--radii", type=int, nargs="+", default=[1, 2, 4, 8])
     ap.add_argument("--colour-radii", type=int, nargs="*", default=[4, 8])
-    ap.add_argument("--plane-radii", type=int, nargs="*", default=[])
-    ap.add_argument("--coarse", type=int, default=0)
     ap.add_argument("--eps", type=float, default=1e-5)
     ap.add_argument("--fine-radii", type=int, nargs="*", default=[2, 4])
     ap.add_argument("--fine-eps", type=float, default=1e-7)
@@ -140,7 +138,6 @@ def main() -> None:
     torch.manual_seed(args.seed)
     t0 = time.perf_counter()
     net = BlendNet(hidden=args.hidden, context=args.context, radii=args.radii, colour_radii=args.colour_radii,
-                   plane_radii=args.plane_radii, coarse=args.coarse,
                    fine_radii=args.fine_radii, fine_eps=args.fine_eps, eps=args.eps)
     ds = ShardDataset(args.data, features=FEATURES)
     data = [prepared(ds[i], net) for i in range(len(ds))]

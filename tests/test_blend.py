@@ -36,6 +36,7 @@ def blend_oracle(x, guide, spp, net):
     cands = [x] + [guided_oracle(x, guide, r, net.eps) for r in net.radii]
     colour_guide = torch.cat([guide[:, :3], torch.log(lum(cands[2]) + floor) * net.colour_scale], 1)
     cands += [guided_oracle(x, colour_guide, r, net.eps) for r in net.colour_radii]
+    cands += [guided_oracle(x, guide, r, net.fine_eps) for r in net.fine_radii]
     lums = [lum(c) for c in cands]
     log_ref = torch.log(lums[net.reference] + floor)
     feats = [torch.log(v + floor) - log_ref for k, v in enumerate(lums) if k != net.reference]

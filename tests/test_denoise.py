@@ -193,7 +193,7 @@ def test_blend_weights_and_half_precision(cornell):
     noisy, ref = cornell
     d = Denoiser("blend")
     w = d.weights(noisy)
-    assert w.shape == (1, 7, 48, 48) and torch.allclose(w.sum(1), torch.ones(1, 48, 48), atol=1e-5)
+    assert w.shape == (1, 9, 48, 48) and torch.allclose(w.sum(1), torch.ones(1, 48, 48), atol=1e-5)
     half = d(noisy.to(dtype=torch.float16))
     assert half.dtype == torch.float16 and torch.isfinite(half).all()
     full = d(noisy)

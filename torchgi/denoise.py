@@ -325,7 +325,7 @@ class Denoiser(torch.nn.Module):
         Example:
             >>> from torchgi.render import render, scenes
             >>> Denoiser("blend").weights(render(scenes.cornell(16), spp=1)).shape
-            torch.Size([1, 7, 16, 16])
+            torch.Size([1, 9, 16, 16])
         """
         if self.method != "blend":
             raise ValueError(f"weights: only method='blend' blends candidates, not {self.method!r}")

@@ -5,8 +5,8 @@ contact shadows and thin geometry a narrow one. Following Kalantari et al. 2015 
 per-pixel choice of filter parameters) and Li, Wu & Chuang 2012 (per-pixel blending of several
 filter outputs), :func:`blend` filters the source with the guided filter at several radii, adds a
 second guided pass whose guide also holds the log-luminance of a first-pass estimate (so shadow
-and shading edges that normal and depth do not show are kept), and mixes these *candidates*
-per pixel with softmax weights
+and shading edges that normal and depth do not show are kept) and guided passes with a much
+smaller ε (curved glossy surfaces), and mixes these *candidates* per pixel with softmax weights
 
     out = Σ_k w_k · c_k,   w = softmax(MLP(features)),
 
@@ -42,7 +42,6 @@ from torchgi.filters.guided import guided
 __all__ = ["Blend", "BlendNet", "blend", "blend_candidates", "blend_features", "default_net"]
 
 WEIGHTS = Path(__file__).with_name("blend_weights.json")
-_PLANE_PX = 256.0  # pixels per guide unit of the screen coordinates in the plane guide
 
 
 def _luminance(x: torch.Tensor) -> torch.Tensor:
@@ -58,28 +57,32 @@ def _floor(x: torch.Tensor) -> torch.Tensor:
 
 def blend_candidates(
     x: torch.Tensor, guide: torch.Tensor, *, radii: Sequence[int], eps: float, colour_radii: Sequence[int],
-    colour_scale: float, plane_radii: Sequence[int] = (), fine_radii: Sequence[int] = (), fine_eps: float = 1e-6,
+    colour_scale: float, fine_radii: Sequence[int] = (), fine_eps: float = 1e-7,
 ) -> list[torch.Tensor]:
-    """The candidates :func:`blend` mixes: ``x`` itself, the guided filter of ``x`` at each of
-    ``radii``, and a colour-guided pass: the guided filter at ``colour_radius`` with the guide's
-    first ``G - 1`` channels plus ``colour_scale · log(L + floor)`` of the radius-``radii[1]``
-    output (``L`` its luminance).
+    """The candidates :func:`blend` mixes, in this order: ``x`` itself; the guided filter of
+    ``x`` at each of ``radii`` with ``eps``; the colour-guided passes at each of ``colour_radii``
+    (guide: the first ``min(G, 3)`` guide channels plus ``colour_scale · log(L + floor)`` of the
+    ``radii[1]`` output, ``L`` its channel mean, ``floor`` 1 % of the mean of ``x``); the guided
+    filter at each of ``fine_radii`` with ``fine_eps`` (a sharper linear model, for curved glossy
+    surfaces).
 
     Args:
         x: ``(B, C, H, W)`` source (demodulated light, >= 0).
         guide: ``(B, G, H, W)``, ``1 <= G <= 4``, as for :func:`~torchgi.filters.guided`.
         radii: guided-filter radii (px), at least 2.
-        eps: the guided filter's ε (guide units squared).
-        colour_radius: radius (px) of the colour-guided pass.
+        eps, fine_eps: the guided filter's ε (guide units squared).
+        colour_radii, fine_radii: radii (px) of the colour-guided and the fine passes.
         colour_scale: weight of the log-luminance guide channel (guide units per e-fold).
 
     Returns:
-        ``len(radii) + 2`` tensors ``(B, C, H, W)`` in the dtype of ``x``.
+        ``1 + len(radii) + len(colour_radii) + len(fine_radii)`` tensors ``(B, C, H, W)`` in the
+        dtype of ``x``.
 
     Example:
         >>> x, g = torch.rand(1, 3, 16, 16), torch.rand(1, 4, 16, 16)
-        >>> len(blend_candidates(x, g, radii=(1, 2, 4), eps=1e-4, colour_radii=(4,), colour_scale=0.1))
-        5
+        >>> len(blend_candidates(x, g, radii=(1, 2, 4), eps=1e-4, colour_radii=(4,), colour_scale=0.1,
+        ...                      fine_radii=(2,)))
+        6
     """
     out = [x] + [guided(x, guide, radius=r, eps=eps) for r in radii]
     floor = _floor(x)
@@ -87,12 +90,6 @@ def blend_candidates(
     keep = guide[:, : min(guide.shape[1], 3)]
     colour_guide = torch.cat([keep, lum], 1)
     out += [guided(x, colour_guide, radius=r, eps=eps) for r in colour_radii]
-    if plane_radii:
-        H, W = x.shape[-2:]
-        v = torch.arange(H, dtype=x.dtype, device=x.device).view(1, 1, H, 1).expand(x.shape[0], 1, H, W)
-        u = torch.arange(W, dtype=x.dtype, device=x.device).view(1, 1, 1, W).expand(x.shape[0], 1, H, W)
-        plane_guide = torch.cat([u / _PLANE_PX, v / _PLANE_PX, guide[:, -1:]], 1)
-        out += [guided(x, plane_guide, radius=r, eps=eps) for r in plane_radii]
     out += [guided(x, guide, radius=r, eps=fine_eps) for r in fine_radii]
     return out
 
@@ -132,43 +129,39 @@ def blend_features(
 
 class BlendNet(nn.Module):
     """The per-pixel MLP of :func:`blend`: ``features (B, F, H, W)`` → logits ``(B, K, H, W)``
-    (1x1 convolutions, ReLU), and the candidate set it was trained for.
+    (the features and their box means at ``context`` radii, two hidden ReLU layers as 1x1
+    convolutions), and the candidate set it was trained for.
 
     Args:
         features: ``F``, the number of input features.
         hidden: width of the two hidden layers.
-        radii, eps, colour_radius, colour_scale: the candidate set (:func:`blend_candidates`).
+        radii, eps, colour_radii, colour_scale, fine_radii, fine_eps: the candidate set
+            (:func:`blend_candidates`).
         reference: index of the candidate the log-luminance features are relative to.
+        context: radii (px) of the box means of the features added as further inputs.
 
     Example:
         >>> net = BlendNet(radii=(1, 2, 4))
-        >>> net(torch.rand(1, net.features, 8, 8)).shape
-        torch.Size([1, 5, 8, 8])
+        >>> net.candidates, net(torch.rand(1, net.features, 8, 8)).shape
+        (8, torch.Size([1, 8, 8, 8]))
     """
 
     def __init__(self, *, radii: Sequence[int] = (1, 2, 4, 8), eps: float = 1e-5,
                  colour_radii: Sequence[int] = (4, 8), colour_scale: float = 0.1, reference: int = 3,
-                 hidden: int = 32, context: Sequence[int] = (2, 8), plane_radii: Sequence[int] = (),
-                 coarse: int = 0, fine_radii: Sequence[int] = (2, 4), fine_eps: float = 1e-7) -> None:
+                 hidden: int = 32, context: Sequence[int] = (2, 8), fine_radii: Sequence[int] = (2, 4),
+                 fine_eps: float = 1e-7) -> None:
         super().__init__()
         if len(radii) < 2 or any(int(r) != r or r < 1 for r in radii):
             raise RangeError(f"radii: expected at least two ints >= 1, got {list(radii)}")
         self.radii, self.eps = tuple(int(r) for r in radii), float(eps)
         self.colour_radii, self.colour_scale = tuple(int(r) for r in colour_radii), float(colour_scale)
-        self.plane_radii = tuple(int(r) for r in plane_radii)
         self.fine_radii, self.fine_eps = tuple(int(r) for r in fine_radii), float(fine_eps)
-        self.candidates = 1 + len(self.radii) + len(self.colour_radii) + len(self.plane_radii) + len(self.fine_radii)
+        self.candidates = 1 + len(self.radii) + len(self.colour_radii) + len(self.fine_radii)
         if not 0 <= reference < self.candidates:
             raise RangeError(f"reference: expected an index below {self.candidates}, got {reference}")
         self.reference, self.hidden, self.context = int(reference), int(hidden), tuple(int(r) for r in context)
         self.features = self.candidates + 4
         inputs = self.features + (self.features - 2) * len(self.context)
-        self.coarse = int(coarse)
-        if self.coarse:  # 3x3 convolutions on 4x4 means of the features: context over ~40 px
-            self.coarse_net = nn.Sequential(
-                nn.Conv2d(self.features, coarse, 3, padding=1), nn.ReLU(), nn.Conv2d(coarse, coarse, 3, padding=1),
-                nn.ReLU(), nn.Conv2d(coarse, coarse, 3, padding=1), nn.ReLU())
-            inputs += coarse
         self.mlp = nn.Sequential(
             nn.Conv2d(inputs, hidden, 1), nn.ReLU(), nn.Conv2d(hidden, hidden, 1), nn.ReLU(),
             nn.Conv2d(hidden, self.candidates, 1),
@@ -177,10 +170,6 @@ class BlendNet(nn.Module):
     def forward(self, features: torch.Tensor) -> torch.Tensor:
         # the varying features' local means (the last two are constant planes)
         parts = [features] + [box(features[:, :-2], r) for r in self.context]
-        if self.coarse:
-            low = self.coarse_net(torch.nn.functional.avg_pool2d(features, 4, ceil_mode=True))
-            parts.append(torch.nn.functional.interpolate(low, size=features.shape[-2:], mode="bilinear",
-                                                         align_corners=False))
         # the 1x1 convolutions as matrix products on pixels-last rows (3x faster than mkldnn's 1x1
         # convolution on the CPU; the same weights)
         h = torch.cat(parts, 1).permute(0, 2, 3, 1)
@@ -192,14 +181,13 @@ class BlendNet(nn.Module):
 
     def candidate_radii(self) -> list[int]:
         """Each candidate's window radius in px, in candidate order (the source itself: 0)."""
-        return [0, *self.radii, *self.colour_radii, *self.plane_radii, *self.fine_radii]
+        return [0, *self.radii, *self.colour_radii, *self.fine_radii]
 
     def config(self) -> dict[str, Any]:
         """The constructor arguments (what the weights file records)."""
         return {"radii": list(self.radii), "eps": self.eps, "colour_radii": list(self.colour_radii),
                 "colour_scale": self.colour_scale, "reference": self.reference, "hidden": self.hidden,
-                "context": list(self.context), "plane_radii": list(self.plane_radii),
-                "coarse": self.coarse, "fine_radii": list(self.fine_radii), "fine_eps": self.fine_eps}
+                "context": list(self.context), "fine_radii": list(self.fine_radii), "fine_eps": self.fine_eps}
 
     def save(self, path: str | Path, provenance: dict[str, Any]) -> None:
         """Write config, weights (as lists) and ``provenance`` to a JSON file (no pickle)."""
@@ -258,7 +246,7 @@ def blend(
         >>> x, g = torch.rand(1, 3, 16, 16), torch.rand(1, 4, 16, 16)
         >>> out, w = blend(x, g, spp=1.0, return_weights=True)
         >>> out.shape, w.shape, bool(torch.allclose(w.sum(1), torch.ones(1, 16, 16)))
-        (torch.Size([1, 3, 16, 16]), torch.Size([1, 7, 16, 16]), True)
+        (torch.Size([1, 3, 16, 16]), torch.Size([1, 9, 16, 16]), True)
     """
     check_shape(x, "B C H W", "x")
     check_floating(x, "x")
@@ -272,8 +260,8 @@ def blend(
     ct = compute_dtype(x.dtype)
     xs, gs = x.to(ct), guide.to(ct)
     cands = blend_candidates(xs, gs, radii=net.radii, eps=net.eps, colour_radii=net.colour_radii,
-                             colour_scale=net.colour_scale, plane_radii=net.plane_radii,
-                             fine_radii=net.fine_radii, fine_eps=net.fine_eps)
+                             colour_scale=net.colour_scale, fine_radii=net.fine_radii,
+                             fine_eps=net.fine_eps)
     w = _weights(net, cands, gs, spp).to(ct)
     out = sum(w[:, k : k + 1] * c for k, c in enumerate(cands))
     out = out.to(x.dtype)
