@@ -31,7 +31,7 @@ from torchgi import metrics
 from torchgi.buffers import GBuffer
 from torchgi.data import ShardDataset
 from torchgi.denoise import Denoiser, _demodulator, _restore, _surface
-from torchgi.filters import guide_from_gbuffer
+from torchgi.filters import guide_from
 from torchgi.filters.blend import BlendNet, blend_candidates, blend_features
 
 FEATURES = ("color", "albedo", "normal", "depth", "emission", "variance")
@@ -51,7 +51,7 @@ def prepared(sample: dict, net: BlendNet) -> dict:
         return torch.zeros_like(x)
 
     kept = _restore(gb.color, gb.emission, None, gb.albedo, surface, record, "blend")
-    guide = guide_from_gbuffer(gb, drop_constant=False)
+    guide = guide_from(gb.normal, gb.depth, depth_scale="image")  # as Denoiser('blend') builds it
     spp = Denoiser("blend")._spp(gb, surface)
     cands = blend_candidates(seen["x"], guide, radii=net.radii, eps=net.eps, colour_radii=net.colour_radii,
                              colour_scale=net.colour_scale, fine_radii=net.fine_radii,
@@ -131,7 +131,7 @@ def main() -> None:
     ap.add_argument("--colour-radii", type=int, nargs="*", default=[4, 8])
     ap.add_argument("--eps", type=float, default=1e-5)
     ap.add_argument("--fine-radii", type=int, nargs="*", default=[2, 4])
-    ap.add_argument("--fine-eps", type=float, default=1e-7)
+    ap.add_argument("--fine-eps", type=float, default=1e-6)
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
     torch.set_num_threads(2)

@@ -392,7 +392,7 @@ class Denoiser(torch.nn.Module):
         return 2 if float(edges.float().mean()) < GUIDED.edge_share else 1
 
     def _filter(self, x: torch.Tensor, gb: GBuffer, surface: torch.Tensor) -> torch.Tensor:
-        from torchgi.filters import atrous, cross_bilateral, guide_from_gbuffer
+        from torchgi.filters import atrous, cross_bilateral, guide_from, guide_from_gbuffer
         from torchgi.filters.guided import _guided
 
         p = self.filter_params
@@ -400,8 +400,9 @@ class Denoiser(torch.nn.Module):
         if self.method == "blend":
             from torchgi.filters.blend import blend
 
-            out, w = blend(x, guide_from_gbuffer(gb, drop_constant=False), spp=spp, net=self._net(x.device),
-                           return_weights=True)
+            # depth over each image's largest, as in training and in the exported form
+            out, w = blend(x, guide_from(gb.normal, gb.depth, depth_scale="image"), spp=spp,
+                           net=self._net(x.device), return_weights=True)
             if self._capture is not None:
                 self._capture["weights"] = w
             return out

@@ -57,7 +57,7 @@ def _floor(x: torch.Tensor) -> torch.Tensor:
 
 def blend_candidates(
     x: torch.Tensor, guide: torch.Tensor, *, radii: Sequence[int], eps: float, colour_radii: Sequence[int],
-    colour_scale: float, fine_radii: Sequence[int] = (), fine_eps: float = 1e-7,
+    colour_scale: float, fine_radii: Sequence[int] = (), fine_eps: float = 1e-6,
 ) -> list[torch.Tensor]:
     """The candidates :func:`blend` mixes, in this order: ``x`` itself; the guided filter of
     ``x`` at each of ``radii`` with ``eps``; the colour-guided passes at each of ``colour_radii``
@@ -149,7 +149,7 @@ class BlendNet(nn.Module):
     def __init__(self, *, radii: Sequence[int] = (1, 2, 4, 8), eps: float = 1e-5,
                  colour_radii: Sequence[int] = (4, 8), colour_scale: float = 0.1, reference: int = 3,
                  hidden: int = 32, context: Sequence[int] = (2, 8), fine_radii: Sequence[int] = (2, 4),
-                 fine_eps: float = 1e-7) -> None:
+                 fine_eps: float = 1e-6) -> None:
         super().__init__()
         if len(radii) < 2 or any(int(r) != r or r < 1 for r in radii):
             raise RangeError(f"radii: expected at least two ints >= 1, got {list(radii)}")
