@@ -140,8 +140,10 @@ class Denoiser(torch.nn.Module):
     """Denoise a path-traced image from its noise-free guides.
 
     Args:
-        method: "guided" (Bauszat et al. 2011), "atrous" (Dammertz et al. 2010), "bilateral"
-            (brute-force cross-bilateral) or "none" (the noisy image, assembled).
+        method: "guided" (Bauszat et al. 2011), "blend" (a learned per-pixel blend of guided
+            filters, :mod:`torchgi.filters.blend`: more accurate, about 7x slower; needs
+            ``depth`` for the guide it was trained with), "atrous" (Dammertz et al. 2010),
+            "bilateral" (brute-force cross-bilateral) or "none" (the noisy image, assembled).
         quality: "fast", "balanced" or "high" (radius / iterations / window scale).
         hdr: the colour is HDR (True) or in [0, 1] (False: the output is clamped to [0, 1]).
         input_scale: multiplies the demodulated signal before colour-weighted filtering (À-Trous,
