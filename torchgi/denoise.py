@@ -141,7 +141,7 @@ class Denoiser(torch.nn.Module):
 
     Args:
         method: "guided" (Bauszat et al. 2011), "blend" (a learned per-pixel blend of guided
-            filters, :mod:`torchgi.filters.blend`: more accurate, about 7x slower; needs
+            filters, :mod:`torchgi.filters.blend`: more accurate, about 7x slower; expects
             ``depth`` for the guide it was trained with), "atrous" (Dammertz et al. 2010),
             "bilateral" (brute-force cross-bilateral) or "none" (the noisy image, assembled).
         quality: "fast", "balanced" or "high" (radius / iterations / window scale).
