@@ -170,14 +170,16 @@ class BlendNet(nn.Module):
     def forward(self, features: torch.Tensor) -> torch.Tensor:
         # the varying features' local means (the last two are constant planes)
         parts = [features] + [box(features[:, :-2], r) for r in self.context]
-        # the 1x1 convolutions as matrix products on pixels-last rows (3x faster than mkldnn's 1x1
-        # convolution on the CPU; the same weights)
-        h = torch.cat(parts, 1).permute(0, 2, 3, 1)
+        # the 1x1 convolutions as batched (out, in) x (in, pixels) products on the NCHW layout: no
+        # transposes, bias and ReLU in place (the same weights; faster than mkldnn's 1x1 convolution)
+        h = torch.cat(parts, 1)
+        B, _, H, W = h.shape
+        z = h.reshape(B, -1, H * W)
         layers = [m for m in self.mlp if isinstance(m, nn.Conv2d)]
         for i, conv in enumerate(layers):
-            h = torch.nn.functional.linear(h, conv.weight.flatten(1), conv.bias)
-            h = h.relu() if i < len(layers) - 1 else h
-        return h.permute(0, 3, 1, 2)
+            z = torch.baddbmm(conv.bias[None, :, None].expand(B, -1, 1), conv.weight.flatten(1).expand(B, -1, -1), z)
+            z = z.relu_() if i < len(layers) - 1 else z
+        return z.reshape(B, -1, H, W)
 
     def candidate_radii(self) -> list[int]:
         """Each candidate's window radius in px, in candidate order (the source itself: 0)."""
