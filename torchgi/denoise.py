@@ -195,7 +195,6 @@ class Denoiser(torch.nn.Module):
         self.filter_direct = filter_direct
         self.filter_params = dict(filter_params)
         self._workspace: dict = {}  # the guided filter's CPU buffers, kept between calls
-        self._nets: dict = {}  # the blend's network per device
         self._capture: dict | None = None  # set by weights()
 
     @classmethod
@@ -219,7 +218,9 @@ class Denoiser(torch.nn.Module):
         """
         p = self.filter_params
         if self.method == "blend":
-            return DeployedDenoiser("blend", {"spp": float(spp)}, net=self._net(torch.device("cpu")))
+            from torchgi.filters.blend import default_net
+
+            return DeployedDenoiser("blend", {"spp": float(spp)}, net=default_net())
         if self.method == "guided":
             params = {"radius": self._radius(spp, GUIDED.radius), "eps": p.get("eps", GUIDED.eps)}
             if p.get("subsample", 1) > 1:
@@ -341,17 +342,6 @@ class Denoiser(torch.nn.Module):
             raise ValueError("gb: its colour is noise-free or empty, so nothing was filtered")
         return captured["weights"]
 
-    def _net(self, device: torch.device):
-        """The blend's network on ``device`` (the shipped weights, one copy per device)."""
-        from torchgi.filters.blend import default_net
-
-        if device not in self._nets:
-            import copy
-
-            net = default_net()
-            self._nets[device] = net if device == torch.device("cpu") else copy.deepcopy(net).to(device)
-        return self._nets[device]
-
     def _radius(self, spp: float, base: int) -> int:
         """Filter radius: given, or ``base · quality / sqrt(spp)`` (at least 2) px."""
         scale = PIPELINE.quality_scale(self.quality)
@@ -403,8 +393,7 @@ class Denoiser(torch.nn.Module):
             from torchgi.filters.blend import blend
 
             # depth over each image's largest, as in training and in the exported form
-            out, w = blend(x, guide_from(gb.normal, gb.depth, depth_scale="image"), spp=spp,
-                           net=self._net(x.device), return_weights=True)
+            out, w = blend(x, guide_from(gb.normal, gb.depth, depth_scale="image"), spp=spp, return_weights=True)
             if self._capture is not None:
                 self._capture["weights"] = w
             return out

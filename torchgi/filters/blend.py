@@ -24,6 +24,7 @@ respect to the source, guide and the network's weights, ONNX-exportable, float16
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 from collections.abc import Sequence
@@ -206,16 +207,21 @@ class BlendNet(nn.Module):
         return net.eval().requires_grad_(False)
 
 
-_DEFAULT: dict[str, BlendNet] = {}
+_DEFAULT: dict[torch.device, BlendNet] = {}
 
 
-def default_net() -> BlendNet:
-    """The shipped network (``blend_weights.json``), read once per process."""
-    if "net" not in _DEFAULT:
-        if not WEIGHTS.is_file():
+def default_net(device: torch.device | str = "cpu") -> BlendNet:
+    """The shipped network (``blend_weights.json``) on ``device``: read once per process, one
+    copy per device."""
+    device = torch.device(device)
+    if device not in _DEFAULT:
+        if device.type != "cpu":
+            _DEFAULT[device] = copy.deepcopy(default_net()).to(device)
+        elif not WEIGHTS.is_file():
             raise FileNotFoundError(f"{WEIGHTS}: the blend's weights are missing (python scripts/train_blend.py)")
-        _DEFAULT["net"] = BlendNet.load(WEIGHTS)
-    return _DEFAULT["net"]
+        else:
+            _DEFAULT[device] = BlendNet.load(WEIGHTS)
+    return _DEFAULT[device]
 
 
 def _weights(net: BlendNet, candidates: Sequence[torch.Tensor], guide: torch.Tensor,
@@ -237,7 +243,7 @@ def blend(
         guide: ``(B, G, H, W)``, ``1 <= G <= 4``, same dtype and device (e.g.
             :func:`~torchgi.filters.guide_from`).
         spp: samples per pixel the noise corresponds to, a float or ``(B,)`` tensor (>= 1).
-        net: the network; None = the shipped one (:func:`default_net`), moved to ``x``'s device.
+        net: the network, on ``x``'s device; None = the shipped one there (:func:`default_net`).
         return_weights: also return the ``(B, K, H, W)`` weights (the per-pixel choice).
 
     Returns:
@@ -256,7 +262,7 @@ def blend(
     check_same_floating({"x": x, "guide": guide})
     if isinstance(spp, (int, float)) and not (math.isfinite(spp) and spp >= 1):
         raise RangeError(f"spp: expected a finite number >= 1, got {spp!r}")
-    net = default_net() if net is None else net
+    net = default_net(x.device) if net is None else net
     if next(net.parameters()).device != x.device:
         raise ValueError(f"net: on {next(net.parameters()).device}, x on {x.device} (move one of them)")
     ct = compute_dtype(x.dtype)
