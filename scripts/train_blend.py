@@ -30,7 +30,7 @@ import torch
 from torchgi import metrics
 from torchgi.buffers import GBuffer
 from torchgi.data import ShardDataset
-from torchgi.denoise import Denoiser, _demodulator, _restore, _surface
+from torchgi.denoise import _FIREFLY, Denoiser, _demodulator, _restore, _surface
 from torchgi.filters import guide_from
 from torchgi.filters.blend import BlendNet, blend_candidates, blend_features
 
@@ -50,7 +50,7 @@ def prepared(sample: dict, net: BlendNet) -> dict:
         seen["x"] = x
         return torch.zeros_like(x)
 
-    kept = _restore(gb.color, gb.emission, None, gb.albedo, surface, record, "blend")
+    kept = _restore(gb.color, gb.emission, None, gb.albedo, surface, record, _FIREFLY["blend"])
     guide = guide_from(gb.normal, gb.depth, depth_scale="image")  # as Denoiser('blend') builds it
     spp = Denoiser("blend")._spp(gb, surface)
     cands = blend_candidates(seen["x"], guide, radii=net.radii, eps=net.eps, colour_radii=net.colour_radii,

@@ -74,3 +74,30 @@ def test_exported_denoiser_matches_torch(tmp_path):
         ours = Denoiser("guided")(gb)  # the torch Denoiser itself
         assert rel(deployed(gb.color, gb.emission, gb.albedo, gb.normal, gb.depth), ours) < 1e-4
         assert rel(ort(gb), ours) < 1e-4, size
+
+
+@pytest.mark.parametrize(("method", "name", "value"), [("guided", "color", float("nan")),
+                                                       ("guided", "depth", float("inf")),
+                                                       ("atrous", "normal", float("nan")),
+                                                       ("blend", "albedo", -float("inf"))])
+def test_exported_denoiser_contains_a_non_finite_pixel(tmp_path, method, name, value):
+    """A NaN/Inf pixel is a hole: finite output everywhere, the clean result outside its footprint
+    (the firefly window, the filter's support twice over and the hole's own window)."""
+    pytest.importorskip("embreex")
+    import torchgi
+    from torchgi.export import OrtDenoiser, export_denoiser
+
+    path = export_denoiser(method, tmp_path / "d.onnx", sigma_position=1e3)
+    ort = OrtDenoiser(path)
+    gb = torchgi.render(torchgi.scenes.cornell(72).with_resolution(72, 64), spp=1, bounces=1)
+    inputs = {k: getattr(gb, k).clone() for k in ("color", "emission", "albedo", "normal", "depth", "position")}
+    clean = ort(**inputs)
+    y, x = 30, 41
+    inputs[name][0, 0, y, x] = value
+    out = ort(**inputs)
+    assert bool(torch.isfinite(out).all())
+    far = torch.ones(64, 72, dtype=torch.bool)
+    reach = 28  # px: 8 (fireflies) + 2 x 8 (guided r = 4 twice; blend's widest candidate) + 2 (hole) + 2
+    far[max(0, y - reach) : y + reach + 1, max(0, x - reach) : x + reach + 1] = False
+    diff = ((out - clean).abs() / (clean.abs() + 1e-2))[..., far]
+    assert float(diff.max()) < 1e-3, float(diff.max())

@@ -29,6 +29,7 @@ from typing import Any
 
 import torch
 
+from torchgi import backends
 from torchgi.buffers import GBuffer
 from torchgi.core.check import check_finite, check_option, is_recording
 from torchgi.core.errors import ShapeError
@@ -63,18 +64,28 @@ def _noise_free(gb: GBuffer) -> bool:
     from at least 2 samples in every pixel (with 1 sample the variance is unknown, stored as 0)."""
     if gb.variance is None or gb.spp is None:
         return False
-    return bool((gb.spp >= 2).all()) and not bool(gb.variance.any())
+    return int(gb.spp.min()) >= 2 and not bool(gb.variance.any())
+
+
+def _every4(t: torch.Tensor | None) -> torch.Tensor | None:
+    """Every 4th row and column of ``t (B,C,H,W)`` (a view), None for None."""
+    return None if t is None else t[:, :, ::4, ::4]
 
 
 def _median_level(x: torch.Tensor, surface: torch.Tensor) -> torch.Tensor:
     """``(B,1,1,1)``: per image, the (lower) median over surface pixels of the channel maximum of
     ``x (B,C,H,W)``, read on every 4th row and column (a scale for thresholds, so 1/16 of the
-    pixels is plenty); 1 where there is none or it is not > 0. Plain tensor ops (exportable)."""
-    peak = x.amax(1)[:, ::4, ::4].flatten(1)
-    on = surface[:, 0, ::4, ::4].flatten(1)
-    ranked = torch.where(on, peak, torch.full((), float("inf"), dtype=x.dtype, device=x.device)).sort(1).values
+    pixels is plenty; pass :func:`_every4` views, so that nothing else is computed); 1 where
+    there is none or it is not > 0. Plain tensor ops (exportable)."""
+    peak = x.amax(1).flatten(1)
+    on = surface[:, 0].flatten(1)
+    ranked = torch.where(on, peak, torch.full((), float("inf"), dtype=x.dtype, device=x.device))
     count = on.sum(1, keepdim=True)
-    m = ranked.gather(1, ((count - 1).clamp_min(0) // 2))
+    if is_recording():  # a sort exports; eager calls select in linear time
+        m = ranked.sort(1).values.gather(1, ((count - 1).clamp_min(0) // 2))
+    else:
+        m = torch.stack([ranked[b].kthvalue(max(int(count[b]) - 1, 0) // 2 + 1).values for b in range(len(ranked))]
+                        ).view(-1, 1) if ranked.shape[1] else ranked.new_ones(len(ranked), 1)
     return torch.where((count > 0) & (m > 0), m, torch.ones_like(m)).reshape(-1, 1, 1, 1)
 
 
@@ -106,24 +117,37 @@ def _clamp_fireflies(x: torch.Tensor, scene_level: torch.Tensor, k: float) -> to
 
 
 def _filter_light(
-    x: torch.Tensor, level: torch.Tensor, filter_fn: Callable[[torch.Tensor], torch.Tensor], method: str
+    x: torch.Tensor, level: torch.Tensor, filter_fn: Callable[[torch.Tensor], torch.Tensor], firefly: float
 ) -> torch.Tensor:
-    """``filter_fn`` of demodulated light ``x (B,C,H,W)`` with its fireflies clamped for ``method``
-    (``level`` from :func:`_median_level`), clamped at 0: light is >= 0 and linear models can
-    undershoot."""
-    return filter_fn(_clamp_fireflies(x, level, _FIREFLY[method])).clamp_min(0)
+    """``filter_fn`` of demodulated light ``x (B,C,H,W)`` with its fireflies clamped at ``firefly``
+    x their local level (``level`` from :func:`_median_level`), clamped at 0: light is >= 0 and
+    linear models can undershoot."""
+    return filter_fn(_clamp_fireflies(x, level, firefly)).clamp_min(0)
+
+
+def _level(color: torch.Tensor, emission: torch.Tensor | None, kept: torch.Tensor | None, albedo: torch.Tensor,
+           surface: torch.Tensor) -> torch.Tensor:
+    """``(B,1,1,1)``: :func:`_median_level` of the demodulated light without emission and kept
+    light, computed on every 4th row and column only."""
+    c, e, k, a, on = (_every4(t) for t in (color, emission, kept, albedo, surface))
+    base = c - k if k is not None else c
+    return _median_level((base - e if e is not None else base) / _demodulator(a, on), on)
 
 
 def _restore(
     color: torch.Tensor, emission: torch.Tensor | None, kept: torch.Tensor | None, albedo: torch.Tensor,
-    surface: torch.Tensor, filter_fn: Callable[[torch.Tensor], torch.Tensor], method: str,
+    surface: torch.Tensor, filter_fn: Callable[[torch.Tensor], torch.Tensor], firefly: float,
+    level: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """The module docstring's pipeline around ``filter_fn`` (demodulated light in, filtered out),
-    shared by :class:`Denoiser` and :class:`DeployedDenoiser`: all ``(B, C, H, W)``; ``kept`` is
-    light added back unfiltered (direct light in the papers' split) or None."""
+    shared by :class:`Denoiser`, :class:`DeployedDenoiser` and the torch code of the fused guided
+    pipeline: all ``(B, C, H, W)``; ``kept`` is light added back unfiltered (direct light in the
+    papers' split) or None; ``firefly`` the method's clamp factor; ``level`` :func:`_level` (None:
+    computed here)."""
+    if level is None:
+        level = _level(color, emission, kept, albedo, surface)
     albedo = _demodulator(albedo, surface)
     base = color - kept if kept is not None else color
-    level = _median_level((base - emission if emission is not None else base) / albedo, surface)
     lights = _light_sources(emission if emission is not None else base / albedo, PIPELINE.light * level)
     if emission is not None:
         light = torch.where(lights, emission, 0.0)
@@ -131,7 +155,7 @@ def _restore(
         x = (base - light) / albedo
     else:  # no emission input: a light source's pixels pass whole and enter the filter at the median level
         x = torch.where(lights, level.expand_as(color), base / albedo)
-    out = _filter_light(x, level, filter_fn, method) * albedo
+    out = _filter_light(x, level, filter_fn, firefly) * albedo
     out = out + kept if kept is not None else out
     return out if emission is not None else torch.where(lights, color, out)
 
@@ -263,17 +287,52 @@ class Denoiser(torch.nn.Module):
             return gb.color
         if gb.albedo is None or gb.normal is None:
             raise ShapeError("albedo and normal: required by every method but 'none'")
+        split = gb.indirect is not None and gb.direct is not None and not self.filter_direct
+        # the fused guided pipeline checks what it reads itself (normal, depth: its guide statistics)
+        read = ("color", "emission", "albedo", "normal", "depth") + (("direct",) if split else ())
         for name in ("color", "emission", "direct", "albedo", "normal", "position", "depth", "variance"):
-            if getattr(gb, name) is not None:
+            if getattr(gb, name) is not None and not (self.method == "guided" and name in read):
                 check_finite(getattr(gb, name), name)  # named here, not as the filter's input
         if _noise_free(gb) or gb.color.numel() == 0:  # nothing to filter (an empty batch included)
             return gb.color if self.hdr else gb.color.clamp(0, 1)
         surface = _surface(gb.hit, gb.albedo)
-        split = gb.indirect is not None and gb.direct is not None and not self.filter_direct
         kept = gb.direct if split else None  # the papers' split: direct light as sampled
-        out = _restore(gb.color, gb.emission, kept, gb.albedo, surface, lambda x: self._filter(x, gb, surface),
-                       self.method)
+        if self.method == "guided":
+            out = self._guided_pipeline(gb, kept, surface)
+        else:
+            out = _restore(gb.color, gb.emission, kept, gb.albedo, surface, lambda x: self._filter(x, gb, surface),
+                           _FIREFLY[self.method])
         return out if self.hdr else out.clamp(0, 1)
+
+    def _guided_pipeline(self, gb: GBuffer, kept: torch.Tensor | None, surface: torch.Tensor) -> torch.Tensor:
+        """Method "guided": the whole pipeline as one :class:`~torchgi.backends.RestoreOp` (fused
+        in the compiled back ends)."""
+        spec = self._guide_spec(gb)
+        H, W = gb.color.shape[-2:]
+        op = backends.RestoreOp(gb.color, gb.emission, kept, gb.albedo, gb.hit, spec,
+                                _level(gb.color, gb.emission, kept, gb.albedo, surface),
+                                self._radius(self._spp(gb, surface), GUIDED.radius),
+                                self.filter_params.get("eps", GUIDED.eps), self._subsample(spec, H, W), GUIDED.firefly,
+                                self._workspace)
+        return backends.run(op)
+
+    def _guide_spec(self, gb: GBuffer) -> backends.GuideSpec:
+        """:func:`~torchgi.filters.guide_from_gbuffer`'s guide (normal to [0, 1], depth over the
+        largest depth on hit pixels, channels constant over the batch dropped) as planes and
+        factors, from one statistics walk; raises naming ``normal`` or ``depth`` if it holds NaN/Inf."""
+        st = backends.run(backends.GuideStatsOp(gb.normal, gb.depth, gb.hit))
+        for name, col in (("normal", 9), ("depth", 10)):
+            if bool(st[:, col].any()):
+                check_finite(getattr(gb, name), name)
+        depth_scale = float(st[:, 8].max())
+        depth_scale = depth_scale if depth_scale > 0 else 1.0  # (-inf: no hit pixel)
+        scale = torch.tensor([0.5, 0.5, 0.5, 1.0 / depth_scale], dtype=gb.normal.dtype)
+        offset = torch.tensor([0.5, 0.5, 0.5, 0.0], dtype=gb.normal.dtype)
+        lo = st[:, :4].amin(0).to(gb.normal.dtype) * scale + offset  # the guide's extremes, rounded as its values
+        hi = st[:, 4:8].amax(0).to(gb.normal.dtype) * scale + offset
+        varying = [c for c in range(3 if gb.depth is None else 4) if bool(hi[c] > lo[c])] or [0]
+        return backends.GuideSpec(gb.normal, gb.depth, tuple(varying), tuple(float(scale[c]) for c in varying),
+                                  tuple(float(offset[c]) for c in varying))
 
     def supersample(self, gb: GBuffer, samples: EyeSamples) -> torch.Tensor:
         """Supersampling with guide rays (Bauszat et al. 2011 §3.2, :mod:`torchgi.supersample`).
@@ -311,7 +370,8 @@ class Denoiser(torch.nn.Module):
         if self.method == "none":
             light = x
         else:
-            light = _filter_light(x, _median_level(x, surface), lambda v: self._filter(v, gb, surface), self.method)
+            light = _filter_light(x, _median_level(_every4(x), _every4(surface)), lambda v: self._filter(v, gb, surface),
+                                  _FIREFLY[self.method])
         light = torch.where(surface, light, 0.0)  # no reflected light without a surface
         own, sample_own = gb.emission, samples.emission
         if not self.filter_direct:
@@ -359,17 +419,19 @@ class Denoiser(torch.nn.Module):
         surfaces (>= 1/4), so noisier images get wider filters; otherwise the mean ``spp`` (>= 1)."""
         if gb.spp is None:
             return 1.0
-        spp = max(float(gb.spp.float().mean()), 1.0)
+        spp = max(float(gb.spp.sum()) / max(gb.spp.numel(), 1), 1.0)
         if gb.variance is None or gb.color is None:
             return spp
-        count = int(surface.sum()) * gb.color.shape[1]
-        if count == 0 or bool(((gb.spp < 2) & surface).any()):
+        if int(gb.spp.min()) < 2 and bool(((gb.spp < 2) & surface).any()):
             return spp  # some surface pixel has no variance estimate
+        count = int(surface.sum()) * gb.color.shape[1]
+        if count == 0:
+            return spp
         # (masks by where, not by indexing: no gathered copies)
         rel = float(torch.where(surface, gb.variance / (gb.color.square() + 1e-4), 0.0).sum()) / count
         return max(PIPELINE.rel_var_1spp / max(rel, 1e-12), 0.25)
 
-    def _subsample(self, guide: torch.Tensor) -> int:
+    def _subsample(self, spec: backends.GuideSpec, H: int, W: int) -> int:
         """Guided filter's subsampling: given, or 2 where half resolution loses nothing
         measurable, else 1. Half resolution needs >= 256 px on the short side, quality
         "fast"/"balanced", and a guide that is smooth at the pixel scale: fewer than 10 % of
@@ -377,14 +439,12 @@ class Denoiser(torch.nn.Module):
         (``settings.GUIDED``; the measurements behind it in docs/calibration.md)."""
         if "subsample" in self.filter_params:
             return self.filter_params["subsample"]
-        H, W = guide.shape[-2:]
         if min(H, W) < GUIDED.subsample_from or self.quality == "high":
             return 1
-        edges = (guide[:, :, ::2, 1:] - guide[:, :, ::2, :-1]).square().sum(1) > GUIDED.edge**2
-        return 2 if float(edges.float().mean()) < GUIDED.edge_share else 1
+        return 2 if backends.run(backends.EdgeShareOp(spec, GUIDED.edge)) < GUIDED.edge_share else 1
 
     def _filter(self, x: torch.Tensor, gb: GBuffer, surface: torch.Tensor) -> torch.Tensor:
-        from torchgi.filters import atrous, cross_bilateral, guide_from, guide_from_gbuffer
+        from torchgi.filters import atrous, cross_bilateral, guide_from
         from torchgi.filters.guided import _guided
 
         p = self.filter_params
@@ -398,9 +458,9 @@ class Denoiser(torch.nn.Module):
                 self._capture["weights"] = w
             return out
         if self.method == "guided":  # the workspace of the CPU path is kept between calls
-            guide = guide_from_gbuffer(gb)
-            return _guided(x, guide, self._radius(spp, GUIDED.radius), p.get("eps", GUIDED.eps), False,
-                           self._workspace, self._subsample(guide))
+            spec = self._guide_spec(gb)
+            return _guided(x, spec.build(), self._radius(spp, GUIDED.radius), p.get("eps", GUIDED.eps), False,
+                           self._workspace, self._subsample(spec, *x.shape[-2:]))
         scale = self.input_scale
         if scale is None:
             mean = float(x[surface.expand_as(x)].mean()) if bool(surface.any()) else 0.0
@@ -424,14 +484,35 @@ class Denoiser(torch.nn.Module):
         return out / scale
 
 
+def _fill_holes(tensors: list[torch.Tensor]) -> list[torch.Tensor]:
+    """``tensors`` (each ``(B, C, H, W)``) with every pixel that is NaN/Inf in any channel of any
+    of them made a hole: all its inputs replaced by the mean of the finite pixels within
+    ``PIPELINE.hole_radius`` (normalised convolution; 0 where there is none), so nothing
+    non-finite reaches the filter and the hole's output comes from its neighbours. Plain
+    tensor ops (exportable); finite inputs pass unchanged."""
+    from torchgi.filters import box
+
+    ok = torch.stack([torch.isfinite(t).all(1, keepdim=True) for t in tensors]).all(0)
+    w = ok.to(tensors[0].dtype)
+    count = box(w, PIPELINE.hole_radius)
+    out = []
+    for t in tensors:
+        clean = torch.where(ok, t, 0.0)
+        filled = box(clean, PIPELINE.hole_radius) / count.clamp_min(1e-6)
+        out.append(torch.where(ok, t, torch.where(count > 1e-6, filled, 0.0)))
+    return out
+
+
 class DeployedDenoiser(torch.nn.Module):
     """A :class:`Denoiser` with every choice fixed, as plain tensor code for ONNX export.
 
     ``forward(color, emission, albedo, normal, depth)`` for "blend" and "guided" and
     ``forward(color, emission, albedo, normal, position)`` for "atrous", all ``(B, C, H, W)``:
     the Denoiser's pipeline (module docstring) with the fixed parameters; surfaces are the pixels
-    of non-zero albedo. ``emission`` is required (zeros when no light source is in view). Built
-    by :meth:`Denoiser.deploy`.
+    of non-zero albedo. ``emission`` is required (zeros when no light source is in view). A pixel
+    that is NaN/Inf in any input is a hole (:func:`_fill_holes`): the output is finite
+    everywhere and, outside the hole's filter footprint, that of the clean input (an exported
+    graph cannot raise). Built by :meth:`Denoiser.deploy`.
     """
 
     def __init__(self, method: str, params: dict[str, Any], net: torch.nn.Module | None = None) -> None:
@@ -450,6 +531,7 @@ class DeployedDenoiser(torch.nn.Module):
                 geometry: torch.Tensor) -> torch.Tensor:
         from torchgi.filters import atrous, guide_from, guided
 
+        color, emission, albedo, normal, geometry = _fill_holes([color, emission, albedo, normal, geometry])
         surface = _surface(None, albedo)
 
         def filter_fn(x: torch.Tensor) -> torch.Tensor:
@@ -464,7 +546,7 @@ class DeployedDenoiser(torch.nn.Module):
                           sigma_normal=self.params["sigma_normal"], sigma_position=self.params["sigma_position"],
                           sigma_color=self.params["sigma_color"])
 
-        return _restore(color, emission, None, albedo, surface, filter_fn, self.method)
+        return _restore(color, emission, None, albedo, surface, filter_fn, _FIREFLY[self.method])
 
     def extra_repr(self) -> str:
         return f"method={self.method!r}, " + ", ".join(f"{k}={v!r}" for k, v in self.params.items())

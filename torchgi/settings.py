@@ -34,6 +34,8 @@ class PipelineSettings:
                                  "pixels a few samples hit along a silhouette are filtered with the rest")
     firefly_radius: int = _setting(8, 1, 64, "px", "the local level a firefly is compared with: a 17x17 box mean")
     albedo_floor: float = _setting(1e-3, 0.0, 1.0, "albedo", "light is divided by at least this (black surfaces)")
+    hole_radius: int = _setting(2, 1, 16, "px", "an exported Denoiser fills a NaN/Inf pixel from the finite pixels "
+                                "of this window (5x5)")
     rel_var_1spp: float = _setting(0.25, 0.0, math.inf, "relative variance",
                                    "the mean relative variance of a 1 spp render: a measured variance maps to spp")
     min_radius: int = _setting(2, 1, 64, "px", "no filter narrower than this, however many samples")

@@ -1,6 +1,7 @@
 """Back ends: every kernel of torchgi chosen in one place.
 
-An op (box, guided, atrous, importance, allocate) is described by a small dataclass in one
+An op (box, guided, atrous, importance, allocate, and the Denoiser's guide statistics, edge share
+and restore pipeline) is described by a small dataclass in one
 convention (:class:`BoxOp`, :class:`GuidedOp`, :class:`ATrousOp`, :class:`ImportanceOp`,
 :class:`AllocateOp`); :func:`run` hands it to the first back end that supports it, in the
 order ``c`` (compiled CPU kernels, :mod:`torchgi.backends.c_kernels`), ``triton`` (CUDA,
@@ -26,8 +27,12 @@ from torchgi.backends.base import (
     AllocateOp,
     ATrousOp,
     BoxOp,
+    EdgeShareOp,
     GuidedOp,
+    GuideSpec,
+    GuideStatsOp,
     ImportanceOp,
+    RestoreOp,
     enabled,
     run,
     select,
@@ -36,6 +41,6 @@ from torchgi.backends.base import (
 )
 
 __all__ = [
-    "NAMES", "ORDER", "ATrousOp", "AllocateOp", "BoxOp", "GuidedOp", "ImportanceOp", "enabled", "run", "select",
-    "status", "use",
+    "NAMES", "ORDER", "ATrousOp", "AllocateOp", "BoxOp", "EdgeShareOp", "GuideSpec", "GuideStatsOp", "GuidedOp",
+    "ImportanceOp", "RestoreOp", "enabled", "run", "select", "status", "use",
 ]

@@ -28,7 +28,8 @@ from torchgi.core.check import is_tracing
 from torchgi.core.errors import OptionError
 
 __all__ = [
-    "NAMES", "ORDER", "ATrousOp", "AllocateOp", "BoxOp", "GuidedOp", "ImportanceOp", "blur3", "colour_scale", "eager",
+    "NAMES", "ORDER", "ATrousOp", "AllocateOp", "BoxOp", "EdgeShareOp", "GuideSpec", "GuideStatsOp", "GuidedOp",
+    "ImportanceOp", "RestoreOp", "blur3", "colour_scale", "eager",
     "enabled", "float32_eager", "iterate_levels", "run", "scaled_guides", "select", "status", "use",
 ]
 
@@ -140,8 +141,91 @@ class AllocateOp:
         return (self.q,)
 
 
-Op = BoxOp | GuidedOp | ATrousOp | ImportanceOp | AllocateOp
-_OPS = {BoxOp: "box", GuidedOp: "guided", ATrousOp: "atrous", ImportanceOp: "importance", AllocateOp: "allocate"}
+@dataclass(eq=False, slots=True)
+class GuideStatsOp:
+    """Per image of ``normal (B,3,H,W)`` and ``depth (B,1,H,W)`` or None (same float dtype), with
+    ``hit (B,1,H,W)`` bool or None: a float64 CPU ``(B, 11)`` tensor of the channel minima (normal
+    x, y, z, depth; +inf without depth), maxima (-inf without depth), the largest depth on hit
+    pixels (every pixel without ``hit``; -inf where none), and the counts of non-finite values
+    in normal and in depth."""
+
+    normal: torch.Tensor
+    depth: torch.Tensor | None
+    hit: torch.Tensor | None
+
+    def tensors(self) -> tuple[torch.Tensor | None, ...]:
+        return (self.normal, self.depth)
+
+
+@dataclass(eq=False, slots=True)
+class GuideSpec:
+    """The Denoiser's guide as planes of ``normal (B,3,H,W)`` and ``depth (B,1,H,W)`` (or None):
+    channel ``k`` is plane ``channels[k]`` of [normal x, y, z, depth] times ``scale[k]`` plus
+    ``offset[k]`` (1 to 4 channels)."""
+
+    normal: torch.Tensor
+    depth: torch.Tensor | None
+    channels: tuple[int, ...]
+    scale: tuple[float, ...]
+    offset: tuple[float, ...]
+
+    def planes(self) -> list[torch.Tensor]:
+        """The ``(B,1,H,W)`` source plane of each channel (views)."""
+        return [self.normal[:, c : c + 1] if c < 3 else self.depth for c in self.channels]
+
+    def build(self) -> torch.Tensor:
+        """The ``(B,n,H,W)`` guide by torch ops (``(normal + 1) / 2`` rounds as ``normal / 2 + 1 / 2``).
+
+        Example:
+            >>> n = torch.zeros(1, 3, 2, 2); d = torch.full((1, 1, 2, 2), 4.0)
+            >>> GuideSpec(n, d, (0, 3), (0.5, 0.25), (0.5, 0.0)).build()[0, :, 0, 0].tolist()
+            [0.5, 1.0]
+        """
+        return torch.cat([p * s + o for p, s, o in zip(self.planes(), self.scale, self.offset, strict=True)], 1)
+
+
+@dataclass(eq=False, slots=True)
+class EdgeShareOp:
+    """The share of horizontal neighbours on even rows whose guide (``spec``) differs by more
+    than ``edge`` (Euclidean, guide units), over the batch: a float."""
+
+    spec: GuideSpec
+    edge: float
+
+    def tensors(self) -> tuple[torch.Tensor | None, ...]:
+        return (self.spec.normal, self.spec.depth)
+
+
+@dataclass(eq=False, slots=True)
+class RestoreOp:
+    """The Denoiser's pipeline around the guided filter (:mod:`torchgi.denoise`'s docstring) for
+    ``color (B,3,H,W)``: ``emission`` and ``kept`` (light added back unfiltered: the direct
+    light of the papers' split) ``(B,3,H,W)`` or None, ``albedo (B,3,H,W)``, ``hit (B,1,H,W)``
+    bool or None (surfaces: non-zero albedo), the guide ``spec``, the per-image ``level
+    (B,1,1,1)`` thresholds are multiples of, the guided filter's ``radius``, ``eps`` (float),
+    ``subsample`` and the firefly factor; the other constants are ``settings.PIPELINE``'s. All
+    tensors of one float dtype and device. Returns the ``(B,3,H,W)`` radiance."""
+
+    color: torch.Tensor
+    emission: torch.Tensor | None
+    kept: torch.Tensor | None
+    albedo: torch.Tensor
+    hit: torch.Tensor | None
+    spec: GuideSpec
+    level: torch.Tensor
+    radius: int
+    eps: float
+    subsample: int
+    firefly: float
+    workspace: dict | None = None
+
+    def tensors(self) -> tuple[torch.Tensor | None, ...]:
+        return (self.color, self.emission, self.kept, self.albedo, self.spec.normal, self.spec.depth, self.level)
+
+
+Op = BoxOp | GuidedOp | ATrousOp | ImportanceOp | AllocateOp | GuideStatsOp | EdgeShareOp | RestoreOp
+_OPS = {BoxOp: "box", GuidedOp: "guided", ATrousOp: "atrous", ImportanceOp: "importance", AllocateOp: "allocate",
+        GuideStatsOp: "guide_stats", EdgeShareOp: "edge_share", RestoreOp: "restore"}
 
 
 def eager(desc: Op) -> str | None:

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import functools
 import itertools
+import math
 
 import torch
 import torch.nn.functional as F
@@ -27,14 +28,17 @@ from torchgi.backends.base import (
     AllocateOp,
     ATrousOp,
     BoxOp,
+    EdgeShareOp,
     GuidedOp,
+    GuideStatsOp,
     ImportanceOp,
+    RestoreOp,
     colour_scale,
     eager,
     iterate_levels,
     scaled_guides,
 )
-from torchgi.core.dtypes import variance_rounding
+from torchgi.core.dtypes import compute_dtype, variance_rounding
 from torchgi.core.taps import Padded, kernel_5x5
 
 __all__ = [
@@ -639,3 +643,67 @@ def allocate(desc: AllocateOp) -> torch.Tensor:
         take = above | (tied & (tied.cumsum(0) <= k - int(above.sum())))
         counts[b] += take.to(torch.int64)
     return torch.where(eligible, counts + min_samples, torch.zeros_like(counts))
+
+
+def guide_stats(desc: GuideStatsOp) -> torch.Tensor:
+    """:class:`~torchgi.backends.base.GuideStatsOp` by reductions.
+
+    Example:
+        >>> n = torch.zeros(1, 3, 2, 2); d = torch.tensor([[[[1.0, 2.0], [3.0, 4.0]]]])
+        >>> guide_stats(GuideStatsOp(n, d, d > 2.5))[0, 3::5].tolist()   # depth min, depth max on hit
+        [1.0, 4.0]
+    """
+    n, d = desc.normal, desc.depth
+    B = n.shape[0]
+    planes = n if d is None else torch.cat([n, d], 1)
+    lo, hi = planes.amin(dim=(2, 3)).double(), planes.amax(dim=(2, 3)).double()
+    if d is None:
+        lo, hi = torch.cat([lo, lo.new_full((B, 1), math.inf)], 1), torch.cat([hi, hi.new_full((B, 1), -math.inf)], 1)
+        dmax = lo.new_full((B, 1), -math.inf)
+    else:
+        valid = d if desc.hit is None else torch.where(desc.hit, d, -torch.inf)
+        dmax = valid.amax(dim=(1, 2, 3)).double().view(B, 1)
+    bad_n = (~torch.isfinite(n)).flatten(1).sum(1, keepdim=True).double()
+    bad_d = torch.zeros_like(bad_n) if d is None else (~torch.isfinite(d)).flatten(1).sum(1, keepdim=True).double()
+    return torch.cat([lo, hi, dmax, bad_n, bad_d], 1).cpu()
+
+
+def edge_share(desc: EdgeShareOp) -> float:
+    """:class:`~torchgi.backends.base.EdgeShareOp` on the guide built by torch ops.
+
+    Example:
+        >>> from torchgi.backends.base import GuideSpec
+        >>> n = torch.zeros(1, 3, 2, 3); n[..., 2] = 1.0
+        >>> edge_share(EdgeShareOp(GuideSpec(n, None, (0,), (0.5,), (0.5,)), 0.1))   # 1 of 2 neighbours
+        0.5
+    """
+    guide = desc.spec.build()
+    edges = (guide[:, :, ::2, 1:] - guide[:, :, ::2, :-1]).square().sum(1) > desc.edge**2
+    return float(edges.float().mean())
+
+
+def restore(desc: RestoreOp) -> torch.Tensor:
+    """:class:`~torchgi.backends.base.RestoreOp` as the Denoiser's torch code: the steps of
+    :func:`torchgi.denoise._restore` in eager ops around the guided filter (whose own back end is
+    chosen as for :func:`torchgi.filters.guided`).
+
+    Example:
+        >>> from torchgi.backends.base import GuideSpec
+        >>> c = torch.rand(1, 3, 8, 8); a = torch.full_like(c, 0.5)
+        >>> spec = GuideSpec(torch.zeros_like(c), None, (0,), (0.5,), (0.5,))
+        >>> restore(RestoreOp(c, None, None, a, None, spec, torch.ones(1, 1, 1, 1), 1, 1e-4, 1, 4.0)).shape
+        torch.Size([1, 3, 8, 8])
+    """
+    from torchgi.core.check import check_finite
+    from torchgi.denoise import _restore, _surface
+    from torchgi.filters.guided import _filtered
+
+    for name, t in (("color", desc.color), ("emission", desc.emission), ("albedo", desc.albedo), ("direct", desc.kept)):
+        if t is not None:
+            check_finite(t, name)
+    guide = desc.spec.build()
+    B, n = guide.shape[:2]
+    eps = torch.full((B, n, 1, 1), float(desc.eps), dtype=compute_dtype(guide.dtype), device=guide.device)
+    return _restore(desc.color, desc.emission, desc.kept, desc.albedo, _surface(desc.hit, desc.albedo),
+                    lambda x: _filtered(x, guide, desc.radius, eps, desc.workspace, desc.subsample), desc.firefly,
+                    desc.level)
