@@ -40,8 +40,9 @@ def guided_oracle(p: torch.Tensor, I: torch.Tensor, r: int, eps, coefficients: b
 
 def fast_guided_oracle(p: torch.Tensor, I: torch.Tensor, r: int, eps, s: int) -> torch.Tensor:
     """He & Sun 2015 in float64 loops: s x s means (partial blocks at the far edges average what
-    exists), coefficients at radius round(r / s), bilinear upsampling with pixel centres aligned
-    (u = (i + 0.5) h / H - 0.5, clamped to the image), applied to the full-resolution guide."""
+    exists), coefficients at radius round(r / s), bilinear upsampling by the factor s with pixel
+    centres aligned (u = (i + 0.5) / s - 0.5, clamped to the image; the same grid whatever the
+    size, so tiles agree), applied to the full-resolution guide."""
     p, I = p.double(), I.double()
     _B, _C, H, W = p.shape
     h, w = -(-H // s), -(-W // s)
@@ -56,7 +57,7 @@ def fast_guided_oracle(p: torch.Tensor, I: torch.Tensor, r: int, eps, s: int) ->
     def weights(n_out, n_in):
         rows = []
         for i in range(n_out):
-            u = max((i + 0.5) * n_in / n_out - 0.5, 0.0)
+            u = max((i + 0.5) / s - 0.5, 0.0)
             i0 = min(math.floor(u), n_in - 1)
             i1 = min(i0 + 1, n_in - 1)
             row = torch.zeros(n_in, dtype=torch.float64)

@@ -76,28 +76,49 @@ def test_exported_denoiser_matches_torch(tmp_path):
         assert rel(ort(gb), ours) < 1e-4, size
 
 
-@pytest.mark.parametrize(("method", "name", "value"), [("guided", "color", float("nan")),
-                                                       ("guided", "depth", float("inf")),
-                                                       ("atrous", "normal", float("nan")),
-                                                       ("blend", "albedo", -float("inf"))])
-def test_exported_denoiser_contains_a_non_finite_pixel(tmp_path, method, name, value):
-    """A NaN/Inf pixel is a hole: finite output everywhere, the clean result outside its footprint
-    (the firefly window, the filter's support twice over and the hole's own window)."""
-    pytest.importorskip("embreex")
+def _hole_case(run, name: str, value: float, reach: int, W: int = 72, H: int = 64) -> float:
+    """Largest relative change of ``run(**inputs)`` more than ``reach`` px (Chebyshev) from one
+    pixel set to ``value`` in input ``name``; asserts the output is finite everywhere."""
     import torchgi
+
+    gb = torchgi.render(torchgi.scenes.cornell(W).with_resolution(W, H), spp=1, bounces=1)
+    inputs = {k: getattr(gb, k).clone() for k in ("color", "emission", "albedo", "normal", "depth", "position")}
+    clean = run(**inputs)
+    y, x = H // 2 - 2, W // 2 + 5
+    inputs[name][0, 0, y, x] = value
+    out = run(**inputs)
+    assert bool(torch.isfinite(out).all())
+    far = torch.ones(H, W, dtype=torch.bool)
+    far[max(0, y - reach) : y + reach + 1, max(0, x - reach) : x + reach + 1] = False
+    return float(((out - clean).abs() / (clean.abs() + 1e-2))[..., far].max())
+
+
+def test_exported_denoiser_contains_a_non_finite_pixel(tmp_path):
+    """In onnxruntime a NaN/Inf pixel is a hole: finite output everywhere, the clean result
+    outside its footprint (8 px of firefly window, the guided filter's radius 4 twice, the
+    hole's own 2 px and 2 of light-source opening)."""
+    pytest.importorskip("embreex")
     from torchgi.export import OrtDenoiser, export_denoiser
 
-    path = export_denoiser(method, tmp_path / "d.onnx", sigma_position=1e3)
-    ort = OrtDenoiser(path)
-    gb = torchgi.render(torchgi.scenes.cornell(72).with_resolution(72, 64), spp=1, bounces=1)
-    inputs = {k: getattr(gb, k).clone() for k in ("color", "emission", "albedo", "normal", "depth", "position")}
-    clean = ort(**inputs)
-    y, x = 30, 41
-    inputs[name][0, 0, y, x] = value
-    out = ort(**inputs)
-    assert bool(torch.isfinite(out).all())
-    far = torch.ones(64, 72, dtype=torch.bool)
-    reach = 28  # px: 8 (fireflies) + 2 x 8 (guided r = 4 twice; blend's widest candidate) + 2 (hole) + 2
-    far[max(0, y - reach) : y + reach + 1, max(0, x - reach) : x + reach + 1] = False
-    diff = ((out - clean).abs() / (clean.abs() + 1e-2))[..., far]
-    assert float(diff.max()) < 1e-3, float(diff.max())
+    ort = OrtDenoiser(export_denoiser("guided", tmp_path / "d.onnx"))
+    run = lambda **t: ort(**{k: v for k, v in t.items() if k != "position"})  # noqa: E731
+    for name, value in (("color", float("nan")), ("depth", float("inf")), ("albedo", -float("inf"))):
+        # measured 7.1e-5 at any reach from 12 px: the rounding of the image-wide sums (the
+        # centring means, float32 prefix sums), which the hole's filled value changes
+        assert _hole_case(run, name, value, reach=20) < 3e-4, name
+
+
+@pytest.mark.parametrize(("method", "name"), [("atrous", "normal"), ("blend", "emission")])
+def test_deployed_methods_contain_a_non_finite_pixel(method, name):
+    """The other exportable methods' graphs, run eagerly: the same hole."""
+    pytest.importorskip("embreex")
+    from torchgi.denoise import Denoiser
+
+    module = Denoiser(method).deploy(spp=1, sigma_position=1e3)
+    geometry = "position" if method == "atrous" else "depth"
+    run = lambda **t: module(t["color"], t["emission"], t["albedo"], t["normal"], t[geometry])  # noqa: E731
+    # reach: À-Trous 5 levels (2 + 4 + ... + 32 px, clipped by the image); the blend's widest
+    # chain (colour-guided radius 8 on a radius-2 output, features' 8 px context) and the firefly window
+    reach = 40 if method == "blend" else 64
+    # measured: 0 (À-Trous beyond 40 px), 1.0e-4 (the blend at any reach from 20 px: image-wide sums)
+    assert _hole_case(run, name, float("nan"), reach, W=128, H=112) < 3e-4

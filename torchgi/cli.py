@@ -121,7 +121,7 @@ def cmd_denoise(args: argparse.Namespace) -> int:
     gb = torchgi.GBuffer.from_exr(args.input, required=("color", "albedo", "normal"), sanitize=args.sanitize)
     params = {} if args.radius is None else {"radius": args.radius}
     t0 = time.perf_counter()
-    out = Denoiser(args.method, args.quality, **params)(gb)
+    out = Denoiser(args.method, args.quality, max_memory_mb=args.max_memory_mb, **params)(gb)
     seconds = time.perf_counter() - t0
     path = write_exr(args.out, {"color": out[0]}, overwrite=args.overwrite)
     print(f"denoised {args.input} ({gb.shape[2]}x{gb.shape[1]}) with {args.method} in {seconds * 1e3:.1f} ms; "
@@ -238,6 +238,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output EXR (layer 'color'; never overwritten unless --overwrite)")
     p.add_argument("--overwrite", action="store_true")
     p.add_argument("--sanitize", action="store_true", help="replace NaN/Inf in the input by 0 (with a warning)")
+    p.add_argument("--max-memory-mb", type=float, default=None,
+                   help="most memory (MB) denoising may add beyond the input, the output included: tiles "
+                        "(method guided; OIDN's maxMemoryMB)")
     p.set_defaults(func=cmd_denoise)
 
     p = sub.add_parser("export", help="export a Denoiser to ONNX (needs the onnx extra)")

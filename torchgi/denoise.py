@@ -31,7 +31,7 @@ import torch
 
 from torchgi import backends
 from torchgi.buffers import GBuffer
-from torchgi.core.check import check_finite, check_option, is_recording
+from torchgi.core.check import check_finite, check_option, finite_or_sanitized_all, is_recording
 from torchgi.core.errors import ShapeError
 from torchgi.core.registry import Registry
 from torchgi.settings import ATROUS, BILATERAL, GUIDED, PIPELINE
@@ -134,6 +134,17 @@ def _level(color: torch.Tensor, emission: torch.Tensor | None, kept: torch.Tenso
     return _median_level((base - e if e is not None else base) / _demodulator(a, on), on)
 
 
+def _centre(color: torch.Tensor, emission: torch.Tensor | None, kept: torch.Tensor | None, albedo: torch.Tensor,
+            surface: torch.Tensor, cap: torch.Tensor) -> torch.Tensor:
+    """``(B, 3)`` float64 on the CPU: per image and channel the mean of the demodulated light
+    (without emission and kept light, at most ``cap (B,1,1,1)``) on every 4th row and column:
+    a constant near the clamped light's mean, to centre it by before the filter's sums."""
+    c, e, k, a, on = (_every4(t) for t in (color, emission, kept, albedo, surface))
+    base = c - k if k is not None else c
+    x = (base - e if e is not None else base) / _demodulator(a, on)
+    return torch.minimum(x, cap).double().mean(dim=(2, 3)).cpu()
+
+
 def _restore(
     color: torch.Tensor, emission: torch.Tensor | None, kept: torch.Tensor | None, albedo: torch.Tensor,
     surface: torch.Tensor, filter_fn: Callable[[torch.Tensor], torch.Tensor], firefly: float,
@@ -175,6 +186,11 @@ class Denoiser(torch.nn.Module):
         filter_direct: with a direct/indirect split, filter direct light too (True: it is noisy,
             as with area lights and skies at low spp) or keep it as sampled (False: the papers'
             setting, noise-free direct light).
+        sanitize: NaN/Inf in an input raises :class:`~torchgi.core.NonFiniteError` naming it
+            (False) or is replaced by 0 with a warning (True).
+        max_memory_mb: None, or the most memory (MB) a call may add beyond its inputs, the
+            output included (OIDN's ``maxMemoryMB``): method "guided" then runs in tiles whose
+            overlap covers its footprint, so the result is that of one pass (to rounding).
         **filter_params: override the automatic choices: ``radius``, ``eps``, ``subsample`` (guided);
             ``iterations``, ``sigma_normal``, ``sigma_position``, ``sigma_color`` (À-Trous);
             ``radius``, ``sigma_space``, ``sigma_color`` (bilateral).
@@ -199,6 +215,8 @@ class Denoiser(torch.nn.Module):
         hdr: bool = True,
         input_scale: float | None = None,
         filter_direct: bool = True,
+        sanitize: bool = False,
+        max_memory_mb: float | None = None,
         **filter_params: Any,
     ) -> None:
         super().__init__()
@@ -215,8 +233,15 @@ class Denoiser(torch.nn.Module):
             check_option(key, f"filter parameter for method={method!r}", known)
         if input_scale is not None and not input_scale > 0:
             raise ValueError(f"input_scale: expected > 0 or None, got {input_scale!r}")
+        if max_memory_mb is not None and (isinstance(max_memory_mb, bool) or not max_memory_mb > 0):
+            raise ValueError(f"max_memory_mb: expected > 0 or None, got {max_memory_mb!r}")
+        if max_memory_mb is not None and method != "guided":
+            raise ValueError(f"max_memory_mb: tiles are implemented for method='guided' only, not {method!r}")
+        eps = filter_params.get("eps", GUIDED.eps)
+        if method == "guided" and (isinstance(eps, bool) or not isinstance(eps, (int, float)) or not 0 <= eps < math.inf):
+            raise ValueError(f"eps: expected a finite float >= 0, got {eps!r}")
         self.method, self.quality, self.hdr, self.input_scale = method, quality, hdr, input_scale
-        self.filter_direct = filter_direct
+        self.filter_direct, self.sanitize, self.max_memory_mb = filter_direct, sanitize, max_memory_mb
         self.filter_params = dict(filter_params)
         self._workspace: dict = {}  # the guided filter's CPU buffers, kept between calls
         self._capture: dict | None = None  # set by weights()
@@ -264,8 +289,9 @@ class Denoiser(torch.nn.Module):
 
     def extra_repr(self) -> str:
         params = "".join(f", {k}={v!r}" for k, v in self.filter_params.items())
+        memory = "" if self.max_memory_mb is None else f", max_memory_mb={self.max_memory_mb}"
         return (f"method={self.method!r}, quality={self.quality!r}, hdr={self.hdr}, input_scale={self.input_scale}, "
-                f"filter_direct={self.filter_direct}{params}")
+                f"filter_direct={self.filter_direct}, sanitize={self.sanitize}{memory}{params}")
 
     # ------------------------------------------------------------------------------ call
     def forward(self, gb: GBuffer | None = None, **tensors: torch.Tensor) -> torch.Tensor:
@@ -287,6 +313,10 @@ class Denoiser(torch.nn.Module):
             return gb.color
         if gb.albedo is None or gb.normal is None:
             raise ShapeError("albedo and normal: required by every method but 'none'")
+        if self.sanitize:
+            names = [n for n in GBuffer.fields() if n not in ("spp", "hit") and getattr(gb, n) is not None]
+            gb = gb.replace(**dict(zip(names, finite_or_sanitized_all({n: getattr(gb, n) for n in names}, True),
+                                       strict=True)))
         split = gb.indirect is not None and gb.direct is not None and not self.filter_direct
         # the fused guided pipeline checks what it reads itself (normal, depth: its guide statistics)
         read = ("color", "emission", "albedo", "normal", "depth") + (("direct",) if split else ())
@@ -309,12 +339,25 @@ class Denoiser(torch.nn.Module):
         in the compiled back ends)."""
         spec = self._guide_spec(gb)
         H, W = gb.color.shape[-2:]
-        op = backends.RestoreOp(gb.color, gb.emission, kept, gb.albedo, gb.hit, spec,
-                                _level(gb.color, gb.emission, kept, gb.albedo, surface),
-                                self._radius(self._spp(gb, surface), GUIDED.radius),
-                                self.filter_params.get("eps", GUIDED.eps), self._subsample(spec, H, W), GUIDED.firefly,
-                                self._workspace)
-        return backends.run(op)
+        level = _level(gb.color, gb.emission, kept, gb.albedo, surface)
+        radius, s = self._radius(self._spp(gb, surface), GUIDED.radius), self._subsample(spec, H, W)
+
+        def op(rows: slice = slice(None), cols: slice = slice(None), workspace: dict | None = None) -> torch.Tensor:
+            def cut(t: torch.Tensor | None) -> torch.Tensor | None:
+                return None if t is None else t[..., rows, cols]
+
+            tile = backends.GuideSpec(cut(spec.normal), cut(spec.depth), spec.channels, spec.scale, spec.offset)
+            return backends.run(backends.RestoreOp(cut(gb.color), cut(gb.emission), cut(kept), cut(gb.albedo),
+                                                   cut(gb.hit), tile, level, radius,
+                                                   self.filter_params.get("eps", GUIDED.eps), s, GUIDED.firefly,
+                                                   workspace, centres[0], centres[1]))
+
+        # light and guide centred by constants of each image, so that tiles compute the untiled sums
+        centres = (_centre(gb.color, gb.emission, kept, gb.albedo, surface, GUIDED.firefly * level), self._guide_means)
+
+        if self.max_memory_mb is None:
+            return op(workspace=self._workspace)
+        return _tiled(op, gb.color, self.max_memory_mb, _footprint(radius, s), s, kept is not None)
 
     def _guide_spec(self, gb: GBuffer) -> backends.GuideSpec:
         """:func:`~torchgi.filters.guide_from_gbuffer`'s guide (normal to [0, 1], depth over the
@@ -331,8 +374,12 @@ class Denoiser(torch.nn.Module):
         lo = st[:, :4].amin(0).to(gb.normal.dtype) * scale + offset  # the guide's extremes, rounded as its values
         hi = st[:, 4:8].amax(0).to(gb.normal.dtype) * scale + offset
         varying = [c for c in range(3 if gb.depth is None else 4) if bool(hi[c] > lo[c])] or [0]
-        return backends.GuideSpec(gb.normal, gb.depth, tuple(varying), tuple(float(scale[c]) for c in varying),
+        spec = backends.GuideSpec(gb.normal, gb.depth, tuple(varying), tuple(float(scale[c]) for c in varying),
                                   tuple(float(offset[c]) for c in varying))
+        H, W = gb.normal.shape[-2:]
+        self._guide_means = st[:, 11:][:, list(varying)] / max(H * W, 1) * scale.double()[varying] + \
+            offset.double()[varying]  # (B, n): each image's guide means, for tiles (RestoreOp.centre_guide)
+        return spec
 
     def supersample(self, gb: GBuffer, samples: EyeSamples) -> torch.Tensor:
         """Supersampling with guide rays (Bauszat et al. 2011 §3.2, :mod:`torchgi.supersample`).
@@ -500,6 +547,42 @@ def _fill_holes(tensors: list[torch.Tensor]) -> list[torch.Tensor]:
         clean = torch.where(ok, t, 0.0)
         filled = box(clean, PIPELINE.hole_radius) / count.clamp_min(1e-6)
         out.append(torch.where(ok, t, torch.where(count > 1e-6, filled, 0.0)))
+    return out
+
+
+def _footprint(radius: int, s: int) -> int:
+    """How far (px) the guided pipeline's output reaches into its input: the firefly window, the
+    light-source opening, the guided filter's two box passes at radius r (r / s at 1 / s
+    resolution, plus the s x s blocks and the bilinear taps), rounded up to a multiple of s."""
+    r_low = radius if s == 1 else round(radius / s)
+    reach = PIPELINE.firefly_radius + 2 * (PIPELINE.light_square // 2) + s * (2 * r_low + 2) + s
+    return -(-reach // s) * s
+
+
+def _tiled(op: Callable[..., torch.Tensor], color: torch.Tensor, max_memory_mb: float, halo: int, s: int,
+           kept: bool) -> torch.Tensor:
+    """``op(rows, cols)`` over square tiles (side a multiple of ``s``, so that the s x s blocks
+    are the untiled ones) with ``halo`` px of overlap, the memory a tile needs within
+    ``max_memory_mb`` beyond the inputs with the ``(B, 3, H, W)`` output; stitched. A tile
+    holds copies of its inputs and the pipeline's planes: about ``4 (B (19 + 3 kept) + 22)``
+    bytes per pixel (the C back end's; docs/pipeline.md)."""
+    B, _, H, W = color.shape
+    out = torch.empty_like(color)
+    per_pixel = 4 * (B * (19 + 3 * kept) + 22)
+    budget = 0.9 * max_memory_mb * 2**20 - out.numel() * out.element_size()  # 10 % for what the estimate misses
+    side = (math.isqrt(int(max(budget, 0) / per_pixel)) - 2 * halo) // s * s
+    if side < max(s, 16):
+        need = (out.numel() * out.element_size() + per_pixel * (16 + 2 * halo) ** 2) / 0.9 / 2**20
+        raise ValueError(f"max_memory_mb: {max_memory_mb} MB cannot hold the output and a tile of this "
+                         f"{H}x{W} image; at least {math.ceil(need)} MB")
+    for y0 in range(0, H, side):
+        for x0 in range(0, W, side):
+            rows = slice(max(0, y0 - halo), min(H, y0 + side + halo))
+            cols = slice(max(0, x0 - halo), min(W, x0 + side + halo))
+            tile = op(rows, cols)
+            out[..., y0 : y0 + side, x0 : x0 + side] = tile[..., y0 - rows.start : y0 - rows.start + side,
+                                                            x0 - cols.start : x0 - cols.start + side]
+            del tile
     return out
 
 

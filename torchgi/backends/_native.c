@@ -115,7 +115,7 @@ INLINE vf vexp_neg(vf d) {
     return (vf)((vi)(y * s) & ~under);
 }
 
-int torchgi_native_version(void) { return 5; }
+int torchgi_native_version(void) { return 7; }
 
 float torchgi_exp_neg(float d) { return exp_neg(d); }
 
@@ -710,19 +710,20 @@ static void row_range(const float *a, int W, float *lo, float *hi) {
 
 /* part: min (4), max (4) of the normal's three channels and depth, the largest depth on hit
  * pixels (every pixel when hit is NULL; -inf: none), the non-finite values of normal and of
- * depth: 11 doubles. */
+ * depth, the sums of the four channels: 15 doubles. */
 static void guide_stats_rows(const float *normal, const float *depth, const uint8_t *hit, int H, int W, double *part,
                              int y0, int y1) {
     const size_t HW = (size_t)H * W;
     const int C = depth ? 4 : 3;
     float lo[4] = {INFINITY, INFINITY, INFINITY, INFINITY}, hi[4] = {-INFINITY, -INFINITY, -INFINITY, -INFINITY};
     float dmax = -INFINITY, dlo = INFINITY;
-    double bad_n = 0, bad_d = 0;
+    double bad_n = 0, bad_d = 0, sum[4] = {0, 0, 0, 0};
     for (int y = y0; y < y1; ++y) {
         const size_t row = (size_t)y * W;
         for (int c = 0; c < C; ++c) {
             const float *a = (c < 3 ? normal + c * HW : depth) + row;
             row_range(a, W, &lo[c], &hi[c]);
+            sum[c] += row_sum(a, W);
             if (c < 3) bad_n += row_bad(a, W); else bad_d += row_bad(a, W);
         }
         if (depth && hit) {
@@ -734,6 +735,7 @@ static void guide_stats_rows(const float *normal, const float *depth, const uint
     if (depth && !hit) row_range(&hi[3], 1, &dlo, &dmax);
     for (int c = 0; c < 4; ++c) part[c] = lo[c], part[4 + c] = hi[c];
     part[8] = dmax, part[9] = bad_n, part[10] = bad_d;
+    for (int c = 0; c < 4; ++c) part[11 + c] = sum[c];
 }
 
 /* part: the edges (horizontal neighbours on even rows differing by more than `edge` in the
@@ -991,11 +993,11 @@ static void finish_row(const light_t *L, const uint8_t *mask, int c, int y, cons
 }
 
 /* The guided filter's output rows [y0, y1) from the Q = (n + 1) Cs box-filtered coefficient
- * planes at lower resolution (h x w), upsampled bilinearly (torch's interpolate,
- * align_corners=False: rows first, then along the row) and applied to the full-resolution guide:
+ * planes at s x s lower resolution (h x w), upsampled bilinearly by the factor s (torch's
+ * interpolate, align_corners=False: rows first, then along the row) and applied to the full-resolution guide:
  * out_c = b_c + Σ_i a_ic (I_i - meanI_i) + offset_c; then remodulated by finish_row when L is
  * not NULL. scratch: 2 W ints, W + w floats, 3 W floats. */
-static void upsample_apply_rows(const float *coef, int n, int Cs, int h, int w, const guide_t *G, const float *meanI,
+static void upsample_apply_rows(const float *coef, int n, int Cs, int s, int h, int w, const guide_t *G, const float *meanI,
                                 const float *offset, int H, int W, float *out, const light_t *L, const uint8_t *mask,
                                 void *scratch, int y0, int y1) {
     const size_t HW = (size_t)H * W, hw = (size_t)h * w;
@@ -1003,7 +1005,7 @@ static void upsample_apply_rows(const float *coef, int n, int Cs, int h, int w, 
     float *lx = (float *)(x1 + W), *t = lx + W, *ad = t + w;
     float cI[4];
     guide_centres(G, meanI, cI);
-    const float sx = (float)w / W, sy = (float)h / H;
+    const float sx = 1.0f / (float)s, sy = sx; /* torch's scale_factor = s: the grid does not depend on H, W */
     for (int x = 0; x < W; ++x) {
         float src = sx * (x + 0.5f) - 0.5f;
         src = src < 0 ? 0 : src;
@@ -1280,14 +1282,15 @@ void torchgi_restore_coefficients(int n, const float *g0, const float *g1, const
 
 void torchgi_guided_finish(const float *coef, int n, int Cs, const float *g0, const float *g1, const float *g2,
                            const float *g3, const float *scale, const float *goffset, const float *meanI,
-                           const float *offset, int H, int W, int r, int h, int w, float *out, const float *color,
+                           const float *offset, int H, int W, int r, int s, float *out, const float *color,
                            const float *emission, const float *kept, const float *albedo, const uint8_t *hit,
                            float floor, const uint8_t *mask, int nt, void *scratch, long long stride) {
     const light_t L = make_light(color, emission, kept, albedo, hit, floor, H, W);
     const guide_t G = make_guide(n, g0, g1, g2, g3, scale, goffset);
-    if (h == H && w == W) {
+    if (s == 1) {
         OVER_BANDS(H, apply_rows(coef, n, Cs, &G, meanI, offset, H, W, r, out, &L, mask, y0, y1, scr));
     } else {
-        OVER_BANDS(H, upsample_apply_rows(coef, n, Cs, h, w, &G, meanI, offset, H, W, out, &L, mask, scr, y0, y1));
+        const int h = (H + s - 1) / s, w = (W + s - 1) / s;
+        OVER_BANDS(H, upsample_apply_rows(coef, n, Cs, s, h, w, &G, meanI, offset, H, W, out, &L, mask, scr, y0, y1));
     }
 }

@@ -147,7 +147,7 @@ class GuideStatsOp:
     ``hit (B,1,H,W)`` bool or None: a float64 CPU ``(B, 11)`` tensor of the channel minima (normal
     x, y, z, depth; +inf without depth), maxima (-inf without depth), the largest depth on hit
     pixels (every pixel without ``hit``; -inf where none), and the counts of non-finite values
-    in normal and in depth."""
+    in normal and in depth, then (B, 15) the channel sums (normal x, y, z, depth; 0 without)."""
 
     normal: torch.Tensor
     depth: torch.Tensor | None
@@ -204,7 +204,10 @@ class RestoreOp:
     bool or None (surfaces: non-zero albedo), the guide ``spec``, the per-image ``level
     (B,1,1,1)`` thresholds are multiples of, the guided filter's ``radius``, ``eps`` (float),
     ``subsample`` and the firefly factor; the other constants are ``settings.PIPELINE``'s. All
-    tensors of one float dtype and device. Returns the ``(B,3,H,W)`` radiance."""
+    tensors of one float dtype and device. ``centre_src (B,3)`` and ``centre_guide (B,n)``
+    (float64 CPU) are the constants the C kernels centre light and guide by before any sum (the
+    filter does not depend on them; tiles of one image given the same ones compute the same
+    sums), None: this call's means. Returns the ``(B,3,H,W)`` radiance."""
 
     color: torch.Tensor
     emission: torch.Tensor | None
@@ -218,6 +221,8 @@ class RestoreOp:
     subsample: int
     firefly: float
     workspace: dict | None = None
+    centre_src: torch.Tensor | None = None
+    centre_guide: torch.Tensor | None = None
 
     def tensors(self) -> tuple[torch.Tensor | None, ...]:
         return (self.color, self.emission, self.kept, self.albedo, self.spec.normal, self.spec.depth, self.level)

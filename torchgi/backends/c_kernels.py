@@ -94,8 +94,8 @@ _SIGNATURES = {
     "torchgi_clamp": ([_P, _P, _F, _I, _I, _I, _P, *_BANDS], None),
     "torchgi_restore_coefficients": ([_I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _I, _I, _I, _I, _P, _F, _P, *_BANDS],
                                      None),
-    "torchgi_guided_finish": ([_P, _I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _I, _I, _I, _I, _I, _P, _P, _P, _P, _P, _P,
-                               _F, _P, *_BANDS], None),
+    "torchgi_guided_finish": ([_P, _I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _I, _I, _I, _I, _P, _P, _P, _P, _P, _P, _F,
+                               _P, *_BANDS], None),
 }
 # the library's interface version, written once: in the C source
 _VERSION = int(re.search(r"torchgi_native_version\(void\) \{ return (\d+); \}", _SOURCE.read_text()).group(1))
@@ -531,9 +531,9 @@ def guide_stats(desc: GuideStatsOp) -> torch.Tensor:
     rows = []
     for b in range(B):
         threads = _threads(H, H * W)
-        buf = torch.zeros(threads, 11, dtype=torch.float64)
+        buf = torch.zeros(threads, 15, dtype=torch.float64)
         lib.torchgi_guide_stats(n[b].data_ptr(), _ptr(None if d is None else d[b]),
-                                _ptr(None if hit is None else hit[b]), H, W, threads, buf.data_ptr(), 88)
+                                _ptr(None if hit is None else hit[b]), H, W, threads, buf.data_ptr(), 120)
         rows.append(torch.cat([buf[:, :4].amin(0), buf[:, 4:9].amax(0), buf[:, 9:].sum(0)]))
     return torch.stack(rows)
 
@@ -646,6 +646,9 @@ def restore(desc: RestoreOp) -> torch.Tensor:
         g = _plane_ptrs(planes, b)
         mean_g = (_parts(lib.torchgi_guide_pool, h, H * W, n, *g, scale.data_ptr(), offset.data_ptr(), H, W, s,
                          _ptr(low_g), doubles=n) / (H * W)).float()
+        if desc.centre_src is not None:  # given (tiles of one image share them), not this call's means
+            mean_p = desc.centre_src[b].reshape(-1).to(torch.float32).expand(3).contiguous()
+            mean_g = desc.centre_guide[b].to(torch.float32).contiguous()
         # the coefficients from the guide's planes, or at half resolution from its block means
         g_low, sc_low, of_low = (g, scale, offset) if s == 1 else \
             ([p.data_ptr() for p in low_g] + [None] * (4 - n), ones, zeros)
@@ -656,6 +659,6 @@ def restore(desc: RestoreOp) -> torch.Tensor:
             _run(lib.torchgi_guided_apply, h, w, coef.data_ptr(), n, 3, None, None, None, h, w, r_low,
                  coef_box.data_ptr(), _box_scratch(Q, w))
         _run(lib.torchgi_guided_finish, H, W, (coef if s == 1 else coef_box).data_ptr(), n, 3, *g, scale.data_ptr(),
-             offset.data_ptr(), mean_g.data_ptr(), mean_p.data_ptr(), H, W, r_low, h, w, out[b].data_ptr(), *light_in,
+             offset.data_ptr(), mean_g.data_ptr(), mean_p.data_ptr(), H, W, r_low, s, out[b].data_ptr(), *light_in,
              lights, _box_scratch(Q, W) + 3 * W if s == 1 else 7 * W + w)
     return out

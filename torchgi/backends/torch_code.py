@@ -665,7 +665,9 @@ def guide_stats(desc: GuideStatsOp) -> torch.Tensor:
         dmax = valid.amax(dim=(1, 2, 3)).double().view(B, 1)
     bad_n = (~torch.isfinite(n)).flatten(1).sum(1, keepdim=True).double()
     bad_d = torch.zeros_like(bad_n) if d is None else (~torch.isfinite(d)).flatten(1).sum(1, keepdim=True).double()
-    return torch.cat([lo, hi, dmax, bad_n, bad_d], 1).cpu()
+    sums = planes.double().sum(dim=(2, 3))
+    sums = sums if d is not None else torch.cat([sums, sums.new_zeros(B, 1)], 1)
+    return torch.cat([lo, hi, dmax, bad_n, bad_d, sums], 1).cpu()
 
 
 def edge_share(desc: EdgeShareOp) -> float:

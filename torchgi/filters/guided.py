@@ -110,7 +110,9 @@ def _filtered(
     zero_g, zero_p = torch.zeros_like(mean_g), torch.zeros_like(mean_p)  # low_g, low_p are centred
     coeffs = backends.run(backends.GuidedOp(low_g, low_p, zero_g, zero_p, round(radius / subsample), e,
                                             coefficients_only=True, workspace=_holder))
-    coeffs = F.interpolate(coeffs.flatten(1, 2), size=src.shape[-2:], mode="bilinear", align_corners=False)
+    # upsampled by the factor s (the grid of pixel centres does not depend on the size: tiles agree)
+    coeffs = F.interpolate(coeffs.flatten(1, 2), scale_factor=subsample, mode="bilinear",
+                           align_corners=False)[..., : src.shape[-2], : src.shape[-1]]
     return (apply_coefficients(coeffs.unflatten(1, (guide.shape[1] + 1, src.shape[1])), gc)
             + mean_p).to(src.dtype)
 
@@ -138,7 +140,8 @@ def guided(
             finite.
         subsample: ``s >= 1``; above 1, the fast guided filter (He & Sun 2015): the
             coefficients are solved on ``s x s`` means of ``src`` and ``guide`` with radius
-            ``round(r / s)``, upsampled bilinearly and applied to the full-resolution guide
+            ``round(r / s)``, upsampled bilinearly by the factor ``s`` and applied to the
+            full-resolution guide
             (about ``s²`` times less work; edges stay those of the full guide).
         sanitize: replace NaN/Inf in the inputs by 0 (with a warning) instead of raising.
 
