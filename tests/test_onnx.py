@@ -101,7 +101,7 @@ def test_exported_denoiser_contains_a_non_finite_pixel(tmp_path):
     from torchgi.export import OrtDenoiser, export_denoiser
 
     ort = OrtDenoiser(export_denoiser("guided", tmp_path / "d.onnx"))
-    run = lambda **t: ort(**{k: v for k, v in t.items() if k != "position"})  # noqa: E731
+    run = lambda **t: ort(**{k: v for k, v in t.items() if k != "position"})
     for name, value in (("color", float("nan")), ("depth", float("inf")), ("albedo", -float("inf"))):
         # measured 7.1e-5 at any reach from 12 px: the rounding of the image-wide sums (the
         # centring means, float32 prefix sums), which the hole's filled value changes
@@ -116,7 +116,7 @@ def test_deployed_methods_contain_a_non_finite_pixel(method, name):
 
     module = Denoiser(method).deploy(spp=1, sigma_position=1e3)
     geometry = "position" if method == "atrous" else "depth"
-    run = lambda **t: module(t["color"], t["emission"], t["albedo"], t["normal"], t[geometry])  # noqa: E731
+    run = lambda **t: module(t["color"], t["emission"], t["albedo"], t["normal"], t[geometry])
     # reach: À-Trous 5 levels (2 + 4 + ... + 32 px, clipped by the image); the blend's widest
     # chain (colour-guided radius 8 on a radius-2 output, features' 8 px context) and the firefly window
     reach = 40 if method == "blend" else 64
