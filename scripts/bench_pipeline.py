@@ -28,10 +28,10 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from benchmark_utils import SIZES, markdown_table, metadata, write_results  # noqa: E402
+from benchmark_utils import SIZES, markdown_table, metadata, write_results
 
-import torchgi  # noqa: E402
-from torchgi.denoise import Denoiser  # noqa: E402
+import torchgi
+from torchgi.denoise import Denoiser
 
 INPUTS = ("color", "albedo", "normal", "depth", "emission")
 TILED_MB = 256
