@@ -10,7 +10,8 @@
 # check: the CUDA tests of the Triton kernels and of the importance map / allocation against the
 #   float64 oracles (the interpreter and the offline compile checks already ran on the CPU:
 #   skipped here), where the time of a 1080p call goes (host, Python, kernels), and
-#   bench_device (kernels vs torch code, GPU busy time, kernels and host syncs per call).
+#   bench_device (kernels vs torch code, GPU busy time, kernels and host syncs per call), the
+#   pipeline tests on CUDA and bench_pipeline at 1080p and 4K (the Denoiser end to end vs OIDN).
 set -u
 OUT=${OUT:-out/device}
 mkdir -p "$OUT"
@@ -30,4 +31,8 @@ if [ "$part" != tune ]; then
         -k "not interpreter and not spills and (gpu or importance_matches or hamilton)" 2>&1 | tail -25 | tee "$OUT/test_gpu.txt"
     timeout 30 python scripts/profile_gpu_call.py > "$OUT/profile.txt" 2>&1; grep "^==" "$OUT/profile.txt"
     timeout 90 python scripts/bench_device.py --device cuda --no-fused --min-time 0.3 --out "$OUT" 2>&1 | tail -22
+    # issue 18's GPU line: the whole Denoiser at 1080p against OIDN (pyoidn) on the same CUDA tensors
+    timeout 120 python -m pytest -q tests/test_pipeline.py tests/test_denoise.py --device cuda 2>&1 | tail -5
+    timeout 150 python scripts/bench_pipeline.py --sizes 1080p 4K --no-memory --rounds 5 --out "$OUT/pipeline" \
+        2>&1 | grep "cuda\|^1080p\|^4K"
 fi

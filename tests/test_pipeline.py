@@ -25,7 +25,7 @@ def render():
 def _compiled(device: torch.device) -> str:
     name = "triton" if device.type == "cuda" else "c"
     why = backends.status()[name]
-    if not why.startswith("compiled kernels in use"):
+    if not why.startswith(("compiled kernels in use", "Triton ")) or (name == "triton" and "CUDA" not in why):
         pytest.skip(f"{name}: {why}")
     return name
 
@@ -117,7 +117,8 @@ def test_guide_statistics_and_edge_share_match_the_torch_code(render):
             st = backends.run(backends.GuideStatsOp(n, d, hit))
         with backends.use("torch"):
             ref = backends.run(backends.GuideStatsOp(n, d, hit))
-        assert torch.equal(st, ref)
+        assert torch.equal(st[:, :11], ref[:, :11])  # extremes and counts exactly
+        assert torch.allclose(st[:, 11:], ref[:, 11:], rtol=1e-5, atol=1e-3)  # sums (float lanes, then double)
     spec = backends.GuideSpec(n, d, (0, 1, 2, 3), (0.5, 0.5, 0.5, 1 / float(d.max())), (0.5, 0.5, 0.5, 0.0))
     with backends.use("c"):
         share = backends.run(backends.EdgeShareOp(spec, 0.1))
@@ -154,3 +155,17 @@ def test_memory_bounds_and_sanitize_are_checked(render):
     with pytest.warns(UserWarning, match="color: replaced 1 non-finite"):
         out = Denoiser("guided", sanitize=True)(bad)
     assert bool(torch.isfinite(out).all())
+
+
+@pytest.mark.parametrize("subsample", [1, 2])
+def test_the_compiled_pipeline_of_each_device(render, device, subsample):
+    """C on the CPU, Triton on CUDA (``--device cuda``), against the float64 torch code."""
+    name = _compiled(device)
+    inputs = {k: getattr(render, k) for k in ("color", "albedo", "normal", "depth", "emission")}
+    d = Denoiser("guided", subsample=subsample)
+    with backends.use(name):
+        out = d(**{k: v.to(device) for k, v in inputs.items()}).cpu()
+    assert last_backend("restore") == name
+    with backends.use("torch"):
+        ref = d(**{k: v.double() for k, v in inputs.items()})
+    assert float(((out.double() - ref).abs() / (ref.abs() + 1e-3)).max()) < (5e-4 if subsample == 1 else 5e-3)
