@@ -238,9 +238,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output EXR (layer 'color'; never overwritten unless --overwrite)")
     p.add_argument("--overwrite", action="store_true")
     p.add_argument("--sanitize", action="store_true", help="replace NaN/Inf in the input by 0 (with a warning)")
-    p.add_argument("--max-memory-mb", type=float, default=None,
-                   help="most memory (MB) denoising may add beyond the input, the output included: tiles "
-                        "(method guided; OIDN's maxMemoryMB)")
+    p.add_argument("--max-memory-mb", type=float, help="most MB denoising adds beyond the input (tiles; guided)")
     p.set_defaults(func=cmd_denoise)
 
     p = sub.add_parser("export", help="export a Denoiser to ONNX (needs the onnx extra)")

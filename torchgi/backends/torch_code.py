@@ -650,7 +650,7 @@ def guide_stats(desc: GuideStatsOp) -> torch.Tensor:
 
     Example:
         >>> n = torch.zeros(1, 3, 2, 2); d = torch.tensor([[[[1.0, 2.0], [3.0, 4.0]]]])
-        >>> guide_stats(GuideStatsOp(n, d, d > 2.5))[0, 3::5].tolist()   # depth min, depth max on hit
+        >>> guide_stats(GuideStatsOp(n, d, d > 2.5))[0, [3, 8]].tolist()   # depth min, depth max on hit
         [1.0, 4.0]
     """
     n, d = desc.normal, desc.depth
