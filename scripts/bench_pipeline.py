@@ -84,13 +84,17 @@ def methods(inputs: dict[str, torch.Tensor], device: str) -> dict:
 
 
 def timed(fns: dict, rounds: int, device: str) -> dict[str, float]:
-    """Median ms of each callable over ``rounds`` alternating rounds (after one warm-up call)."""
+    """Median ms of each callable over ``rounds`` alternating rounds (after one warm-up call);
+    each round starts one method later, so that every method follows every other equally often
+    (OIDN's worker threads keep spinning for a while after its call)."""
     sync = torch.cuda.synchronize if device == "cuda" else (lambda: None)
     times: dict[str, list[float]] = {k: [] for k in fns}
     for fn in fns.values():
         fn()
-    for _ in range(rounds):
-        for name, fn in fns.items():
+    names = list(fns)
+    for i in range(rounds):
+        for name in names[i % len(names):] + names[: i % len(names)]:
+            fn = fns[name]
             sync()
             t = time.perf_counter()
             fn()
