@@ -227,6 +227,12 @@ class RestoreOp:
     def tensors(self) -> tuple[torch.Tensor | None, ...]:
         return (self.color, self.emission, self.kept, self.albedo, self.spec.normal, self.spec.depth, self.level)
 
+    def light_inputs(self) -> list[tuple[str, torch.Tensor]]:
+        """The light inputs present, by the names a NaN/Inf error gives them (kept light is the
+        user's ``direct``), in the order they are checked."""
+        named = (("direct", self.kept), ("color", self.color), ("emission", self.emission), ("albedo", self.albedo))
+        return [(name, t) for name, t in named if t is not None]
+
 
 Op = BoxOp | GuidedOp | ATrousOp | ImportanceOp | AllocateOp | GuideStatsOp | EdgeShareOp | RestoreOp
 _OPS = {BoxOp: "box", GuidedOp: "guided", ATrousOp: "atrous", ImportanceOp: "importance", AllocateOp: "allocate",

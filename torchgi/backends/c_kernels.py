@@ -636,9 +636,8 @@ def restore(desc: RestoreOp) -> torch.Tensor:
         lights = mask.data_ptr() if seen > 0 else None
         bad = _parts(lib.torchgi_prepare, H, H * W, *light_in, H, W, lights, level, k * level, x.data_ptr(),
                      peak.data_ptr(), doubles=4, extra_bytes=21 * W)
-        for name, t, count in zip(("color", "emission", "albedo", "direct"), (color, emission, albedo, kept),
-                                  bad.tolist(), strict=True):
-            if count:
+        if bool(bad.any()):  # counted in the walk: the named error (with its counts) from the torch check
+            for name, t in desc.light_inputs():
                 check_finite(t, name)
         mean = _box(peak, PIPELINE.firefly_radius)
         mean_p = (_parts(lib.torchgi_clamp, h, H * W, x.data_ptr(), mean.data_ptr(), k, H, W, s, _ptr(low_x),

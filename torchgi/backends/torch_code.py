@@ -700,9 +700,8 @@ def restore(desc: RestoreOp) -> torch.Tensor:
     from torchgi.denoise import _restore, _surface
     from torchgi.filters.guided import _filtered
 
-    for name, t in (("color", desc.color), ("emission", desc.emission), ("albedo", desc.albedo), ("direct", desc.kept)):
-        if t is not None:
-            check_finite(t, name)
+    for name, t in desc.light_inputs():
+        check_finite(t, name)
     guide = desc.spec.build()
     B, n = guide.shape[:2]
     eps = torch.full((B, n, 1, 1), float(desc.eps), dtype=compute_dtype(guide.dtype), device=guide.device)

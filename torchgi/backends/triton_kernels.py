@@ -621,10 +621,10 @@ if triton is not None:
         return v
 
     @triton.jit
-    def _prepare(c_ptr, e_ptr, k_ptr, a_ptr, h_ptr, l_ptr, lvl_ptr, x_ptr, pk_ptr, k_fire, floor, HW, n_blk,
-                 HAS_E: tl.constexpr, HAS_K: tl.constexpr, HAS_HIT: tl.constexpr, HAS_L: tl.constexpr,
-                 BLOCK: tl.constexpr):
-        # the demodulated light x (3 planes) and its channel maximum capped at k level
+    def _pixels(a_ptr, h_ptr, l_ptr, HW, n_blk, floor, HAS_HIT: tl.constexpr, HAS_L: tl.constexpr,
+                BLOCK: tl.constexpr):
+        # this program's image b, pixels i (mask m, offsets in 3- and 1-plane images), demodulator
+        # and light-source mask
         blk, b = _split(tl.program_id(0), n_blk)
         b = b.to(tl.int64)
         i = blk * BLOCK + tl.arange(0, BLOCK)
@@ -634,6 +634,14 @@ if triton is not None:
         light = i < 0
         if HAS_L:
             light = tl.load(l_ptr + o1, mask=m, other=0) != 0
+        return b, i, m, o3, o1, d0, d1, d2, light
+
+    @triton.jit
+    def _prepare(c_ptr, e_ptr, k_ptr, a_ptr, h_ptr, l_ptr, lvl_ptr, x_ptr, pk_ptr, k_fire, floor, HW, n_blk,
+                 HAS_E: tl.constexpr, HAS_K: tl.constexpr, HAS_HIT: tl.constexpr, HAS_L: tl.constexpr,
+                 BLOCK: tl.constexpr):
+        # the demodulated light x (3 planes) and its channel maximum capped at k level
+        b, _i, m, o3, o1, d0, d1, d2, light = _pixels(a_ptr, h_ptr, l_ptr, HW, n_blk, floor, HAS_HIT, HAS_L, BLOCK)
         level = tl.load(lvl_ptr + b)
         x0 = _light_in(c_ptr, e_ptr, k_ptr, o3, m, d0, light, level, HAS_E, HAS_K)
         x1 = _light_in(c_ptr, e_ptr, k_ptr, o3 + HW, m, d1, light, level, HAS_E, HAS_K)
@@ -688,16 +696,8 @@ if triton is not None:
         # the filtered light q (3 planes) or, with UPSAMPLE, the guided filter applied from the
         # box-filtered coefficients at 1 / s resolution upsampled bilinearly by s (torch's
         # interpolate(scale_factor=s)); then remodulated
-        blk, b = _split(tl.program_id(0), n_blk)
-        b = b.to(tl.int64)
         HW = H * W
-        i = blk * BLOCK + tl.arange(0, BLOCK)
-        m = i < HW
-        o3, o1 = b * 3 * HW + i, b * HW + i
-        d0, d1, d2 = _demodulator(a_ptr + b * 3 * HW, h_ptr + b * HW, i, HW, m, floor, HAS_HIT)
-        light = i < 0
-        if HAS_L:
-            light = tl.load(l_ptr + o1, mask=m, other=0) != 0
+        b, i, m, o3, _o1, d0, d1, d2, light = _pixels(a_ptr, h_ptr, l_ptr, HW, n_blk, floor, HAS_HIT, HAS_L, BLOCK)
         if UPSAMPLE:
             y, x = i // W, i % W
             sy = tl.maximum((y.to(tl.float32) + 0.5) * inv_s - 0.5, 0.0)
@@ -736,9 +736,8 @@ def _restore(desc: RestoreOp) -> torch.Tensor:
     from torchgi.denoise import _demodulator, _light_sources, _surface
     from torchgi.settings import PIPELINE
 
-    for name, t in (("direct", desc.kept), ("color", desc.color), ("emission", desc.emission), ("albedo", desc.albedo)):
-        if t is not None:
-            check_finite(t, name)
+    for name, t in desc.light_inputs():
+        check_finite(t, name)
     color, albedo = desc.color.contiguous(), desc.albedo.contiguous()
     emission = None if desc.emission is None else desc.emission.contiguous()
     kept = None if desc.kept is None else desc.kept.contiguous()
