@@ -337,7 +337,7 @@ class Denoiser(torch.nn.Module):
     def _guided_pipeline(self, gb: GBuffer, kept: torch.Tensor | None, surface: torch.Tensor) -> torch.Tensor:
         """Method "guided": the whole pipeline as one :class:`~torchgi.backends.RestoreOp` (fused
         in the compiled back ends)."""
-        spec = self._guide_spec(gb)
+        spec, guide_means = self._guide_spec(gb)
         H, W = gb.color.shape[-2:]
         level = _level(gb.color, gb.emission, kept, gb.albedo, surface)
         radius, s = self._radius(self._spp(gb, surface), GUIDED.radius), self._subsample(spec, H, W)
@@ -353,16 +353,17 @@ class Denoiser(torch.nn.Module):
                                                    workspace, centres[0], centres[1]))
 
         # light and guide centred by constants of each image, so that tiles compute the untiled sums
-        centres = (_centre(gb.color, gb.emission, kept, gb.albedo, surface, GUIDED.firefly * level), self._guide_means)
+        centres = (_centre(gb.color, gb.emission, kept, gb.albedo, surface, GUIDED.firefly * level), guide_means)
 
         if self.max_memory_mb is None:
             return op(workspace=self._workspace)
         return _tiled(op, gb.color, self.max_memory_mb, _footprint(radius, s), s, kept is not None)
 
-    def _guide_spec(self, gb: GBuffer) -> backends.GuideSpec:
+    def _guide_spec(self, gb: GBuffer) -> tuple[backends.GuideSpec, torch.Tensor]:
         """:func:`~torchgi.filters.guide_from_gbuffer`'s guide (normal to [0, 1], depth over the
         largest depth on hit pixels, channels constant over the batch dropped) as planes and
-        factors, from one statistics walk; raises naming ``normal`` or ``depth`` if it holds NaN/Inf."""
+        factors, and each image's guide means ``(B, n)`` float64 (``RestoreOp.centre_guide``), from
+        one statistics walk; raises naming ``normal`` or ``depth`` if it holds NaN/Inf."""
         st = backends.run(backends.GuideStatsOp(gb.normal, gb.depth, gb.hit))
         for name, col in (("normal", 9), ("depth", 10)):
             if bool(st[:, col].any()):
@@ -377,9 +378,8 @@ class Denoiser(torch.nn.Module):
         spec = backends.GuideSpec(gb.normal, gb.depth, tuple(varying), tuple(float(scale[c]) for c in varying),
                                   tuple(float(offset[c]) for c in varying))
         H, W = gb.normal.shape[-2:]
-        self._guide_means = st[:, 11:][:, list(varying)] / max(H * W, 1) * scale.double()[varying] + \
-            offset.double()[varying]  # (B, n): each image's guide means, for tiles (RestoreOp.centre_guide)
-        return spec
+        means = st[:, 11:][:, varying] / max(H * W, 1) * scale.double()[varying] + offset.double()[varying]
+        return spec, means
 
     def supersample(self, gb: GBuffer, samples: EyeSamples) -> torch.Tensor:
         """Supersampling with guide rays (Bauszat et al. 2011 §3.2, :mod:`torchgi.supersample`).
@@ -505,7 +505,7 @@ class Denoiser(torch.nn.Module):
                 self._capture["weights"] = w
             return out
         if self.method == "guided":  # the workspace of the CPU path is kept between calls
-            spec = self._guide_spec(gb)
+            spec = self._guide_spec(gb)[0]
             return _guided(x, spec.build(), self._radius(spp, GUIDED.radius), p.get("eps", GUIDED.eps), False,
                            self._workspace, self._subsample(spec, *x.shape[-2:]))
         scale = self.input_scale
