@@ -30,7 +30,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from benchmark_utils import available_scenes, markdown_table, metadata, write_results
+from benchmark_utils import available_scenes, markdown_table, metadata, oidn, write_results
 
 import torchgi
 from torchgi import metrics
@@ -95,18 +95,6 @@ def peers() -> dict:
     except ImportError:
         pass
     return out
-
-
-def oidn(gb, quality: str, split_emission: bool):
-    """Intel Open Image Denoise (pyoidn): colour + albedo + normal, HDR; with ``split_emission``
-    it denoises colour minus emission and adds the emission back (the issue's second protocol)."""
-    import pyoidn
-
-    hwc = lambda t: t[0].permute(1, 2, 0).contiguous()
-    color = gb.color - gb.emission if split_emission else gb.color
-    y = pyoidn.denoise(hwc(color), hwc(gb.albedo), hwc(gb.normal), hdr=True, quality=quality)
-    y = y.permute(2, 0, 1)[None]
-    return y + gb.emission if split_emission else y
 
 
 def rendered(fn):

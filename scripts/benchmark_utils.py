@@ -68,6 +68,18 @@ def markdown_table(rows: list[dict], columns: list[str]) -> str:
     return "\n".join(lines)
 
 
+def oidn(gb, quality: str, split_emission: bool):
+    """Intel Open Image Denoise (pyoidn): colour + albedo + normal, HDR; with ``split_emission``
+    it denoises colour minus emission and adds the emission back (the issue's second protocol)."""
+    import pyoidn
+
+    hwc = lambda t: t[0].permute(1, 2, 0).contiguous()
+    color = gb.color - gb.emission if split_emission else gb.color
+    y = pyoidn.denoise(hwc(color), hwc(gb.albedo), hwc(gb.normal), hdr=True, quality=quality)
+    y = y.permute(2, 0, 1)[None]
+    return y + gb.emission if split_emission else y
+
+
 CONFIG_SCENES = Path(__file__).resolve().parents[1] / "configs" / "scenes"
 
 

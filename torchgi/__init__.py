@@ -8,8 +8,8 @@ spp, bounces, seed)``), ``load_scene`` and ``scenes``; everything else lives in 
 from torchgi import render
 from torchgi.buffers import GBuffer
 from torchgi.denoise import Denoiser
-from torchgi.render import load_scene, scenes
+from torchgi.render import load_scene, render_sequence, scenes
 
 __version__ = "0.1.0"
 
-__all__ = ["Denoiser", "GBuffer", "__version__", "load_scene", "render", "scenes"]
+__all__ = ["Denoiser", "GBuffer", "__version__", "load_scene", "render", "render_sequence", "scenes"]

@@ -36,6 +36,7 @@ _CHANNELS: dict[str, int | None] = {
     "normal": 3,
     "position": 3,
     "depth": 1,
+    "motion": 2,
     "variance": None,
     "spp": 1,
     "hit": 1,
@@ -55,6 +56,9 @@ class GBuffer:
         normal: ``(B,3,H,W)`` world-space unit normal in [-1, 1]; 0 on background.
         position: ``(B,3,H,W)`` world-space first-hit position, scene units.
         depth: ``(B,1,H,W)`` distance along the camera ray, scene units; finite everywhere.
+        motion: ``(B,2,H,W)`` backward screen-space motion in pixels (x right, y down): what
+            pixel centre ``(x+0.5, y+0.5)`` sees was seen by the previous frame's camera at
+            ``(x+0.5+m_x, y+0.5+m_y)`` (:func:`torchgi.render.render_sequence`).
         variance: ``(B,1|3,H,W)`` per-pixel variance of the colour estimate (of the mean).
         spp: ``(B,1,H,W)`` integer samples per pixel.
         hit: ``(B,1,H,W)`` bool, True where the centre ray hit geometry.
@@ -76,6 +80,7 @@ class GBuffer:
     normal: torch.Tensor | None = None
     position: torch.Tensor | None = None
     depth: torch.Tensor | None = None
+    motion: torch.Tensor | None = None
     variance: torch.Tensor | None = None
     spp: torch.Tensor | None = None
     hit: torch.Tensor | None = None
@@ -103,7 +108,7 @@ class GBuffer:
             raise DTypeError(f"spp: expected an integer tensor, got {self.spp.dtype}")
         if self.hit is not None and self.hit.dtype != torch.bool:
             raise DTypeError(f"hit: expected a bool tensor, got {self.hit.dtype}")
-        for name in ("albedo", "normal", "position", "depth"):
+        for name in ("albedo", "normal", "position", "depth", "motion"):
             if (t := getattr(self, name)) is not None:
                 check_finite(t, name)
 

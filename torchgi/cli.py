@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
+import os
 import platform
 import sys
 import time
@@ -99,15 +100,23 @@ def cmd_render(args: argparse.Namespace) -> int:
     scene = torchgi.load_scene(args.scene)
     if args.resolution:
         scene = scene.with_resolution(*args.resolution)
+    kwargs = {"workers": args.workers, "progress": None if args.progress else False}
     t0 = time.perf_counter()
-    gb = torchgi.render(
-        scene, spp=args.spp, bounces=args.bounces, seed=args.seed, workers=args.workers,
-        progress=None if args.progress else False,
-    )
+    if args.frames is None:
+        gb = torchgi.render(scene, spp=args.spp, bounces=args.bounces, seed=args.seed, **kwargs)
+        written = gb.to_exr(args.out, overwrite=args.overwrite)
+    else:  # <out>_<frame:04d>.exr, each with a motion layer; every name is checked before any render
+        root, ext = os.path.splitext(args.out)
+        paths = [f"{root}_{k:04d}{ext or '.exr'}" for k in range(args.frames)]
+        existing = [p for p in paths if os.path.exists(p)]
+        if existing and not args.overwrite:
+            raise FileExistsError(f"--out: {existing[0]} exists (and {len(existing) - 1} more); pass --overwrite")
+        frames = torchgi.render_sequence(scene, args.frames, spp=args.spp, bounces=args.bounces, seed=args.seed,
+                                         **kwargs)
+        written = [w for gb, path in zip(frames, paths) for w in gb.to_exr(path, overwrite=args.overwrite)]
     seconds = time.perf_counter() - t0
-    written = gb.to_exr(args.out, overwrite=args.overwrite)
     width, height = scene.camera.resolution
-    samples = width * height * args.spp
+    samples = width * height * args.spp * (args.frames or 1)
     print(f"rendered {scene.name} {width}x{height} at {args.spp} spp, {args.bounces} bounces in {seconds:.2f} s "
           f"({samples / seconds / 1e6:.2f} M samples/s); wrote {', '.join(written)}")
     return 0
@@ -224,6 +233,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--resolution", type=_positive_int, nargs=2, metavar=("W", "H"), help="override the camera's")
     p.add_argument("--workers", type=_positive_int, default=None, help="processes (default: all cores)")
+    p.add_argument("--frames", type=_positive_int, default=None,
+                   help="render N frames of the scene's camera.path to <out>_<frame:04d>.exr, with a motion layer")
     p.add_argument("--out", required=True, help="output EXR (never overwritten unless --overwrite)")
     p.add_argument("--overwrite", action="store_true")
     p.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")

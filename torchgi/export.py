@@ -99,11 +99,15 @@ class OrtSession:
         self.input_names = [i.name for i in self.session.get_inputs()]
 
     def __call__(self, **inputs: torch.Tensor) -> torch.Tensor:
+        return self.outputs(**inputs)[0]
+
+    def outputs(self, **inputs: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """Every output of the graph, in its order (e.g. a temporal step's image and next state)."""
         missing = set(self.input_names) - set(inputs)
         if missing:
             raise ValueError(f"missing inputs {sorted(missing)}; the graph takes {self.input_names}")
         feed = {k: np.ascontiguousarray(inputs[k].detach().cpu().numpy()) for k in self.input_names}
-        return torch.from_numpy(self.session.run(None, feed)[0])
+        return tuple(torch.from_numpy(y) for y in self.session.run(None, feed))
 
 
 def export_denoiser(

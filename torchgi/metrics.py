@@ -3,10 +3,13 @@
 ``mse``, ``relmse`` and ``psnr`` are plain torch (differentiable, any device); ``ssim`` uses
 kornia's Gaussian-window SSIM with valid (cropped) borders, the same numbers as
 scikit-image's ``structural_similarity(gaussian_weights=True, use_sample_covariance=False)``;
-``flip`` calls NVIDIA's ``flip-evaluator`` (CPU, not differentiable).
+``flip`` calls NVIDIA's ``flip-evaluator`` (CPU, not differentiable). ``temporal`` scores a
+sequence's flicker (tRMAE, tPSNR) from consecutive-frame differences.
 """
 
 from __future__ import annotations
+
+import math
 
 import torch
 
@@ -21,7 +24,7 @@ from torchgi.core.check import (
 )
 from torchgi.core.errors import ShapeError
 
-__all__ = ["flip", "mse", "psnr", "relmse", "ssim", "tonemap"]
+__all__ = ["flip", "mse", "psnr", "relmse", "rmae", "ssim", "temporal", "tonemap"]
 
 _REDUCTIONS = ("mean", "none")
 
@@ -173,3 +176,49 @@ def flip(x: torch.Tensor, ref: torch.Tensor, *, hdr: bool = True, reduction: str
     per_image = torch.tensor(values, dtype=torch.float32, device=x.device)
     check_option(reduction, "reduction", _REDUCTIONS)
     return per_image.mean() if reduction == "mean" else per_image
+
+
+def rmae(x: torch.Tensor, ref: torch.Tensor, *, reduction: str = "mean") -> torch.Tensor:
+    """Relative mean absolute error ``mean(|x - ref| / (|ref| + 0.01))`` over channels and pixels.
+
+    Example:
+        >>> round(rmae(torch.full((1, 1, 1, 1), 1.5), torch.ones(1, 1, 1, 1)).item(), 4)   # 0.5 / 1.01
+        0.495
+    """
+    _check_pair(x, ref)
+    return _reduce((x - ref).abs() / (ref.abs() + 0.01), reduction)
+
+
+def temporal(frames: torch.Tensor, refs: torch.Tensor, *, warmup: int = 0) -> dict[str, float]:
+    """Flicker of a sequence against its reference (the noisebase project's temporal metrics).
+
+    With ``Δx_t = x_t - x_{t-1}`` and ``Δy_t = y_t - y_{t-1}`` for ``t > warmup``: ``trmae`` is the mean
+    over those frames of :func:`rmae` ``(Δx_t, Δy_t)`` on the HDR radiance, and ``tpsnr`` the PSNR
+    (peak 1) of the Reinhard-tone-mapped frames' differences, from their MSE over all those
+    frames. A still reference makes them the output's own flicker.
+
+    Args:
+        frames, refs: ``(T, B, C, H, W)`` outputs and references, ``T > warmup + 1``.
+        warmup: leading frames left out (the first difference used is ``x_{warmup+1} - x_warmup``).
+
+    Returns:
+        ``{"trmae": float, "tpsnr": float}`` (tPSNR is ``inf`` for identical differences).
+
+    Example:
+        >>> ref = torch.ones(4, 1, 3, 8, 8)
+        >>> temporal(ref + 0.1 * torch.arange(4.0).view(4, 1, 1, 1, 1) % 2, ref)["trmae"] > 0
+        True
+    """
+    if frames.dim() != 5 or refs.shape != frames.shape:
+        raise ShapeError(f"frames, refs: expected equal (T, B, C, H, W) shapes, got {tuple(frames.shape)} and "
+                         f"{tuple(refs.shape)}")
+    if isinstance(warmup, bool) or not isinstance(warmup, int) or not 0 <= warmup < frames.shape[0] - 1:
+        raise ValueError(f"warmup: expected an int in [0, T - 1) for T = {frames.shape[0]}, got {warmup!r}")
+    x, y = frames[warmup:], refs[warmup:]
+    for name, t in (("frames", x), ("refs", y)):
+        check_floating(t, name)
+        check_finite(t, name)
+    dx, dy = (x[1:] - x[:-1]).flatten(0, 1), (y[1:] - y[:-1]).flatten(0, 1)
+    tx, ty = tonemap(x), tonemap(y)
+    err = float(((tx[1:] - tx[:-1]) - (ty[1:] - ty[:-1])).double().square().mean())
+    return {"trmae": float(rmae(dx, dy)), "tpsnr": float("inf") if err == 0 else 10 * math.log10(1 / err)}

@@ -15,8 +15,8 @@ import dataclasses
 import math
 from typing import Any
 
-__all__ = ["ATROUS", "BILATERAL", "GUIDED", "PIPELINE", "ATrousSettings", "BilateralSettings", "GuidedSettings",
-           "PipelineSettings", "describe"]
+__all__ = ["ATROUS", "BILATERAL", "GUIDED", "PIPELINE", "TEMPORAL", "ATrousSettings", "BilateralSettings",
+           "GuidedSettings", "PipelineSettings", "TemporalSettings", "describe"]
 
 
 def _setting(default: Any, low: float, high: float, unit: str, reason: str) -> Any:
@@ -92,10 +92,33 @@ class BilateralSettings:
                               "colour-weighted filters keep an outlier as a speck, so a lower bound pays")
 
 
+@dataclasses.dataclass(frozen=True)
+class TemporalSettings:
+    """:class:`torchgi.TemporalDenoiser` (SVGF-class accumulation before the guided filter)."""
+
+    alpha: float = _setting(0.2, 0.0, 1.0, "weight of the new frame",
+                            "exponential average of light and moments once the history is long (SVGF's value)")
+    max_history: int = _setting(32, 1, 1024, "frames", "the history length is capped here (weights >= 1/this)")
+    normal_tolerance: float = _setting(0.9, -1.0, 1.0, "cosine",
+                                       "a history tap whose normal is further than this from the pixel's is rejected")
+    depth_tolerance: float = _setting(0.05, 0.0, math.inf, "relative depth",
+                                      "a history tap whose depth differs by more than this share is rejected")
+    variance_history: int = _setting(4, 1, 1024, "frames",
+                                     "below this history length the variance is a spatial estimate (SVGF)")
+    variance_radius: int = _setting(3, 0, 64, "px", "the spatial estimate's window (7x7)")
+    radius: int = _setting(2, 1, 64, "px", "the guided filter's radius on the accumulated light (tuning sequence)")
+    eps: float = _setting(1e-5, 0.0, math.inf, "guide units squared", "its ε (tuning sequence: 1e-5 below 1e-4)")
+    output_alpha: float = _setting(0.2, 0.0, 1.0, "weight of the new frame",
+                                   "exponential average of the filtered output (temporal anti-flicker)")
+    clamp: float = _setting(0.1, 0.0, math.inf, "x noise variance",
+                            "the output history is clamped to this share of the accumulated light's noise variance")
+
+
 PIPELINE = PipelineSettings()
 GUIDED = GuidedSettings()
 ATROUS = ATrousSettings()
 BILATERAL = BilateralSettings()
+TEMPORAL = TemporalSettings()
 
 
 def describe(settings: Any) -> list[dict[str, Any]]:

@@ -32,6 +32,8 @@ _MAGIC = b"\x76\x2f\x31\x01"
 # R,G,B(,A) of Mitsuba 3, Arnold and most renderers' beauty. Blender's "Combined" is the
 # denoised result when Cycles writes denoising data, so its "Noisy Image" comes first, and
 # Cycles' "Denoising *" guides (made for denoisers) win over its plain Normal/Depth passes.
+# Motion: Blender's "Vector" (X, Y of its 4 components) and Arnold's "motionvector" (R, G) are
+# read as stored; their sign and axis conventions are the renderers' (torchgi's: GBuffer.motion).
 AOV_ALIASES: dict[str, tuple[str, ...]] = {
     "color": ("color", "noisy image", "combined", "", "rgba", "rgb", "beauty", "hdr", "ldr", "image"),
     "albedo": ("denoising albedo", "albedo", "alb", "diffcol", "diffuse_albedo"),
@@ -39,6 +41,7 @@ AOV_ALIASES: dict[str, tuple[str, ...]] = {
     "position": ("position", "pos", "p", "pp", "world_position"),
     "depth": ("denoising depth", "depth", "z", "dd", "distance"),
     "emission": ("emission", "emit", "emissive", "ee"),
+    "motion": ("motion", "vector", "motionvector", "motion_vector", "mv"),
     "direct": ("direct",),
     "indirect": ("indirect",),
     "variance": ("variance", "var"),
@@ -49,7 +52,7 @@ AOV_ALIASES: dict[str, tuple[str, ...]] = {
 # Number of channels each canonical AOV has once found (an alpha channel is dropped).
 AOV_CHANNELS: dict[str, int] = {
     "color": 3, "albedo": 3, "normal": 3, "position": 3, "emission": 3, "direct": 3,
-    "indirect": 3, "depth": 1, "spp": 1, "hit": 1,
+    "indirect": 3, "depth": 1, "spp": 1, "hit": 1, "motion": 2,
 }
 
 # Component order inside a layer: RGBA, then XYZW, UV, Mitsuba's depth "T"; digits numerically.
@@ -68,6 +71,8 @@ def _suffixes(name: str, channels: int) -> list[str]:
     base = name.rsplit(".", 1)[-1].lower()
     if channels == 1:
         return ["Z"] if base in ("depth", "z") else ["Y"]
+    if channels == 2:
+        return ["X", "Y"]
     if channels == 3 and base in ("normal", "position", "n", "p"):
         return ["X", "Y", "Z"]
     if channels == 3:

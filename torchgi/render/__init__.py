@@ -13,11 +13,12 @@ import types
 from typing import Any
 
 from torchgi.render import scenes
-from torchgi.render.engine import render, render_guide_rays, render_guides
-from torchgi.render.scene import Camera, Material, Mesh, PointLight, Scene, Sky, load_scene
+from torchgi.render.engine import render, render_guide_rays, render_guides, render_sequence
+from torchgi.render.scene import Camera, CameraPath, Material, Mesh, PointLight, Scene, Sky, load_scene
 
 __all__ = [
     "Camera",
+    "CameraPath",
     "Material",
     "Mesh",
     "PointLight",
@@ -27,6 +28,7 @@ __all__ = [
     "render",
     "render_guide_rays",
     "render_guides",
+    "render_sequence",
     "scenes",
 ]
 

@@ -28,6 +28,7 @@ from torchgi.buffers import GBuffer
 from torchgi.core.check import check_int, check_option
 from torchgi.core.errors import DeviceError, DTypeError, RangeError, ShapeError
 from torchgi.render.accel import Accel, embree_started
+from torchgi.render.camera import motion_vectors
 from torchgi.render.film import BLOCK, Film
 from torchgi.render.integrators import basic, path
 from torchgi.render.integrators.common import CAMERA_DIMS, SKIPS, Context, guides
@@ -36,7 +37,10 @@ from torchgi.render.sampler import sample_keys, uniform
 from torchgi.render.scene import Camera, Scene, SceneArrays, load_scene
 from torchgi.supersample import EyeSamples
 
-__all__ = ["INTEGRATORS", "SKIPS", "process_context", "render", "render_guide_rays", "render_guides", "worker_pool"]
+__all__ = [
+    "INTEGRATORS", "SKIPS", "frame_seed", "process_context", "render", "render_guide_rays", "render_guides",
+    "render_sequence", "worker_pool",
+]
 
 INTEGRATORS: dict[str, Callable[..., torch.Tensor]] = {"path": path.radiance, "basic": basic.radiance}
 _PARALLEL_MIN_SAMPLES = 1 << 19  # below this a pool costs more than it saves (unless asked)
@@ -429,6 +433,61 @@ def render(
         variance=image(rows[9:12]),
         spp=counts.clone(),
     )
+
+
+def frame_seed(seed: int, frame: int) -> int:
+    """The seed :func:`render_sequence` gives frame ``frame`` of a sequence started with ``seed``
+    (a golden-ratio step modulo 2^32, so neighbouring sequences do not share frames' noise).
+
+    Example:
+        >>> frame_seed(0, 0), frame_seed(0, 1)
+        (0, 2654435769)
+    """
+    return (seed + 0x9E3779B9 * frame) % (1 << 32)
+
+
+def render_sequence(
+    scene: Scene | str | os.PathLike[str],
+    frames: int,
+    spp: int | torch.Tensor = 1,
+    bounces: int = 1,
+    seed: int = 0,
+    **render_args: Any,
+) -> Iterator[GBuffer]:
+    """Render the frames of a camera animation (``scene.path``, YAML ``camera.path``), one by one.
+
+    Frame ``k`` is at time ``t0 + k (t1 - t0) / (frames - 1)`` of the path's keyframes, rendered by
+    :func:`render` with seed ``frame_seed(seed, k)``; the scene's BVH is built once. A scene
+    without a path gives ``frames`` renders of its still camera (noise differs, motion is 0).
+
+    Args:
+        scene: a :class:`Scene`, a YAML path or a built-in name.
+        frames: number of frames, >= 1.
+        spp, bounces, seed, render_args: as for :func:`render`.
+
+    Yields:
+        One GBuffer per frame, :func:`render`'s fields plus ``motion (B,2,H,W)``: the backward
+        screen-space motion in pixels (:func:`torchgi.render.camera.motion_vectors`; 0 in the
+        first frame).
+
+    Example:
+        >>> from torchgi.render import scenes
+        >>> [gb.motion.shape for gb in render_sequence(scenes.cornell(8), 2)]
+        [torch.Size([1, 2, 8, 8]), torch.Size([1, 2, 8, 8])]
+    """
+    if not isinstance(scene, Scene):
+        scene = load_scene(scene)
+    check_int(frames, "frames", 1)
+    check_int(seed, "seed", 0)
+    if seed >= 1 << 32:
+        raise RangeError(f"seed: expected an int in [0, 2^32), got {seed}")
+    times = scene.path.times_of(frames) if scene.path is not None else [0.0] * frames
+    previous = None
+    for k, time in enumerate(times):
+        frame = scene.at(time)
+        gb = render(frame, spp, bounces, frame_seed(seed, k), **render_args)
+        yield gb.replace(motion=motion_vectors(frame.camera, previous, gb.position, gb.hit))
+        previous = frame.camera
 
 
 def _check_render_args(

@@ -12,6 +12,7 @@ side the face normal points to (counter-clockwise winding).
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 import os
 import warnings
@@ -28,6 +29,7 @@ __all__ = [
     "LIGHTS",
     "MATERIALS",
     "Camera",
+    "CameraPath",
     "Material",
     "Mesh",
     "PointLight",
@@ -116,6 +118,64 @@ class Camera:
     def with_resolution(self, width: int, height: int) -> Camera:
         """The same camera with another resolution (the field of view is kept)."""
         return dataclasses.replace(self, resolution=(width, height))
+
+
+@dataclasses.dataclass(frozen=True)
+class CameraPath:
+    """Camera keyframes: ``position``, ``look_at`` and ``fov`` at increasing ``times`` (seconds),
+    linearly interpolated between keyframes and held outside them; ``up``, ``fov_axis`` and
+    ``resolution`` are the scene camera's.
+
+    Example:
+        >>> path = CameraPath((0.0, 1.0), ((0, 0, 4), (2, 0, 4)), ((0, 0, 0), (0, 0, 0)), (40.0, 40.0))
+        >>> path.at(Camera((0, 0, 4), (0, 0, 0)), 0.25).position
+        (0.5, 0.0, 4.0)
+    """
+
+    times: tuple[float, ...]
+    positions: tuple[tuple[float, float, float], ...]
+    look_ats: tuple[tuple[float, float, float], ...]
+    fovs: tuple[float, ...]
+
+    def __post_init__(self) -> None:
+        n = len(self.times)
+        if n == 0 or not len(self.positions) == len(self.look_ats) == len(self.fovs) == n:
+            raise ConfigError(f"camera.path: expected one or more keyframes with time, position and look_at "
+                              f"each, got {n} time(s)")
+        times = tuple(_number(t, f"camera.path[{i}].time") for i, t in enumerate(self.times))
+        if any(b <= a for a, b in itertools.pairwise(times)):
+            raise ConfigError(f"camera.path: keyframe times must increase, got {list(times)}")
+        object.__setattr__(self, "times", times)
+        object.__setattr__(self, "positions", tuple(_vec3(p, f"camera.path[{i}].position")
+                                                    for i, p in enumerate(self.positions)))
+        object.__setattr__(self, "look_ats", tuple(_vec3(p, f"camera.path[{i}].look_at")
+                                                   for i, p in enumerate(self.look_ats)))
+        object.__setattr__(self, "fovs", tuple(_number(f, f"camera.path[{i}].fov", 0.0, 180.0)
+                                               for i, f in enumerate(self.fovs)))
+
+    @property
+    def duration(self) -> tuple[float, float]:
+        """The first and the last keyframe's time."""
+        return self.times[0], self.times[-1]
+
+    def at(self, camera: Camera, time: float) -> Camera:
+        """``camera`` moved to the path's pose at ``time`` (seconds)."""
+        t = np.asarray(self.times)
+        i = int(np.clip(np.searchsorted(t, time, side="right") - 1, 0, len(t) - 1))
+        j = min(i + 1, len(t) - 1)
+        w = 0.0 if j == i else float(np.clip((time - t[i]) / (t[j] - t[i]), 0.0, 1.0))
+
+        def lerp(a: Any, b: Any) -> Any:
+            return tuple(float(x) for x in (1 - w) * np.asarray(a, dtype=np.float64) + w * np.asarray(b))
+
+        fov = (1 - w) * self.fovs[i] + w * self.fovs[j]
+        return dataclasses.replace(camera, position=lerp(self.positions[i], self.positions[j]),
+                                   look_at=lerp(self.look_ats[i], self.look_ats[j]), fov=fov)
+
+    def times_of(self, frames: int) -> list[float]:
+        """The times of ``frames`` frames spread evenly from the first to the last keyframe."""
+        a, b = self.duration
+        return [a] if frames == 1 else [a + (b - a) * k / (frames - 1) for k in range(frames)]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -296,15 +356,26 @@ class Scene:
     meshes: list[Mesh]
     lights: list[Any] = dataclasses.field(default_factory=list)
     name: str = "scene"
+    path: CameraPath | None = None  # camera animation (render_sequence), None = a still camera
 
     def __post_init__(self) -> None:
         if not self.meshes:
             raise ConfigError("meshes: a scene needs at least one mesh")
         self._arrays: SceneArrays | None = None
 
+    def with_camera(self, camera: Camera) -> Scene:
+        """The same scene (its tables and BVH shared, not rebuilt) seen by ``camera``."""
+        out = Scene(camera, self.meshes, self.lights, self.name, self.path)
+        out._arrays = self._arrays
+        return out
+
     def with_resolution(self, width: int, height: int) -> Scene:
         """The same scene seen by the same camera at another resolution."""
-        return Scene(self.camera.with_resolution(width, height), self.meshes, self.lights, self.name)
+        return self.with_camera(self.camera.with_resolution(width, height))
+
+    def at(self, time: float) -> Scene:
+        """The scene with its camera at ``time`` on :attr:`path` (the camera itself without one)."""
+        return self if self.path is None else self.with_camera(self.path.at(self.camera, time))
 
     def arrays(self) -> SceneArrays:
         """The flattened tables (built once, then cached); warns once about zero-area triangles."""
@@ -376,7 +447,8 @@ def _flatten(scene: Scene) -> SceneArrays:
 
 # ----------------------------------------------------------------------------------- YAML
 _TOP_KEYS = ("camera", "meshes", "lights")
-_CAMERA_KEYS = ("position", "look_at", "up", "fov", "fov_axis", "resolution")
+_CAMERA_KEYS = ("position", "look_at", "up", "fov", "fov_axis", "resolution", "path")
+_KEYFRAME_KEYS = ("time", "position", "look_at", "fov")
 _MESH_KEYS = ("file", "material", "transform", "name")
 _TRANSFORM_KEYS = ("scale", "rotate", "translate")
 
@@ -410,10 +482,14 @@ def scene_from_dict(cfg: Mapping[str, Any], root: str = ".", name: str = "scene"
         raise ConfigError("scene: 'camera' and 'meshes' are required")
     cam = cfg["camera"]
     _no_unknown_keys(cam, "camera", _CAMERA_KEYS)
+    cam = dict(cam)
+    path = _camera_path(cam.pop("path"), cam.get("fov", Camera.fov)) if "path" in cam else None
+    if path is not None:  # the base pose defaults to the first keyframe's
+        cam.setdefault("position", path.positions[0])
+        cam.setdefault("look_at", path.look_ats[0])
     for required in ("position", "look_at"):
         if required not in cam:
             raise ConfigError(f"camera.{required}: required")
-    cam = dict(cam)
     if "resolution" in cam:
         cam["resolution"] = tuple(cam["resolution"]) if isinstance(cam["resolution"], list) else cam["resolution"]
     camera = Camera(**cam)
@@ -436,7 +512,20 @@ def scene_from_dict(cfg: Mapping[str, Any], root: str = ".", name: str = "scene"
     if not isinstance(lights_cfg, list):
         raise ConfigError("lights: expected a list")
     lights = [_build(LIGHTS, light, f"lights[{i}]") for i, light in enumerate(lights_cfg)]
-    return Scene(camera, meshes, lights, name)
+    return Scene(camera, meshes, lights, name, path)
+
+
+def _camera_path(cfg: Any, fov: float) -> CameraPath:
+    """``camera.path``: a list of ``{time, position, look_at, fov}`` keyframes (fov defaults to the camera's)."""
+    if not isinstance(cfg, list) or not cfg:
+        raise ConfigError(f"camera.path: expected a non-empty list of keyframes, got {cfg!r}")
+    for i, key in enumerate(cfg):
+        _no_unknown_keys(key, f"camera.path[{i}]", _KEYFRAME_KEYS)
+        for required in ("time", "position", "look_at"):
+            if required not in key:
+                raise ConfigError(f"camera.path[{i}].{required}: required")
+    return CameraPath(tuple(k["time"] for k in cfg), tuple(k["position"] for k in cfg),
+                      tuple(k["look_at"] for k in cfg), tuple(k.get("fov", fov) for k in cfg))
 
 
 def load_scene(path: str | os.PathLike[str]) -> Scene:

@@ -1,0 +1,215 @@
+"""Temporal denoising of camera animations: error over frames, flicker and time per frame.
+
+    python scripts/bench_temporal.py --out out/bench-temporal                 # 3 judged sequences, 256², 32 frames
+    python scripts/bench_temporal.py --sequences train_dragon_arc --out out/tune   # the tuning sequence
+
+Sequences (``SEQUENCES``): ``cornell_slide`` and ``bunny_arc`` (``configs/scenes/sequences/``) and
+``sky_pan`` (the built-in sky scene with a camera path given here) are judged;
+``train_dragon_arc`` is the sequence the TemporalDenoiser's settings were chosen on, never judged.
+Each is rendered at ``--size``² by :func:`torchgi.render_sequence` at 1 spp (seed 1) and
+``--ref-spp`` (seed 2), 2 bounces-free ``--bounces``, cached under ``<out>/data``. Methods, each
+frame in order: the noisy frame, ``Denoiser()`` per frame, OIDN "high" per frame (pyoidn: colour
++ albedo + normal, HDR) and ``TemporalDenoiser()``. Per frame: relMSE and HDR-FLIP; per sequence
+from frame ``--warmup`` on: mean relMSE, tRMAE and tPSNR (:func:`torchgi.metrics.temporal`).
+Time per frame (median over the frames after the first, 2 threads, this process) is measured on
+the same sequences re-rendered at ``--time-size``² (1 spp, no reference). Writes
+``temporal.csv/json/md``, ``temporal_frames.csv``, ``temporal_<sequence>.png`` (error over
+frames) and ``temporal_<sequence>.gif`` (noisy | Denoiser | OIDN | TemporalDenoiser | reference).
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from benchmark_utils import CONFIG_SCENES, markdown_table, metadata, oidn, write_results
+
+import torchgi
+from torchgi import metrics
+from torchgi.render import CameraPath, scenes
+
+JUDGED = ("cornell_slide", "bunny_arc", "sky_pan")
+TUNING = ("train_dragon_arc",)
+
+
+def sky_pan(size: int) -> torchgi.render.Scene:
+    """The built-in sky scene (box, sphere, slab under a sky and a sun) with a panning camera."""
+    scene = scenes.sky(size)
+    scene.path = CameraPath((0.0, 1.0), ((-1.6, 1.5, 4.2), (1.6, 1.9, 4.0)), ((-0.2, 0.4, 0.0), (0.3, 0.5, 0.0)),
+                            (45.0, 45.0))
+    return scene
+
+
+def sequence(name: str, size: int) -> torchgi.render.Scene:
+    if name == "sky_pan":
+        return sky_pan(size)
+    return torchgi.load_scene(CONFIG_SCENES / "sequences" / f"{name}.yaml").with_resolution(size, size)
+
+
+def frames(name: str, size: int, count: int, spp: int, seed: int, bounces: int, cache: Path) -> list:
+    """The ``count`` frames of sequence ``name`` (GBuffers), rendered once and cached."""
+    path = cache / f"{name}_{size}_{count}f_{spp}spp_b{bounces}_s{seed}.pt"
+    if path.exists():
+        return [torchgi.GBuffer(**d) for d in torch.load(path)]
+    t0 = time.perf_counter()
+    out = list(torchgi.render_sequence(sequence(name, size), count, spp=spp, bounces=bounces, seed=seed,
+                                       progress=False))
+    print(f"rendered {name} {count} frames {size}² at {spp} spp in {time.perf_counter() - t0:.0f} s", flush=True)
+    cache.mkdir(parents=True, exist_ok=True)
+    torch.save([dict(gb.items()) for gb in out], path)
+    return out
+
+
+def methods() -> dict:
+    """Name -> a fresh per-sequence callable ``gb -> image``."""
+    from torchgi.temporal import TemporalDenoiser
+
+    out = {"noisy": lambda: (lambda gb: gb.color), "Denoiser": lambda: torchgi.Denoiser()}
+    try:
+        import pyoidn  # noqa: F401
+
+        out["OIDN high"] = lambda: (lambda gb: oidn(gb, "high", False))
+    except ImportError:
+        print("pyoidn not installed: no OIDN rows", file=sys.stderr)
+    out["TemporalDenoiser"] = lambda: TemporalDenoiser()
+    return out
+
+
+def run_sequence(noisy: list, fns: dict) -> dict:
+    """Every method over the frames in order: ``{name: (T, 1, 3, H, W) outputs}`` and ms per frame."""
+    outs, ms = {}, {}
+    for name, make in fns.items():
+        fn, frames_out, times = make(), [], []
+        for gb in noisy:
+            t0 = time.perf_counter()
+            frames_out.append(fn(gb))
+            times.append((time.perf_counter() - t0) * 1e3)
+        outs[name], ms[name] = torch.stack(frames_out), statistics.median(times[1:] or times)
+    return {"outputs": outs, "ms": ms}
+
+
+def score(name: str, outs: dict, refs: torch.Tensor, warmup: int) -> tuple[list[dict], list[dict]]:
+    rows, per_frame = [], []
+    for method, x in outs.items():
+        rel = [float(metrics.relmse(x[t], refs[t])) for t in range(len(x))]
+        fl = [float(metrics.flip(x[t], refs[t])) for t in range(len(x))]
+        per_frame += [{"sequence": name, "method": method, "frame": t, "relmse": rel[t], "flip": fl[t]}
+                      for t in range(len(x))]
+        tm = metrics.temporal(x, refs, warmup=warmup)
+        rows.append({"sequence": name, "method": method, "relmse": statistics.mean(rel[warmup:]),
+                     "flip": statistics.mean(fl[warmup:]), "trmae": tm["trmae"], "tpsnr": tm["tpsnr"]})
+    return rows, per_frame
+
+
+def plot(name: str, per_frame: list[dict], out: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    for method in dict.fromkeys(r["method"] for r in per_frame if r["method"] != "noisy"):
+        pts = [(r["frame"], r["relmse"]) for r in per_frame if r["method"] == method]
+        ax.plot(*zip(*pts), label=method)
+    ax.set_yscale("log")
+    ax.set_xlabel("frame")
+    ax.set_ylabel("relMSE")
+    ax.set_title(name)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(out / f"temporal_{name}.png", dpi=120)
+    plt.close(fig)
+
+
+def animation(name: str, outs: dict, refs: torch.Tensor, out: Path) -> None:
+    """noisy | Denoiser | OIDN | TemporalDenoiser | reference, tone mapped, as a looping GIF."""
+    import imageio.v3 as iio
+
+    panels = [outs[m] for m in outs] + [refs]
+    strip = torch.cat([metrics.tonemap(p[:, 0]) for p in panels], dim=-1)  # (T, 3, H, k W)
+    frames = (strip.clamp(0, 1) ** (1 / 2.2) * 255).round().to(torch.uint8).permute(0, 2, 3, 1).numpy()
+    iio.imwrite(out / f"temporal_{name}.gif", frames, duration=80, loop=0)
+
+
+def timing(names: list[str], size: int, count: int, bounces: int, cache: Path) -> list[dict]:
+    """ms per frame at ``size``² (median over frames 2...): the methods side by side, per sequence."""
+    rows = []
+    for name in names:
+        noisy = frames(name, size, count, 1, 1, bounces, cache)
+        ms = run_sequence(noisy, methods())["ms"]
+        rows.append({"sequence": name, "size": size, **{f"{m} ms": v for m, v in ms.items()}})
+    return rows
+
+
+def claims(rows: list[dict], times: list[dict]) -> list[str]:
+    lines = []
+    by = {(r["sequence"], r["method"]): r for r in rows}
+    for seq in dict.fromkeys(r["sequence"] for r in rows):
+        t, o = by.get((seq, "TemporalDenoiser")), by.get((seq, "OIDN high"))
+        if t is None or o is None:
+            continue
+        a, b = t["relmse"] / o["relmse"], t["trmae"] / o["trmae"]
+        lines.append(f"{seq}: relMSE {a:.2f}x OIDN high's (<= 0.7: {'holds' if a <= 0.7 else 'fails'}), "
+                     f"tRMAE {b:.2f}x (<= 0.5: {'holds' if b <= 0.5 else 'fails'})")
+    for r in times:
+        if "OIDN high ms" in r:
+            f = r["OIDN high ms"] / r["TemporalDenoiser ms"]
+            lines.append(f"{r['sequence']} {r['size']}²: TemporalDenoiser {r['TemporalDenoiser ms']:.1f} ms, OIDN high "
+                         f"{r['OIDN high ms']:.0f} ms: {f:.1f}x faster (>= 10: {'holds' if f >= 10 else 'fails'})")
+    return lines
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--sequences", nargs="+", default=list(JUDGED), choices=list(JUDGED + TUNING))
+    p.add_argument("--size", type=int, default=256)
+    p.add_argument("--frames", type=int, default=32)
+    p.add_argument("--ref-spp", type=int, default=512)
+    p.add_argument("--bounces", type=int, default=2)
+    p.add_argument("--warmup", type=int, default=8, help="frames left out of the sequence means")
+    p.add_argument("--time-size", type=int, default=512)
+    p.add_argument("--time-frames", type=int, default=8)
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--render-only", action="store_true", help="render and cache the data, then stop")
+    p.add_argument("--out", type=Path, default=Path("out/bench-temporal"))
+    args = p.parse_args()
+    torch.set_num_threads(args.threads)
+    cache = args.out / "data"
+    for name in args.sequences:
+        frames(name, args.size, args.frames, 1, 1, args.bounces, cache)
+        frames(name, args.size, args.frames, args.ref_spp, 2, args.bounces, cache)
+    if args.render_only:
+        return
+    rows, per_frame, fns = [], [], methods()
+    for name in args.sequences:
+        noisy = frames(name, args.size, args.frames, 1, 1, args.bounces, cache)
+        refs = torch.stack([gb.color for gb in frames(name, args.size, args.frames, args.ref_spp, 2, args.bounces,
+                                                        cache)])
+        res = run_sequence(noisy, fns)
+        r, pf = score(name, res["outputs"], refs, args.warmup)
+        rows += r
+        per_frame += pf
+        plot(name, pf, args.out)
+        animation(name, res["outputs"], refs, args.out)
+        print(markdown_table(r, ["sequence", "method", "relmse", "flip", "trmae", "tpsnr"]), flush=True)
+    times = timing(args.sequences, args.time_size, args.time_frames, args.bounces, cache) if args.time_size else []
+    meta = metadata(args.threads) | {"args": {k: str(v) for k, v in vars(args).items()}}
+    write_results(rows, meta, args.out, "temporal")
+    write_results(per_frame, meta, args.out, "temporal_frames")
+    write_results(times, meta, args.out, "temporal_times")
+    lines = claims(rows, times)
+    md = [markdown_table(rows, ["sequence", "method", "relmse", "flip", "trmae", "tpsnr"]), "",
+          markdown_table(times, list(times[0]) if times else []), "", *[f"- {x}" for x in lines]]
+    (args.out / "temporal.md").write_text("\n".join(md) + "\n")
+    print("\n".join(md))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,305 @@
+"""Camera animation, motion vectors, temporal metrics and the TemporalDenoiser (issue 19)."""
+
+from __future__ import annotations
+
+import math
+import os
+
+import numpy as np
+import pytest
+import torch
+
+import torchgi
+from torchgi import metrics
+from torchgi.core.errors import ConfigError, NonFiniteError, ShapeError
+from torchgi.render import CameraPath, scenes
+from torchgi.temporal import DeployedTemporal, TemporalDenoiser, TemporalState, _reproject, temporal_step
+
+pytest.importorskip("embreex")
+
+SEQUENCES = os.path.join(os.path.dirname(__file__), "..", "configs", "scenes", "sequences")
+
+
+def sliding_cornell(size: int, shift: float = 80.0):
+    """The Cornell box with a camera sliding right and forwards (reveals the wall behind the tall block)."""
+    scene = scenes.cornell(size)
+    p = scene.camera.position
+    scene.path = CameraPath((0.0, 1.0), (p, (p[0] + shift, p[1] + 20, p[2] + 60)), ((278, 273, 0), (300, 260, 0)),
+                            (39.3, 38.0))
+    return scene
+
+
+def first_hits(scene, camera, xs: torch.Tensor, ys: torch.Tensor) -> torch.Tensor:
+    """World positions ``(3, N)`` where rays of ``camera`` through image points ``(xs, ys)`` (pixels,
+    continuous) first hit the scene: an independent trace, not the motion code."""
+    from torchgi.render.engine import _context
+    from torchgi.render.integrators.common import guides
+
+    W, H = camera.resolution
+    px, py = xs.floor().clamp(0, W - 1), ys.floor().clamp(0, H - 1)
+    jitter = torch.stack([xs - px, ys - py]).float()
+    return guides(_context(scene.arrays(), camera, 0, 0), (py * W + px).long(), jitter)["position"]
+
+
+# ------------------------------------------------------------------------------ camera paths
+def test_camera_path_interpolates_keyframes_and_holds_outside():
+    cam = scenes.cornell(8).camera
+    path = CameraPath((1.0, 3.0), ((0, 0, -5), (4, 2, -5)), ((0, 0, 0), (0, 2, 0)), (40.0, 60.0))
+    mid = path.at(cam, 1.5)  # a quarter of the way
+    assert mid.position == (1.0, 0.5, -5.0) and mid.look_at == (0.0, 0.5, 0.0) and mid.fov == 45.0
+    assert path.at(cam, 0.0).position == (0.0, 0.0, -5.0) and path.at(cam, 9.0).position == (4.0, 2.0, -5.0)
+    assert path.times_of(3) == [1.0, 2.0, 3.0] and path.times_of(1) == [1.0]
+    with pytest.raises(ConfigError, match="increase"):
+        CameraPath((0.0, 0.0), ((0, 0, 1),) * 2, ((0, 0, 0),) * 2, (40.0, 40.0))
+
+
+def test_yaml_camera_path(tmp_path):
+    scene = torchgi.load_scene(os.path.join(SEQUENCES, "cornell_slide.yaml"))
+    assert scene.path is not None and scene.path.duration == (0.0, 1.0)
+    assert scene.camera.position == scene.path.positions[0]  # the base pose defaults to the first keyframe
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("camera: {path: [{time: 0, position: [0, 0, 1], look_at: [0, 0, 0], speed: 2}]}\n"
+                   "meshes: []\n")
+    with pytest.raises(ConfigError, match=r"camera.path\[0\].*speed"):
+        torchgi.load_scene(bad)
+
+
+def test_render_sequence_frames_are_renders_of_the_path_with_their_own_seeds():
+    from torchgi.render.engine import frame_seed
+
+    scene = sliding_cornell(16)
+    gbs = list(torchgi.render_sequence(scene, 3, spp=2, seed=5))
+    assert len(gbs) == 3 and not gbs[0].motion.any() and gbs[2].motion.abs().max() > 0.5
+    again = torchgi.render(scene.at(1.0), spp=2, seed=frame_seed(5, 2))
+    assert torch.equal(gbs[2].color, again.color) and torch.equal(gbs[2].normal, again.normal)
+    assert len({frame_seed(5, k) for k in range(100)}) == 100
+
+
+@pytest.mark.parametrize("scene_fn", [sliding_cornell, scenes.sky])
+def test_motion_reprojects_first_hits_within_005_px(scene_fn):
+    # Every pixel whose first hit is visible in both frames: the previous camera's ray through
+    # pixel + motion meets the same point. Misses (sky): the same direction.
+    scene = scene_fn(48)
+    if scene.path is None:  # the sky scene: turn and move the camera
+        c = scene.camera
+        scene.path = CameraPath((0.0, 1.0), (c.position, (c.position[0] + 0.6, c.position[1], c.position[2] - 0.3)),
+                                (c.look_at, (c.look_at[0] + 0.5, c.look_at[1] + 0.1, c.look_at[2])), (c.fov, c.fov))
+    prev_cam, gb = scene.at(0.0).camera, list(torchgi.render_sequence(scene, 2))[1]
+    W = H = 48
+    m = gb.motion[0].reshape(2, -1).double()
+    xs = (torch.arange(W * H) % W).double() + 0.5 + m[0]
+    ys = (torch.arange(W * H) // W).double() + 0.5 + m[1]
+    inside = (xs >= 0) & (xs < W) & (ys >= 0) & (ys < H)
+    hit = gb.hit.reshape(-1)
+    pos = gb.position[0].reshape(3, -1).double()
+    found = first_hits(scene, prev_cam, xs, ys).double()
+    centre = torch.tensor(prev_cam.position, dtype=torch.float64)[:, None]
+    px_size = (pos - centre).norm(dim=0) * 2 * math.tan(math.radians(prev_cam.fov) / 2) / W
+    err = (found - pos).norm(dim=0) / px_size  # in pixels of the previous frame
+    visible = inside & hit & (err < 1.0)  # hidden in the previous frame: another surface, far away
+    assert float(visible.sum()) > 0.8 * float((inside & hit).sum())
+    assert float(err[visible].max()) < 0.05
+    sky = ~hit & inside
+    if sky.any():  # background: the previous camera's ray through pixel + motion has the same direction
+        from torchgi.render.camera import camera_rays
+
+        _, now = camera_rays(scene.at(1.0).camera, torch.arange(W * H), None)
+        px, py = xs.floor(), ys.floor()
+        _, then = camera_rays(prev_cam, (py * W + px).long()[sky], torch.stack([xs - px, ys - py]).float()[:, sky])
+        a, b = now[:, sky].double(), then.double()
+        angle = torch.atan2(torch.linalg.cross(a, b, dim=0).norm(dim=0), (a * b).sum(0))
+        assert float(angle.max() / (2 * math.tan(math.radians(prev_cam.fov) / 2) / W)) < 0.05
+
+
+@pytest.mark.slow
+def test_sequence_frame_matches_mitsuba():
+    pytest.importorskip("mitsuba")
+    from tests.oracles import z_pass_rate
+    from torchgi.render.mitsuba import render_mitsuba
+
+    scene = torchgi.load_scene(os.path.join(SEQUENCES, "cornell_slide.yaml")).with_resolution(40, 40)
+    ours = torch.cat([list(torchgi.render_sequence(scene, 2, spp=32, seed=100 + s))[1].color for s in range(10)])
+    ref = torch.cat([render_mitsuba(scene.at(1.0), spp=32, bounces=1, seed=s) for s in range(10)])
+    assert z_pass_rate(ours, ref) >= 0.975
+
+
+def test_cli_renders_frames_with_a_motion_layer(tmp_path, capsys):
+    pytest.importorskip("OpenEXR")
+    from torchgi.cli import main
+    from torchgi.io import read_aovs, read_exr, write_exr
+
+    out = tmp_path / "seq.exr"
+    args = ["render", os.path.join(SEQUENCES, "cornell_slide.yaml"), "--frames", "2", "--spp", "1",
+            "--resolution", "12", "10", "--out", str(out), "--no-progress"]
+    assert main(args) == 0
+    second = tmp_path / "seq_0001.exr"
+    assert (tmp_path / "seq_0000.exr").exists() and second.exists()
+    motion = torchgi.GBuffer.from_exr(second).motion
+    assert motion.shape == (1, 2, 10, 12) and motion.abs().max() > 0
+    before = second.read_bytes()
+    assert main(args) == 2 and "seq_0000" in capsys.readouterr().err and second.read_bytes() == before
+    # other renderers' names for the layer
+    write_exr(tmp_path / "b.exr", {"ViewLayer.Vector": torch.rand(4, 3, 5)})
+    assert read_aovs(tmp_path / "b.exr", required=("motion",))["motion"].shape == (2, 3, 5)
+    write_exr(tmp_path / "a.exr", {"motionvector": torch.rand(3, 3, 5)})
+    assert read_aovs(tmp_path / "a.exr", required=("motion",))["motion"].shape == (2, 3, 5)
+    assert list(read_exr(second)["motion"].shape) == [2, 10, 12]
+
+
+# ----------------------------------------------------------------------------------- metrics
+def test_temporal_metrics_hand_computed():
+    ref = torch.ones(3, 1, 1, 1, 2)
+    x = ref.clone()
+    x[1, ..., 0] = 1.5  # the output flickers up by 0.5 in one of two pixels, then back
+    tm = metrics.temporal(x, ref)
+    # differences +0.5, -0.5 in one pixel of two over two steps, rMAE |d| / 0.01
+    assert tm["trmae"] == pytest.approx(0.5 * 0.5 / 0.01)
+    d = 1.5 / 2.5 - 0.5  # Reinhard of 1.5 minus Reinhard of 1
+    assert tm["tpsnr"] == pytest.approx(10 * math.log10(1 / (d * d / 2)))
+    assert metrics.temporal(x, ref, warmup=1)["trmae"] == pytest.approx(0.5 * 0.5 / 0.01)
+    with pytest.raises(ValueError, match="warmup"):
+        metrics.temporal(x, ref, warmup=2)
+
+
+# ------------------------------------------------------------------------- the denoiser
+def test_reprojection_is_bilinear_where_every_tap_counts():
+    # Flat guides (every tap passes): the history at pixel + motion is torch's bilinear
+    # grid_sample of it, an independent implementation.
+    B, H, W = 2, 9, 11
+    g = torch.Generator().manual_seed(0)
+    state = TemporalState(torch.rand(B, 3, H, W, generator=g), torch.rand(B, 3, H, W, generator=g),
+                          torch.rand(B, 2, H, W, generator=g),
+                          torch.full((B, 1, H, W), 3.0), torch.tensor([0.0, 0, 1]).view(1, 3, 1, 1).expand(B, 3, H, W),
+                          torch.ones(B, 1, H, W), torch.ones(B, 1, H, W))
+    motion = torch.tensor([1.3, -0.6]).view(1, 2, 1, 1).expand(B, 2, H, W)
+    surface = torch.ones(B, 1, H, W, dtype=torch.bool)
+    light, output, moments, length = _reproject(state, motion, state.normal, state.depth, surface)
+    ys, xs = torch.meshgrid(torch.arange(H) + 0.5, torch.arange(W) + 0.5, indexing="ij")
+    grid = torch.stack([(xs + 1.3) / W * 2 - 1, (ys - 0.6) / H * 2 - 1], -1).expand(B, H, W, 2)
+    inner = (slice(None), slice(None), slice(1, H), slice(0, W - 2))  # all four taps inside
+    for got, field in ((light, state.light), (output, state.output), (moments, state.moments)):
+        ref = torch.nn.functional.grid_sample(field, grid, align_corners=False)
+        assert torch.allclose(got[inner], ref[inner], atol=1e-6)
+    assert float(length[inner].min()) == 3.0
+    assert float(length[:, :, 0].max()) == 3.0 and float(length[:, :, :, -1].max()) == 0.0  # off the image: none
+
+
+def _sequence(size: int, frames: int, spp: int = 1, seed: int = 1):
+    return list(torchgi.render_sequence(sliding_cornell(size), frames, spp=spp, seed=seed))
+
+
+def test_eight_frames_of_a_still_camera_are_as_good_as_eight_samples():
+    scene = scenes.cornell(48)
+    gbs = list(torchgi.render_sequence(scene, 8, spp=1, seed=3))
+    ref = torchgi.render(scene, spp=512, seed=99).color
+    den = TemporalDenoiser()
+    err = [float(metrics.relmse(den(gb), ref)) for gb in gbs][-1]
+    assert float(den.state.length.min()) == 8
+    assert err < 0.85 * float(metrics.relmse(torchgi.Denoiser()(gbs[-1]), ref))  # one frame's samples
+    assert err < 1.1 * float(metrics.relmse(torchgi.Denoiser()(torchgi.render(scene, spp=8, seed=5)), ref))
+
+
+def test_disoccluded_pixels_are_no_worse_than_the_per_frame_denoiser():
+    # The camera slides: in the last frame, pixels none of whose four history taps (around
+    # pixel + motion in the previous frame's G-buffer) saw a point of the pixel's own surface (the
+    # same normal, within half a pixel footprint of its plane) were hidden before; they must start
+    # a new history.
+    size = 64
+    scene = sliding_cornell(size, shift=240.0)
+    gbs = list(torchgi.render_sequence(scene, 3, spp=1, seed=2))
+    den = TemporalDenoiser()
+    out = [den(gb) for gb in gbs][-1]
+    ref = torchgi.render(scene.at(1.0), spp=256, seed=77).color
+    gb, prev = gbs[-1], gbs[-2]
+    pos = gb.position[0].reshape(3, -1)
+    footprint = gb.depth.reshape(-1) * 2 * math.tan(math.radians(38.0) / 2) / size
+    xs = (torch.arange(size * size) % size) + gb.motion[0, 0].reshape(-1)
+    ys = (torch.arange(size * size) // size) + gb.motion[0, 1].reshape(-1)
+    seen = torch.zeros(size * size, dtype=torch.bool)
+    for dx in (0, 1):
+        for dy in (0, 1):
+            tx, ty = xs.floor().long() + dx, ys.floor().long() + dy
+            inside = (tx >= 0) & (tx < size) & (ty >= 0) & (ty < size)
+            tap = ty.clamp(0, size - 1) * size + tx.clamp(0, size - 1)
+            then, n_then = prev.position[0].reshape(3, -1)[:, tap], prev.normal[0].reshape(3, -1)[:, tap]
+            n = gb.normal[0].reshape(3, -1)
+            plane = ((then - pos) * n).sum(0).abs() < 0.5 * footprint
+            seen |= inside & plane & ((n * n_then).sum(0) > 0.99)
+    revealed = ~seen & gb.hit.reshape(-1)
+    assert int(revealed.sum()) >= 20
+    assert float(den.state.length.reshape(-1)[revealed].max()) == 1.0  # no old history there
+    mask = revealed.view(1, 1, size, size).expand(1, 3, size, size)
+    per_frame = torchgi.Denoiser()(gb)
+
+    def err(x):
+        return float(((x - ref).square() / (ref.square() + 1e-2))[mask].mean())
+
+    assert err(out) <= err(per_frame)
+
+
+def test_a_cut_drops_the_history_in_that_frame():
+    den = TemporalDenoiser()
+    for gb in _sequence(24, 3):
+        den(gb)
+    other = torchgi.render(scenes.sky(24), spp=1)
+    cut = other.replace(motion=torch.zeros(1, 2, 24, 24))
+    out = den(cut)  # no reset: the consistency tests see another scene
+    assert float((den.state.length == 1).float().mean()) > 0.95
+    den.reset()
+    fresh = TemporalDenoiser()
+    assert torch.equal(den(cut), fresh(cut)) and float(den.state.length.max()) == 1
+    assert out.shape == (1, 3, 24, 24)
+
+
+def test_inputs_are_checked_and_dtype_kept():
+    gb = _sequence(12, 1)[0]
+    den = TemporalDenoiser()
+    with pytest.raises(ShapeError, match="motion"):
+        den(color=gb.color, albedo=gb.albedo, normal=gb.normal, depth=gb.depth)
+    bad = gb.color.clone()
+    bad[0, 0, 3, 3] = float("nan")
+    with pytest.raises(NonFiniteError, match="color"):
+        den(gb.replace(color=bad))
+    with pytest.raises(NonFiniteError, match="motion"):
+        den(gb.replace(motion=gb.motion.clone().fill_(float("inf"))))
+    with pytest.warns(UserWarning):
+        assert bool(TemporalDenoiser(sanitize=True)(gb.replace(color=bad)).isfinite().all())
+    with pytest.raises(ValueError, match="unknown input"):
+        den(color=gb.color, albedo=gb.albedo, normal=gb.normal, depth=gb.depth, motion=gb.motion, spp=gb.spp)
+    out64 = TemporalDenoiser()(gb.to(dtype=torch.float64))
+    assert out64.dtype == torch.float64
+
+
+def test_temporal_step_is_differentiable():
+    gb = _sequence(12, 2)
+    color = gb[1].color.double().requires_grad_()
+    _, state = temporal_step(gb[0].color.double(), gb[0].albedo.double(), gb[0].normal.double(),
+                             gb[0].depth.double(), gb[0].motion.double())
+    out, _ = temporal_step(color, gb[1].albedo.double(), gb[1].normal.double(), gb[1].depth.double(),
+                           gb[1].motion.double(), state)
+    out.sum().backward()
+    assert color.grad is not None and bool(color.grad.isfinite().all()) and float(color.grad.abs().sum()) > 0
+
+
+@pytest.mark.slow
+def test_onnx_parity_over_frames(tmp_path):
+    pytest.importorskip("onnxruntime")
+    from tests.helpers import rel_error
+    from torchgi.export import OrtSession, export_onnx
+
+    m = DeployedTemporal()
+    names = list(m.input_names)
+    first = _sequence(20, 1)[0].crop(0, 0, 17, 20)
+    ex = [getattr(first, k) for k in names[:6]] + list(TemporalState.empty(first.color).tensors())
+    path = export_onnx(m, ex, tmp_path / "t.onnx", input_names=names, output_names=m.output_names, optimize=False)
+    ort = OrtSession(path)
+    for W, H in ((40, 47), (31, 24)):
+        scene = sliding_cornell(W).with_resolution(W, H)
+        ours = theirs = TemporalState.empty(torch.zeros(1, 3, H, W)).tensors()
+        for gb in torchgi.render_sequence(scene, 3, spp=1):
+            inputs = [getattr(gb, k) for k in names[:6]]
+            a = m(*inputs, *ours)
+            b = ort.outputs(**dict(zip(names, inputs + list(theirs))))
+            assert rel_error(b[0], a[0]) < 1e-4, (W, H)
+            ours, theirs = ((*s[1:5], gb.normal, gb.depth, s[5]) for s in (a, b))
+    assert np.isfinite(b[0].numpy()).all()
