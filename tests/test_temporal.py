@@ -13,7 +13,7 @@ import torchgi
 from torchgi import metrics
 from torchgi.core.errors import ConfigError, NonFiniteError, ShapeError
 from torchgi.render import CameraPath, scenes
-from torchgi.temporal import DeployedTemporal, TemporalDenoiser, TemporalState, _reproject, temporal_step
+from torchgi.temporal import DeployedTemporal, TemporalDenoiser, TemporalState, temporal_step
 
 pytest.importorskip("embreex")
 
@@ -162,26 +162,73 @@ def test_temporal_metrics_hand_computed():
 
 
 # ------------------------------------------------------------------------- the denoiser
-def test_reprojection_is_bilinear_where_every_tap_counts():
+def _has_c() -> bool:
+    from torchgi import backends
+
+    return backends.select(backends.BoxOp(torch.ones(1, 1, 2, 2), 1))[0] == "c"
+
+
+def _accumulate(state: TemporalState, x, motion, normal, depth, surface, bound=None) -> torch.Tensor:
+    from torchgi import backends
+    from torchgi.settings import TEMPORAL as T
+
+    bound = torch.full_like(x[:, :1], 1e30) if bound is None else bound
+    return backends.run(backends.AccumulateOp(x, bound, motion, normal, depth, surface, *state.tensors(), T.alpha,
+                                              T.max_history, T.normal_tolerance, T.depth_tolerance))
+
+
+@pytest.mark.parametrize("backend", ["torch", "c"])
+def test_reprojection_is_bilinear_where_every_tap_counts(backend):
     # Flat guides (every tap passes): the history at pixel + motion is torch's bilinear
     # grid_sample of it, an independent implementation.
+    from torchgi import backends
+
     B, H, W = 2, 9, 11
     g = torch.Generator().manual_seed(0)
+    flat = torch.tensor([0.0, 0, 1]).view(1, 3, 1, 1).expand(B, 3, H, W).contiguous()
     state = TemporalState(torch.rand(B, 3, H, W, generator=g), torch.rand(B, 3, H, W, generator=g),
-                          torch.rand(B, 2, H, W, generator=g),
-                          torch.full((B, 1, H, W), 3.0), torch.tensor([0.0, 0, 1]).view(1, 3, 1, 1).expand(B, 3, H, W),
+                          torch.rand(B, 2, H, W, generator=g), torch.full((B, 1, H, W), 3.0), flat,
                           torch.ones(B, 1, H, W), torch.ones(B, 1, H, W))
-    motion = torch.tensor([1.3, -0.6]).view(1, 2, 1, 1).expand(B, 2, H, W)
-    surface = torch.ones(B, 1, H, W, dtype=torch.bool)
-    light, output, moments, length = _reproject(state, motion, state.normal, state.depth, surface)
+    motion = torch.tensor([1.3, -0.6]).view(1, 2, 1, 1).expand(B, 2, H, W).contiguous()
+    x = torch.rand(B, 3, H, W, generator=g)
+    if backend == "c" and not _has_c():
+        pytest.skip("no C compiler")
+    with backends.use(backend, "torch"):
+        out = _accumulate(state, x, motion, flat, torch.ones(B, 1, H, W), torch.ones(B, 1, H, W, dtype=torch.bool))
+    assert backends.status()["last"]["accumulate"]["ran"] == backend
     ys, xs = torch.meshgrid(torch.arange(H) + 0.5, torch.arange(W) + 0.5, indexing="ij")
     grid = torch.stack([(xs + 1.3) / W * 2 - 1, (ys - 0.6) / H * 2 - 1], -1).expand(B, H, W, 2)
     inner = (slice(None), slice(None), slice(1, H), slice(0, W - 2))  # all four taps inside
-    for got, field in ((light, state.light), (output, state.output), (moments, state.moments)):
-        ref = torch.nn.functional.grid_sample(field, grid, align_corners=False)
-        assert torch.allclose(got[inner], ref[inner], atol=1e-6)
-    assert float(length[inner].min()) == 3.0
-    assert float(length[:, :, 0].max()) == 3.0 and float(length[:, :, :, -1].max()) == 0.0  # off the image: none
+    light, output, moments = (torch.nn.functional.grid_sample(f, grid, align_corners=False)
+                              for f in (state.light, state.output, state.moments))
+    lum = (x * torch.tensor([0.2126, 0.7152, 0.0722]).view(1, 3, 1, 1)).sum(1, keepdim=True)
+    a = 0.25  # length 3 + 1 frames: equal weights
+    expect = torch.cat([light + a * (x - light), output, moments + a * (torch.cat([lum, lum * lum], 1) - moments),
+                        torch.full_like(lum, 4.0), torch.full_like(lum, 3.0)], 1)
+    assert torch.allclose(out[:, :10][inner], expect[inner], atol=1e-5)
+    assert float(out[:, 9][:, :, -1].max()) == 0.0  # taps off the image: no history
+    assert torch.equal(out[:, 8][:, :, -1], torch.ones(B, H))
+
+
+def test_compiled_accumulation_matches_float64_torch_code():
+    # a real sequence: edges, disocclusions, background; the C kernel in float32 against the
+    # torch code in float64 (fireflies clamped at a bound too)
+    from torchgi import backends
+
+    if not _has_c():
+        pytest.skip("no C compiler")
+    gbs = _sequence(40, 3)
+    state = TemporalDenoiser()
+    state(gbs[0])
+    st = state.state
+    gb = gbs[1]
+    x, bound = gb.color, gb.color.mean(1, keepdim=True) * 1.5
+    args = (x, gb.motion, gb.normal, gb.depth, gb.hit)
+    c = _accumulate(st, *args, bound=bound)
+    with backends.use("torch"):
+        ref = _accumulate(TemporalState(*(t.double() for t in st.tensors())), *(a if a.dtype == torch.bool
+                          else a.double() for a in args), bound=bound.double())
+    assert c.dtype == torch.float32 and float((c.double() - ref).abs().max() / ref.abs().max()) < 1e-5
 
 
 def _sequence(size: int, frames: int, spp: int = 1, seed: int = 1):
@@ -295,11 +342,12 @@ def test_onnx_parity_over_frames(tmp_path):
     ort = OrtSession(path)
     for W, H in ((40, 47), (31, 24)):
         scene = sliding_cornell(W).with_resolution(W, H)
-        ours = theirs = TemporalState.empty(torch.zeros(1, 3, H, W)).tensors()
-        for gb in torchgi.render_sequence(scene, 3, spp=1):
+        state = TemporalState.empty(torch.zeros(1, 3, H, W)).tensors()
+        for gb in torchgi.render_sequence(scene, 3, spp=1):  # each step from the same state
             inputs = [getattr(gb, k) for k in names[:6]]
-            a = m(*inputs, *ours)
-            b = ort.outputs(**dict(zip(names, inputs + list(theirs))))
-            assert rel_error(b[0], a[0]) < 1e-4, (W, H)
-            ours, theirs = ((*s[1:5], gb.normal, gb.depth, s[5]) for s in (a, b))
+            a = m(*inputs, *state)
+            b = ort.outputs(**dict(zip(names, inputs + list(state))))
+            for mine, theirs in zip(a, b, strict=True):
+                assert rel_error(theirs, mine) < 1e-4, (W, H)
+            state = (*a[1:5], gb.normal, gb.depth, a[5])
     assert np.isfinite(b[0].numpy()).all()

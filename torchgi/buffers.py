@@ -143,6 +143,17 @@ class GBuffer:
         """The floating dtype of the radiance and guide fields (None if only spp/hit)."""
         return next((t.dtype for n, t in self.items() if n in _FLOAT_FIELDS), None)
 
+    @classmethod
+    def _unchecked(cls, **fields: torch.Tensor | None) -> GBuffer:
+        """A GBuffer of fields a caller has validated already (internal: no second walk over the
+        data for the checks of construction)."""
+        gb = object.__new__(cls)
+        for name in _CHANNELS:
+            setattr(gb, name, fields.pop(name, None))
+        if fields:
+            raise ValueError(f"unknown field(s) {', '.join(sorted(fields))}")
+        return gb
+
     def replace(self, **changes: torch.Tensor | None) -> GBuffer:
         """A new GBuffer with some fields replaced (validated again)."""
         return dataclasses.replace(self, **changes)

@@ -1,41 +1,48 @@
 """Temporal denoising of animated sequences (SVGF class, Schied et al. 2017), around the guided filter.
 
-Each frame, inside the Denoiser's pipeline (demodulation by albedo, light sources passed
-untouched, fireflies clamped at ``GUIDED.firefly`` x their local level, remodulation):
+Each frame, on the light demodulated by albedo (``(color - emission) / albedo`` on surfaces):
 
-1. **Reprojection**: the history is read at ``pixel + motion`` with bilinear taps; a tap counts
+1. **Fireflies** above ``GUIDED.firefly`` x their local level are scaled down to it (as the
+   Denoiser does) before they enter the history.
+2. **Reprojection**: the history is read at ``pixel + motion`` with bilinear taps; a tap counts
    only inside the image, on the same kind of pixel (surface / background), with a normal within
    ``TEMPORAL.normal_tolerance`` (cosine) and a depth within ``TEMPORAL.depth_tolerance``
    (relative) of the pixel's; the counted taps' weights are renormalised. No counted tap: the
    pixel is new (disoccluded, or after a cut) and its history length restarts at 1.
-2. **Accumulation**: exponential averages, with weight ``max(1 / length, TEMPORAL.alpha)`` for
-   the new frame, of the demodulated light and of its luminance moments; the history length is
-   capped at ``TEMPORAL.max_history``.
-3. **Variance** of the accumulated light: from the moments (``E[l²] - E[l]²``, over the number
-   of frames averaged) once ``TEMPORAL.variance_history`` frames are in, else a spatial estimate
-   (the ``7x7`` window of the current frame).
-4. **Spatial filter**, guided by that variance: the guided filter (normal + depth guide) at the
-   radius the Denoiser would give the samples averaged (``4 / sqrt(n)`` px); where the
-   accumulated light differs from the filtered one by more than its noise explains (a shading
-   edge the guide does not see), the accumulated light is kept in proportion (a per-pixel
-   Wiener gain, luminance ``noise² / difference²`` over a ``3x3`` window).
-5. **Feedback**: the result is the next frame's light history.
+3. **Accumulation**: exponential averages, with weight ``max(1 / length, TEMPORAL.alpha)`` for
+   the new frame, of the light and of its luminance moments; the history length is capped at
+   ``TEMPORAL.max_history``. Variance: from the moments once ``TEMPORAL.variance_history``
+   frames are in, else the spatial estimate of the current frame's ``7x7`` window.
+4. **Spatial filter**: the guided Denoiser pipeline (normal + depth guide, light sources passed
+   untouched) on the accumulated light, at ``TEMPORAL.radius`` and ``TEMPORAL.eps``: the light
+   averages several frames, so a narrower, sharper filter than the per-frame Denoiser's. Where
+   the history is shorter than ``TEMPORAL.variance_history`` frames the result is blended
+   towards the per-frame Denoiser's (weight 1 for a new pixel), so a revealed region is
+   filtered as a single frame would be.
+5. **Output history**: the filtered light of the previous frame, reprojected as in 2, clamped to
+   within ``sqrt(TEMPORAL.clamp x variance / frames)`` of this frame's filtered light (the noise
+   the accumulated light still has), then averaged with weight ``max(1 / length,
+   TEMPORAL.output_alpha)`` for this frame: flicker the filter leaves is averaged out, and a
+   change larger than the noise (a moving highlight) passes through.
 
-The state is plain tensors (:class:`TemporalState`), so :func:`temporal_step` and
+The accumulated light (not the filtered one) is the light history: feeding the filtered light
+back (SVGF's choice) blurred shading over frames on the tuning sequence (docs/temporal.md). The
+state is plain tensors (:class:`TemporalState`), so :func:`temporal_step` and
 :class:`DeployedTemporal` export to ONNX; :class:`TemporalDenoiser` keeps the state between calls.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from collections.abc import Callable
 
 import torch
 
+from torchgi import backends
 from torchgi.buffers import GBuffer
 from torchgi.core.check import finite_or_sanitized_all, is_recording
 from torchgi.core.errors import ShapeError
-from torchgi.settings import GUIDED, TEMPORAL
+from torchgi.settings import GUIDED, PIPELINE, TEMPORAL
 
 __all__ = ["DeployedTemporal", "TemporalDenoiser", "TemporalState", "temporal_step"]
 
@@ -83,60 +90,27 @@ def _luminance(x: torch.Tensor) -> torch.Tensor:
     return (x * w).sum(1, keepdim=True)
 
 
-def _reproject(state: TemporalState, motion: torch.Tensor, normal: torch.Tensor, depth: torch.Tensor,
-               surface: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The history at ``pixel + motion``: light ``(B,3)``, moments ``(B,2)`` and length ``(B,1)``
-    (0 where no tap counts), from the bilinear taps that pass the consistency tests."""
-    B, _, H, W = normal.shape
-    dt = normal.dtype
-    ys = torch.arange(H, dtype=dt, device=normal.device).view(1, H, 1)
-    xs = torch.arange(W, dtype=dt, device=normal.device).view(1, 1, W)
-    px, py = xs + motion[:, 0], ys + motion[:, 1]  # (B, H, W): pixel-centre coordinates in the previous frame
-    x0, y0 = torch.floor(px), torch.floor(py)
-    fx, fy = px - x0, py - y0
-    values = torch.cat([state.light, state.output, state.moments, state.length], 1).flatten(2)  # (B, 9, HW)
-    tests = torch.cat([state.normal, state.depth, state.surface], 1).flatten(2)  # (B, 5, HW)
-    acc = torch.zeros(B, 9, H, W, dtype=dt, device=normal.device)
-    total = torch.zeros(B, 1, H, W, dtype=dt, device=normal.device)
-    for dx, dy in ((0, 0), (1, 0), (0, 1), (1, 1)):
-        tx, ty = x0 + dx, y0 + dy
-        w = (fx if dx else 1 - fx) * (fy if dy else 1 - fy)
-        inside = (tx >= 0) & (tx <= W - 1) & (ty >= 0) & (ty <= H - 1)
-        index = (ty.clamp(0, H - 1) * W + tx.clamp(0, W - 1)).to(torch.int64).flatten(1)  # (B, HW)
-        t = tests.gather(2, index[:, None].expand(-1, 5, -1)).view(B, 5, H, W)
-        same_kind = (t[:, 4:5] > 0.5) == surface
-        close = ((t[:, :3] * normal).sum(1, keepdim=True) >= TEMPORAL.normal_tolerance) & (
-            (t[:, 3:4] - depth).abs() <= TEMPORAL.depth_tolerance * depth.abs())
-        ok = inside[:, None] & same_kind & (close | ~surface)
-        w = torch.where(ok, w[:, None], 0.0)
-        acc = acc + w * values.gather(2, index[:, None].expand(-1, 9, -1)).view(B, 9, H, W)
-        total = total + w
-    found = total > 1e-3
-    acc = torch.where(found, acc / torch.where(found, total, 1.0), 0.0)
-    return acc[:, :3], acc[:, 3:6], acc[:, 6:8], torch.where(found, torch.round(acc[:, 8:9]), 0.0)
+Spatial = Callable[..., torch.Tensor]
 
 
-def _fresh(out: torch.Tensor, acc: torch.Tensor, guide: torch.Tensor, length: torch.Tensor, radius: int,
-           eps: float) -> torch.Tensor:
+def _blend_fresh(out: torch.Tensor, length: torch.Tensor, inputs: dict[str, torch.Tensor | None],
+                 fresh: Spatial) -> torch.Tensor:
     """``out`` where the history is long; where it is shorter than ``TEMPORAL.variance_history``
-    frames, blended towards the guided filter of ``acc`` at the per-frame Denoiser's ``radius``
-    (weight 1 for a new pixel). Eager calls filter only the rows and columns around such pixels."""
-    from torchgi.filters import guided
-
+    frames, blended towards ``fresh`` (the per-frame Denoiser) of the same inputs, weight 1 for a
+    new pixel. Eager calls filter only the rows and columns around such pixels (and the filter's reach)."""
     w = ((TEMPORAL.variance_history - length) / max(TEMPORAL.variance_history - 1, 1)).clamp(0, 1)
     if is_recording():
-        return out + w * (guided(acc, guide, radius=radius, eps=eps) - out)
+        return out + w * (fresh(**inputs) - out)
     rows, cols = w.amax((0, 1, 3)) > 0, w.amax((0, 1, 2)) > 0
     if not bool(rows.any()):
         return out
-    halo = 2 * radius + 2  # the filter's reach: the box of the box
-    r = rows.nonzero()[:, 0]
-    c = cols.nonzero()[:, 0]
+    halo = 4 * GUIDED.radius + 2 * PIPELINE.firefly_radius + 4  # the box of the box, the firefly window
+    r, c = rows.nonzero()[:, 0], cols.nonzero()[:, 0]
     H, W = out.shape[-2:]
     r0, r1 = max(int(r[0]) - halo, 0), min(int(r[-1]) + halo + 1, H)
     c0, c1 = max(int(c[0]) - halo, 0), min(int(c[-1]) + halo + 1, W)
     win = (..., slice(r0, r1), slice(c0, c1))
-    wide = guided(acc[win].contiguous(), guide[win].contiguous(), radius=radius, eps=eps)
+    wide = fresh(**{k: None if v is None else v[win] for k, v in inputs.items()})
     out = out.clone()
     out[win] = out[win] + w[win] * (wide - out[win])
     return out
@@ -145,7 +119,7 @@ def _fresh(out: torch.Tensor, acc: torch.Tensor, guide: torch.Tensor, length: to
 def temporal_step(
     color: torch.Tensor, albedo: torch.Tensor, normal: torch.Tensor, depth: torch.Tensor, motion: torch.Tensor,
     state: TemporalState | None = None, *, emission: torch.Tensor | None = None, hit: torch.Tensor | None = None,
-    radius: int = TEMPORAL.radius, radius_fresh: int = GUIDED.radius, eps: float = TEMPORAL.eps,
+    spatial: Spatial | None = None, fresh: Spatial | None = None,
 ) -> tuple[torch.Tensor, TemporalState]:
     """One frame of temporal denoising (module docstring), stateless: ``(output, next_state)``.
 
@@ -157,9 +131,10 @@ def temporal_step(
         state: the previous call's ``next_state``; None = no history (a first frame, a cut).
         emission: ``(B,3,H,W)`` emitted radiance (light sources pass untouched), or None.
         hit: ``(B,1,H,W)`` bool surface mask; None = non-zero albedo.
-        radius: the guided filter's radius in px (``TEMPORAL.radius``).
-        radius_fresh: its radius where the history is short (new pixels: the per-frame Denoiser's).
-        eps: the guided filter's ε (``TEMPORAL.eps``).
+        spatial: the filter of the accumulated radiance, called with ``color, emission, albedo,
+            normal, depth, hit``; None = ``Denoiser("guided", radius=TEMPORAL.radius, eps=TEMPORAL.eps,
+            subsample=1)``.
+        fresh: the filter where the history is short (called the same way); None = ``Denoiser("guided")``.
 
     Returns:
         The ``(B,3,H,W)`` denoised radiance (input dtype and device) and the state for the next frame.
@@ -172,38 +147,37 @@ def temporal_step(
         >>> out.shape, int(state.length.max())
         (torch.Size([1, 3, 16, 16]), 2)
     """
-    from torchgi.denoise import _restore, _surface
-    from torchgi.filters import box, guide_from, guided
+    from torchgi.denoise import Denoiser, _demodulator, _every4, _median_level, _surface
+    from torchgi.filters import box
 
+    t = TEMPORAL
+    spatial = spatial or Denoiser("guided", radius=t.radius, eps=t.eps, subsample=1)
+    fresh = fresh or Denoiser("guided")
     surface = _surface(hit, albedo)
+    emission = torch.zeros_like(color) if emission is None else emission
+    demod = _demodulator(albedo, surface)
     state = TemporalState.empty(color) if state is None else state
-    kept: dict[str, Any] = {}
-
-    def filter_fn(x: torch.Tensor) -> torch.Tensor:
-        hist_light, hist_out, hist_moments, hist_length = _reproject(state, motion, normal, depth, surface)
-        length = torch.where(hist_length > 0, (hist_length + 1).clamp_max(TEMPORAL.max_history), 1.0)
-        a = torch.maximum(1.0 / length, torch.full((), TEMPORAL.alpha, dtype=x.dtype, device=x.device))
-        acc = hist_light + a * (x - hist_light)
-        lum = _luminance(x)
-        moments = hist_moments + a * (torch.cat([lum, lum * lum], 1) - hist_moments)
-        temporal_var = (moments[:, 1:2] - moments[:, :1].square()).clamp_min(0)
-        m = box(torch.cat([lum, lum * lum], 1), TEMPORAL.variance_radius)
-        spatial_var = (m[:, 1:2] - m[:, :1].square()).clamp_min(0)
-        var = torch.where(length >= TEMPORAL.variance_history, temporal_var, spatial_var)
-        # frames averaged: 1/length while the weights are equal, (2 - α)/α once the average is exponential
-        frames = torch.minimum(length, (2 - a) / a)
-        guide = guide_from(normal, depth, depth_scale="image")
-        out = _fresh(guided(acc, guide, radius=radius, eps=eps), acc, guide, length, radius_fresh, eps)
-        # the output history, within sqrt(clamp x the noise variance of acc) of this frame's result
-        sigma = torch.sqrt(TEMPORAL.clamp * box(var / frames, 1))
-        h = torch.maximum(torch.minimum(hist_out, out + sigma), out - sigma)
-        beta = torch.maximum(1.0 / length, torch.full((), TEMPORAL.output_alpha, dtype=x.dtype, device=x.device))
-        out = torch.where(hist_length > 0, h + beta * (out - h), out)
-        kept["state"] = TemporalState(acc, out, moments, length, normal, depth, surface.to(x.dtype))
-        return out
-
-    out = _restore(color, emission, None, albedo, surface, filter_fn, GUIDED.firefly)
-    return out, kept["state"]
+    x = (color - emission) / demod
+    # fireflies: above GUIDED.firefly x their local level (as the Denoiser does), before they enter the history
+    level = _median_level(_every4(x), _every4(surface))
+    bound = GUIDED.firefly * box(torch.minimum(x.amax(1, keepdim=True), GUIDED.firefly * level),
+                                 PIPELINE.firefly_radius).clamp_min(0)
+    step = backends.run(backends.AccumulateOp(x, bound, motion, normal, depth, surface, *state.tensors(), t.alpha,
+                                              t.max_history, t.normal_tolerance, t.depth_tolerance))
+    acc, hist_out, moments, length, hist_length, temporal_var, frames, lum = step.split([3, 3, 2, 1, 1, 1, 1, 1], 1)
+    m = box(torch.cat([lum, lum * lum], 1), t.variance_radius)
+    var = torch.where(length >= t.variance_history, temporal_var, (m[:, 1:2] - m[:, :1].square()).clamp_min(0))
+    inputs = {"color": acc * demod + emission, "emission": emission, "albedo": albedo, "normal": normal,
+              "depth": depth, "hit": hit}
+    out = _blend_fresh(spatial(**inputs), length, inputs, fresh)
+    # the output history (demodulated), within sqrt(clamp x the accumulated light's noise variance) of this frame's
+    light = (out - emission) / demod
+    sigma = torch.sqrt(t.clamp * box(var / frames, 1))
+    h = torch.maximum(torch.minimum(hist_out, light + sigma), light - sigma)
+    beta = torch.maximum(1.0 / length, torch.full((), t.output_alpha, dtype=x.dtype, device=x.device))
+    light = torch.where(hist_length > 0, h + beta * (light - h), light)
+    nxt = TemporalState(acc, light, moments, length, normal, depth, surface.to(x.dtype))
+    return light * demod + emission, nxt
 
 
 def _check_inputs(tensors: dict[str, torch.Tensor]) -> GBuffer:
@@ -214,6 +188,11 @@ def _check_inputs(tensors: dict[str, torch.Tensor]) -> GBuffer:
         if tensors.get(name) is None:
             raise ShapeError(f"{name}: required by the TemporalDenoiser")
     return GBuffer(**tensors)  # shapes, one device, one dtype; guides (motion included) finite
+
+
+def _checked(den: torch.nn.Module) -> Spatial:
+    """``den`` (a :class:`~torchgi.Denoiser`) called on named inputs that are checked already."""
+    return lambda **inputs: den._denoise(GBuffer._unchecked(**inputs))
 
 
 class TemporalDenoiser(torch.nn.Module):
@@ -239,9 +218,14 @@ class TemporalDenoiser(torch.nn.Module):
     """
 
     def __init__(self, *, sanitize: bool = False) -> None:
+        from torchgi.denoise import Denoiser
+
         super().__init__()
         self.sanitize = sanitize
         self.state: TemporalState | None = None
+        # kept between calls (its buffers); called on inputs checked once per frame
+        self.spatial = Denoiser("guided", radius=TEMPORAL.radius, eps=TEMPORAL.eps, subsample=1)
+        self.fresh = Denoiser("guided")
 
     def reset(self) -> None:
         """Forget the history: the next frame is filtered as a first frame."""
@@ -263,7 +247,7 @@ class TemporalDenoiser(torch.nn.Module):
                               or s.light.device != color.device):
             s = None
         out, self.state = temporal_step(color, gb.albedo, gb.normal, gb.depth, gb.motion, s, emission=emission,
-                                        hit=gb.hit)
+                                        hit=gb.hit, spatial=_checked(self.spatial), fresh=_checked(self.fresh))
         return out
 
 
@@ -286,6 +270,19 @@ class DeployedTemporal(torch.nn.Module):
         [3, 3, 3, 2, 1, 1]
     """
 
+    def __init__(self) -> None:
+        from torchgi.denoise import Denoiser
+
+        super().__init__()
+        self.spatial = Denoiser("guided", radius=TEMPORAL.radius, eps=TEMPORAL.eps).deploy(spp=1)
+        self.fresh = Denoiser("guided").deploy(spp=1)
+
+    def _spatial(self, **k: torch.Tensor) -> torch.Tensor:
+        return self.spatial(k["color"], k["emission"], k["albedo"], k["normal"], k["depth"])
+
+    def _fresh(self, **k: torch.Tensor) -> torch.Tensor:
+        return self.fresh(k["color"], k["emission"], k["albedo"], k["normal"], k["depth"])
+
     input_names = ("color", "emission", "albedo", "normal", "depth", "motion", "light", "history", "moments",
                    "length", "prev_normal", "prev_depth", "prev_surface")
     output_names = ("output", "next_light", "next_history", "next_moments", "next_length", "next_surface")
@@ -295,5 +292,6 @@ class DeployedTemporal(torch.nn.Module):
                 moments: torch.Tensor, length: torch.Tensor, prev_normal: torch.Tensor, prev_depth: torch.Tensor,
                 prev_surface: torch.Tensor) -> tuple[torch.Tensor, ...]:
         state = TemporalState(light, history, moments, length, prev_normal, prev_depth, prev_surface)
-        out, nxt = temporal_step(color, albedo, normal, depth, motion, state, emission=emission)
+        out, nxt = temporal_step(color, albedo, normal, depth, motion, state, emission=emission,
+                                 spatial=self._spatial, fresh=self._fresh)
         return out, nxt.light, nxt.output, nxt.moments, nxt.length, nxt.surface

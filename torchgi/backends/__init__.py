@@ -24,6 +24,7 @@ Example:
 from torchgi.backends.base import (
     NAMES,
     ORDER,
+    AccumulateOp,
     AllocateOp,
     ATrousOp,
     BoxOp,
@@ -41,6 +42,6 @@ from torchgi.backends.base import (
 )
 
 __all__ = [
-    "NAMES", "ORDER", "ATrousOp", "AllocateOp", "BoxOp", "EdgeShareOp", "GuideSpec", "GuideStatsOp", "GuidedOp",
+    "NAMES", "ORDER", "ATrousOp", "AccumulateOp", "AllocateOp", "BoxOp", "EdgeShareOp", "GuideSpec", "GuideStatsOp", "GuidedOp",
     "ImportanceOp", "RestoreOp", "enabled", "run", "select", "status", "use",
 ]

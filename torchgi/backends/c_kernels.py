@@ -39,6 +39,7 @@ from pathlib import Path
 import torch
 
 from torchgi.backends.base import (
+    AccumulateOp,
     AllocateOp,
     ATrousOp,
     BoxOp,
@@ -94,6 +95,7 @@ _SIGNATURES = {
     "torchgi_clamp": ([_P, _P, _F, _I, _I, _I, _P, *_BANDS], None),
     "torchgi_restore_coefficients": ([_I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _I, _I, _I, _I, _P, _F, _P, *_BANDS],
                                      None),
+    "torchgi_accumulate": ([_P] * 13 + [_I, _I, _F, _F, _F, _F, _P, *_BANDS], None),
     "torchgi_guided_finish": ([_P, _I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _I, _I, _I, _I, _P, _P, _P, _P, _P, _P, _F,
                                _P, *_BANDS], None),
 }
@@ -212,6 +214,8 @@ def supports(op: str, desc: BoxOp | GuidedOp | ATrousOp | ImportanceOp | Allocat
         why = float32_eager(op, desc, "C")
         if why is not None:
             return why
+    if op == "accumulate" and (desc.x.numel() == 0 or desc.x.shape[-2] * desc.x.shape[-1] >= 2**31):
+        return "the C accumulation takes non-empty images of fewer than 2^31 pixels"
     if op == "restore" and (desc.color.numel() == 0 or desc.color.shape[-2] * desc.color.shape[-1] >= 2**31):
         return "the C pipeline takes non-empty images of fewer than 2^31 pixels"
     return None if library() is not None else _status
@@ -660,4 +664,26 @@ def restore(desc: RestoreOp) -> torch.Tensor:
         _run(lib.torchgi_guided_finish, H, W, (coef if s == 1 else coef_box).data_ptr(), n, 3, *g, scale.data_ptr(),
              offset.data_ptr(), mean_g.data_ptr(), mean_p.data_ptr(), H, W, r_low, s, out[b].data_ptr(), *light_in,
              lights, _box_scratch(Q, W) + 3 * W if s == 1 else 7 * W + w)
+    return out
+
+
+def accumulate(desc: AccumulateOp) -> torch.Tensor:
+    """:class:`~torchgi.backends.base.AccumulateOp` in one walk per image.
+
+    Example:
+        >>> z = lambda c: torch.zeros(1, c, 2, 2)
+        >>> op = AccumulateOp(torch.ones(1, 3, 2, 2), z(1) + 9, z(2), z(3), z(1) + 1, z(1) > 0, z(3), z(3), z(2),
+        ...                   z(1), z(3), z(1), z(1), 0.2, 32, 0.9, 0.05)
+        >>> library() is None or accumulate(op)[0, :, 0, 0].tolist()[6:9] == [1.0, 1.0, 1.0]
+        True
+    """
+    lib = library()
+    d = desc
+    ts = [t.contiguous() for t in (d.x, d.bound, d.motion, d.normal, d.depth, d.surface, d.light, d.output, d.moments,
+                                   d.length, d.prev_normal, d.prev_depth, d.prev_surface)]
+    B, _, H, W = d.x.shape
+    out = torch.empty(B, 13, H, W, dtype=torch.float32)
+    for b in range(B):
+        _run(lib.torchgi_accumulate, H, W, *(t[b].data_ptr() for t in ts), H, W, d.alpha, float(d.max_history),
+             d.normal_tolerance, d.depth_tolerance, out[b].data_ptr(), 0)
     return out
