@@ -119,6 +119,26 @@ print(worst)
 """
 
 
+_INTERPRETED_TEMPORAL = """
+import torch, torchgi
+from torchgi import backends
+from torchgi.render import CameraPath
+from torchgi.temporal import TemporalDenoiser
+scene = torchgi.scenes.cornell(24).with_resolution(24, 20)
+p = scene.camera.position
+scene.path = CameraPath((0.0, 1.0), (p, (p[0] + 60, p[1], p[2] + 40)), ((278, 273, 0), (290, 270, 0)), (39.3, 39.3))
+gbs = list(torchgi.render_sequence(scene, 2, spp=1, seed=4))
+with backends.use("triton"):
+    den = TemporalDenoiser()
+    out = [den(gb) for gb in gbs][-1]
+assert backends.status()["last"]["restore"]["ran"] == "triton"
+with backends.use("torch"):
+    den = TemporalDenoiser()
+    ref = [den(gb.to(dtype=torch.float64)) for gb in gbs][-1]
+print(float(((out.double() - ref).abs() / (ref.abs() + 1e-3)).max()))
+"""
+
+
 def _interpret(code: str) -> list[float]:
     """Run ``code`` (formatted with the repository root) with the Triton interpreter on and the C
     kernels off (they would take CPU calls first); returns the numbers of the last line it prints."""
@@ -276,3 +296,11 @@ def test_triton_pipeline_matches_the_float64_torch_code_in_the_interpreter():
     pytest.importorskip("embreex")
     (worst,) = _interpret(_INTERPRETED_RESTORE)
     assert worst < 5e-4  # measured 1.3e-4 (the C back end: 1.5e-4 at full, 1.7e-3 at 1/3 resolution)
+
+
+def test_temporal_denoiser_on_the_triton_pipeline_in_the_interpreter():
+    """The TemporalDenoiser's CUDA path (its accumulation in the torch code, the guided pipeline
+    in Triton) against the float64 torch code, two frames of a moving camera."""
+    pytest.importorskip("embreex")
+    (worst,) = _interpret(_INTERPRETED_TEMPORAL)
+    assert worst < 5e-3

@@ -317,6 +317,16 @@ def test_inputs_are_checked_and_dtype_kept():
     assert out64.dtype == torch.float64
 
 
+def test_same_result_on_every_device(device):
+    gbs = _sequence(20, 3)
+    den, ref_den = TemporalDenoiser(), TemporalDenoiser()
+    for gb in gbs:
+        out = den(gb.to(device))
+        ref = ref_den(gb.to(dtype=torch.float64))
+    assert out.device.type == device.type
+    assert float(((out.cpu().double() - ref).abs() / (ref.abs() + 1e-3)).max()) < 5e-3
+
+
 def test_temporal_step_is_differentiable():
     gb = _sequence(12, 2)
     color = gb[1].color.double().requires_grad_()

@@ -1,15 +1,19 @@
 """torchgi: fast, accurate denoising of Monte Carlo path-traced images in PyTorch.
 
-The top level stays tiny: ``GBuffer``, ``Denoiser``, ``render`` (a callable package: ``torchgi.render(scene,
-spp, bounces, seed)``), ``load_scene`` and ``scenes``; everything else lives in subpackages
-(``torchgi.core``, ``torchgi.io``, ``torchgi.metrics``, ``torchgi.filters``, ``torchgi.sampling``).
+The top level stays tiny: ``GBuffer``, ``Denoiser``, ``TemporalDenoiser``, ``render`` (a callable
+package: ``torchgi.render(scene, spp, bounces, seed)``), ``render_sequence``, ``load_scene`` and
+``scenes``; everything else lives in subpackages (``torchgi.core``, ``torchgi.io``,
+``torchgi.metrics``, ``torchgi.filters``, ``torchgi.sampling``, ``torchgi.temporal``).
 """
 
 from torchgi import render
 from torchgi.buffers import GBuffer
 from torchgi.denoise import Denoiser
 from torchgi.render import load_scene, render_sequence, scenes
+from torchgi.temporal import TemporalDenoiser
 
 __version__ = "0.1.0"
 
-__all__ = ["Denoiser", "GBuffer", "__version__", "load_scene", "render", "render_sequence", "scenes"]
+__all__ = [
+    "Denoiser", "GBuffer", "TemporalDenoiser", "__version__", "load_scene", "render", "render_sequence", "scenes",
+]
