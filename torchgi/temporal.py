@@ -15,10 +15,10 @@ Each frame, on the light demodulated by albedo (``(color - emission) / albedo`` 
    frames are in, else the spatial estimate of the current frame's ``7x7`` window.
 4. **Spatial filter**: the guided Denoiser pipeline (normal + depth guide, light sources passed
    untouched) on the accumulated light, at ``TEMPORAL.radius`` and ``TEMPORAL.eps``: the light
-   averages several frames, so a narrower, sharper filter than the per-frame Denoiser's. Where
-   the history is shorter than ``TEMPORAL.variance_history`` frames the result is blended
-   towards the per-frame Denoiser's (weight 1 for a new pixel), so a revealed region is
-   filtered as a single frame would be.
+   averages several frames, so a narrower, sharper filter than the per-frame Denoiser's. In
+   images below ``GUIDED.subsample_from`` px on the short side, where the history is shorter than
+   ``TEMPORAL.variance_history`` frames the result is blended towards the per-frame Denoiser's
+   (weight 1 for a new pixel), so a revealed region is filtered as a single frame would be.
 5. **Output history**: the filtered light of the previous frame, reprojected as in 2, clamped to
    within ``sqrt(TEMPORAL.clamp x variance / frames)`` of this frame's filtered light (the noise
    the accumulated light still has), then averaged with weight ``max(1 / length,
@@ -134,7 +134,10 @@ def temporal_step(
         spatial: the filter of the accumulated radiance, called with ``color, emission, albedo,
             normal, depth, hit``; None = ``Denoiser("guided", radius=TEMPORAL.radius, eps=TEMPORAL.eps,
             subsample=1)``.
-        fresh: the filter where the history is short (called the same way); None = ``Denoiser("guided")``.
+        fresh: the filter where the history is short (called the same way), or None: none.
+            :class:`TemporalDenoiser` passes the per-frame Denoiser below ``GUIDED.subsample_from``
+            px on the short side (where that filters at full resolution; above it the accumulated
+            light's own filter measured better on new pixels, docs/temporal.md).
 
     Returns:
         The ``(B,3,H,W)`` denoised radiance (input dtype and device) and the state for the next frame.
@@ -152,7 +155,6 @@ def temporal_step(
 
     t = TEMPORAL
     spatial = spatial or Denoiser("guided", radius=t.radius, eps=t.eps, subsample=1)
-    fresh = fresh or Denoiser("guided")
     surface = _surface(hit, albedo)
     emission = torch.zeros_like(color) if emission is None else emission
     demod = _demodulator(albedo, surface)
@@ -169,7 +171,9 @@ def temporal_step(
     var = torch.where(length >= t.variance_history, temporal_var, (m[:, 1:2] - m[:, :1].square()).clamp_min(0))
     inputs = {"color": acc * demod + emission, "emission": emission, "albedo": albedo, "normal": normal,
               "depth": depth, "hit": hit}
-    out = _blend_fresh(spatial(**inputs), length, inputs, fresh)
+    out = spatial(**inputs)
+    if fresh is not None:
+        out = _blend_fresh(out, length, inputs, fresh)
     # the output history (demodulated), within sqrt(clamp x the accumulated light's noise variance) of this frame's
     light = (out - emission) / demod
     sigma = torch.sqrt(t.clamp * box(var / frames, 1))
@@ -247,7 +251,9 @@ class TemporalDenoiser(torch.nn.Module):
                               or s.light.device != color.device):
             s = None
         out, self.state = temporal_step(color, gb.albedo, gb.normal, gb.depth, gb.motion, s, emission=emission,
-                                        hit=gb.hit, spatial=_checked(self.spatial), fresh=_checked(self.fresh))
+                                        hit=gb.hit, spatial=_checked(self.spatial),
+                                        fresh=_checked(self.fresh) if min(color.shape[-2:]) < GUIDED.subsample_from
+                                        else None)
         return out
 
 
@@ -259,8 +265,10 @@ class DeployedTemporal(torch.nn.Module):
     surface)``: the next frame passes these five as ``light, history, moments, length,
     prev_surface`` and this frame's ``normal`` and ``depth`` inputs as ``prev_normal, prev_depth``
     (``history`` is :attr:`TemporalState.output`). The first frame passes
-    :meth:`TemporalState.empty`. Surfaces are the pixels of non-zero albedo; ``emission`` is
-    required (zeros when no light source is in view).
+    :meth:`TemporalState.empty`. ``fresh``: blend new pixels towards the per-frame Denoiser (what
+    :class:`TemporalDenoiser` does below 256 px on the short side; fixed here, as the radius is).
+    Surfaces are the pixels of non-zero albedo; ``emission`` is required (zeros when no light
+    source is in view).
 
     Example:
         >>> m = DeployedTemporal()
@@ -270,12 +278,12 @@ class DeployedTemporal(torch.nn.Module):
         [3, 3, 3, 2, 1, 1]
     """
 
-    def __init__(self) -> None:
+    def __init__(self, fresh: bool = True) -> None:
         from torchgi.denoise import Denoiser
 
         super().__init__()
         self.spatial = Denoiser("guided", radius=TEMPORAL.radius, eps=TEMPORAL.eps).deploy(spp=1)
-        self.fresh = Denoiser("guided").deploy(spp=1)
+        self.fresh = Denoiser("guided").deploy(spp=1) if fresh else None
 
     def _spatial(self, **k: torch.Tensor) -> torch.Tensor:
         return self.spatial(k["color"], k["emission"], k["albedo"], k["normal"], k["depth"])
@@ -293,5 +301,5 @@ class DeployedTemporal(torch.nn.Module):
                 prev_surface: torch.Tensor) -> tuple[torch.Tensor, ...]:
         state = TemporalState(light, history, moments, length, prev_normal, prev_depth, prev_surface)
         out, nxt = temporal_step(color, albedo, normal, depth, motion, state, emission=emission,
-                                 spatial=self._spatial, fresh=self._fresh)
+                                 spatial=self._spatial, fresh=None if self.fresh is None else self._fresh)
         return out, nxt.light, nxt.output, nxt.moments, nxt.length, nxt.surface
