@@ -46,7 +46,6 @@ from torchgi.settings import GUIDED, PIPELINE, TEMPORAL
 
 __all__ = ["DeployedTemporal", "TemporalDenoiser", "TemporalState", "temporal_step"]
 
-_LUMA = (0.2126, 0.7152, 0.0722)
 _INPUTS = ("color", "albedo", "normal", "depth", "motion", "emission", "hit")
 
 
@@ -54,8 +53,9 @@ _INPUTS = ("color", "albedo", "normal", "depth", "motion", "emission", "hit")
 class TemporalState:
     """What :func:`temporal_step` carries from one frame to the next, all ``(B, C, H, W)``:
     ``light`` (3: the accumulated demodulated light), ``output`` (3: the filtered one, the
-    output's history), ``moments`` (2: luminance mean and mean square), ``length`` (1: frames in the history, 0 = none), ``normal`` (3), ``depth`` (1) and
-    ``surface`` (1: 1.0 on geometry) of the frame they belong to."""
+    output's history), ``moments`` (2: luminance mean and mean square), ``length`` (1: frames in
+    the history, 0 = none), ``normal`` (3), ``depth`` (1) and ``surface`` (1: 1.0 on geometry) of
+    the frame they belong to."""
 
     light: torch.Tensor
     output: torch.Tensor
@@ -83,11 +83,6 @@ class TemporalState:
     def tensors(self) -> tuple[torch.Tensor, ...]:
         """The fields in order (the exported graph's state inputs and outputs)."""
         return tuple(getattr(self, f.name) for f in dataclasses.fields(self))
-
-
-def _luminance(x: torch.Tensor) -> torch.Tensor:
-    w = torch.tensor(_LUMA, dtype=x.dtype, device=x.device).view(1, 3, 1, 1)
-    return (x * w).sum(1, keepdim=True)
 
 
 Spatial = Callable[..., torch.Tensor]
