@@ -124,7 +124,7 @@ import torch, torchgi
 from torchgi import backends
 from torchgi.render import CameraPath
 from torchgi.temporal import TemporalDenoiser
-scene = torchgi.scenes.cornell(24).with_resolution(24, 20)
+scene = torchgi.scenes.cornell(16).with_resolution(16, 14)
 p = scene.camera.position
 scene.path = CameraPath((0.0, 1.0), (p, (p[0] + 60, p[1], p[2] + 40)), ((278, 273, 0), (290, 270, 0)), (39.3, 39.3))
 gbs = list(torchgi.render_sequence(scene, 2, spp=1, seed=4))

@@ -108,6 +108,9 @@ class TemporalSettings:
     variance_radius: int = _setting(3, 0, 64, "px", "the spatial estimate's window (7x7)")
     radius: int = _setting(2, 1, 64, "px", "the guided filter's radius on the accumulated light (tuning sequence)")
     eps: float = _setting(1e-5, 0.0, math.inf, "guide units squared", "its ε (tuning sequence: 1e-5 below 1e-4)")
+    fresh_share: float = _setting(0.5, 0.0, 1.0, "share of pixels",
+                                  "from 256 px, the per-frame Denoiser fills new pixels only when at least this share "
+                                  "of the frame is new (a first frame, a cut): as good as a single frame")
     output_alpha: float = _setting(0.2, 0.0, 1.0, "weight of the new frame",
                                    "exponential average of the filtered output (temporal anti-flicker)")
     clamp: float = _setting(0.1, 0.0, math.inf, "x noise variance",

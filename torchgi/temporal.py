@@ -89,15 +89,16 @@ Spatial = Callable[..., torch.Tensor]
 
 
 def _blend_fresh(out: torch.Tensor, length: torch.Tensor, inputs: dict[str, torch.Tensor | None],
-                 fresh: Spatial) -> torch.Tensor:
+                 fresh: Spatial, share: float) -> torch.Tensor:
     """``out`` where the history is long; where it is shorter than ``TEMPORAL.variance_history``
     frames, blended towards ``fresh`` (the per-frame Denoiser) of the same inputs, weight 1 for a
-    new pixel. Eager calls filter only the rows and columns around such pixels (and the filter's reach)."""
+    new pixel; only when at least ``share`` of the pixels are new (0: always). Eager calls filter
+    only the rows and columns around such pixels (and the filter's reach)."""
     w = ((TEMPORAL.variance_history - length) / max(TEMPORAL.variance_history - 1, 1)).clamp(0, 1)
     if is_recording():
         return out + w * (fresh(**inputs) - out)
     rows, cols = w.amax((0, 1, 3)) > 0, w.amax((0, 1, 2)) > 0
-    if not bool(rows.any()):
+    if not bool(rows.any()) or (share > 0 and float((length == 1).float().mean()) < share):
         return out
     halo = 4 * GUIDED.radius + 2 * PIPELINE.firefly_radius + 4  # the box of the box, the firefly window
     r, c = rows.nonzero()[:, 0], cols.nonzero()[:, 0]
@@ -114,7 +115,7 @@ def _blend_fresh(out: torch.Tensor, length: torch.Tensor, inputs: dict[str, torc
 def temporal_step(
     color: torch.Tensor, albedo: torch.Tensor, normal: torch.Tensor, depth: torch.Tensor, motion: torch.Tensor,
     state: TemporalState | None = None, *, emission: torch.Tensor | None = None, hit: torch.Tensor | None = None,
-    spatial: Spatial | None = None, fresh: Spatial | None = None,
+    spatial: Spatial | None = None, fresh: Spatial | None = None, fresh_share: float = 0.0,
 ) -> tuple[torch.Tensor, TemporalState]:
     """One frame of temporal denoising (module docstring), stateless: ``(output, next_state)``.
 
@@ -130,9 +131,12 @@ def temporal_step(
             normal, depth, hit``; None = ``Denoiser("guided", radius=TEMPORAL.radius, eps=TEMPORAL.eps,
             subsample=1)``.
         fresh: the filter where the history is short (called the same way), or None: none.
-            :class:`TemporalDenoiser` passes the per-frame Denoiser below ``GUIDED.subsample_from``
-            px on the short side (where that filters at full resolution; above it the accumulated
-            light's own filter measured better on new pixels, docs/temporal.md).
+        fresh_share: use ``fresh`` only when at least this share of the pixels is new (0: always).
+            :class:`TemporalDenoiser` passes the per-frame Denoiser with share 0 below
+            ``GUIDED.subsample_from`` px on the short side (where that filters at full resolution)
+            and ``TEMPORAL.fresh_share`` above it (a first frame, a cut: above 256 px the
+            accumulated light's own filter measured better on new pixels amid old ones,
+            docs/temporal.md).
 
     Returns:
         The ``(B,3,H,W)`` denoised radiance (input dtype and device) and the state for the next frame.
@@ -168,7 +172,7 @@ def temporal_step(
               "depth": depth, "hit": hit}
     out = spatial(**inputs)
     if fresh is not None:
-        out = _blend_fresh(out, length, inputs, fresh)
+        out = _blend_fresh(out, length, inputs, fresh, fresh_share)
     # the output history (demodulated), within sqrt(clamp x the accumulated light's noise variance) of this frame's
     light = (out - emission) / demod
     sigma = torch.sqrt(t.clamp * box(var / frames, 1))
@@ -245,10 +249,10 @@ class TemporalDenoiser(torch.nn.Module):
         if s is not None and (s.light.shape != color.shape or s.light.dtype != color.dtype
                               or s.light.device != color.device):
             s = None
+        share = 0.0 if min(color.shape[-2:]) < GUIDED.subsample_from else TEMPORAL.fresh_share
         out, self.state = temporal_step(color, gb.albedo, gb.normal, gb.depth, gb.motion, s, emission=emission,
-                                        hit=gb.hit, spatial=_checked(self.spatial),
-                                        fresh=_checked(self.fresh) if min(color.shape[-2:]) < GUIDED.subsample_from
-                                        else None)
+                                        hit=gb.hit, spatial=_checked(self.spatial), fresh=_checked(self.fresh),
+                                        fresh_share=share)
         return out
 
 
