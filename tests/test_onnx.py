@@ -58,16 +58,23 @@ def test_atrous_parity(tmp_path):
         assert rel(session(color=c, normal=n, position=x), m(c, n, x)) < 1e-4, (B, H, W)
 
 
-def test_exported_denoiser_matches_torch(tmp_path):
+@pytest.fixture(scope="module")
+def guided_onnx(tmp_path_factory):
+    """The guided Denoiser exported once by the CLI (``torchgi export``), for the tests below."""
+    from torchgi.cli import main
+
+    path = tmp_path_factory.mktemp("onnx") / "den.onnx"
+    assert main(["export", "--method", "guided", "--spp", "1", "--out", str(path)]) == 0
+    return path
+
+
+def test_exported_denoiser_matches_torch(guided_onnx):
     pytest.importorskip("embreex")
     import torchgi
-    from torchgi.cli import main
     from torchgi.denoise import Denoiser
     from torchgi.export import OrtDenoiser
 
-    path = tmp_path / "den.onnx"
-    assert main(["export", "--method", "guided", "--spp", "1", "--out", str(path)]) == 0
-    ort = OrtDenoiser(path)
+    ort = OrtDenoiser(guided_onnx)
     deployed = Denoiser("guided").deploy(spp=1)
     for size in (40, 24):
         gb = torchgi.render(torchgi.scenes.cornell(size).with_resolution(size, size + 7), spp=1, bounces=1)
@@ -93,14 +100,14 @@ def _hole_case(run, name: str, value: float, reach: int, W: int = 72, H: int = 6
     return float(((out - clean).abs() / (clean.abs() + 1e-2))[..., far].max())
 
 
-def test_exported_denoiser_contains_a_non_finite_pixel(tmp_path):
+def test_exported_denoiser_contains_a_non_finite_pixel(guided_onnx):
     """In onnxruntime a NaN/Inf pixel is a hole: finite output everywhere, the clean result
     outside its footprint (8 px of firefly window, the guided filter's radius 4 twice, the
     hole's own 2 px and 2 of light-source opening)."""
     pytest.importorskip("embreex")
-    from torchgi.export import OrtDenoiser, export_denoiser
+    from torchgi.export import OrtDenoiser
 
-    ort = OrtDenoiser(export_denoiser("guided", tmp_path / "d.onnx"))
+    ort = OrtDenoiser(guided_onnx)
     run = lambda **t: ort(**{k: v for k, v in t.items() if k != "position"})
     for name, value in (("color", float("nan")), ("depth", float("inf")), ("albedo", -float("inf"))):
         # measured 7.1e-5 at any reach from 12 px: the rounding of the image-wide sums (the
