@@ -303,4 +303,4 @@ def test_temporal_denoiser_on_the_triton_pipeline_in_the_interpreter():
     in Triton) against the float64 torch code, two frames of a moving camera."""
     pytest.importorskip("embreex")
     (worst,) = _interpret(_INTERPRETED_TEMPORAL)
-    assert worst < 5e-3
+    assert worst < 2e-4  # measured 9.0e-6
