@@ -104,14 +104,20 @@ def _light_sources(emission: torch.Tensor, threshold: torch.Tensor) -> torch.Ten
     return bright & (box(core.to(emission.dtype), r) > 0)  # dilation back
 
 
-def _clamp_fireflies(x: torch.Tensor, scene_level: torch.Tensor, k: float) -> torch.Tensor:
-    """Scale pixels of ``x (B,C,H,W)`` (>= 0) whose maximum exceeds ``k`` x their local level down
-    to that bound, hue kept."""
+def _firefly_bound(peak: torch.Tensor, scene_level: torch.Tensor, k: float) -> torch.Tensor:
+    """``(B,1,H,W)``: ``k`` x the local level of the channel maximum ``peak (B,1,H,W)``: the box
+    mean of ``peak`` capped at ``k`` x ``scene_level`` (:func:`_median_level`)."""
     from torchgi.filters import box
 
-    peak = x.amax(1, keepdim=True)
     # (box sums round: a mean of zeros can come out as -1e-9, so the bound is clamped at 0)
-    bound = k * box(torch.minimum(peak, k * scene_level), PIPELINE.firefly_radius).clamp_min(0)
+    return k * box(torch.minimum(peak, k * scene_level), PIPELINE.firefly_radius).clamp_min(0)
+
+
+def _clamp_fireflies(x: torch.Tensor, scene_level: torch.Tensor, k: float) -> torch.Tensor:
+    """Scale pixels of ``x (B,C,H,W)`` (>= 0) whose maximum exceeds ``k`` x their local level down
+    to that bound (:func:`_firefly_bound`), hue kept."""
+    peak = x.amax(1, keepdim=True)
+    bound = _firefly_bound(peak, scene_level, k)
     over = peak > bound  # so peak > 0 wherever it divides
     return torch.where(over, x * (bound / torch.where(over, peak, 1.0)), x)
 

@@ -149,7 +149,7 @@ def temporal_step(
         >>> out.shape, int(state.length.max())
         (torch.Size([1, 3, 16, 16]), 2)
     """
-    from torchgi.denoise import Denoiser, _demodulator, _every4, _median_level, _surface
+    from torchgi.denoise import Denoiser, _demodulator, _firefly_bound, _level, _surface
     from torchgi.filters import box
 
     t = TEMPORAL
@@ -160,9 +160,8 @@ def temporal_step(
     state = TemporalState.empty(color) if state is None else state
     x = (color - emission) / demod
     # fireflies: above GUIDED.firefly x their local level (as the Denoiser does), before they enter the history
-    level = _median_level(_every4(x), _every4(surface))
-    bound = GUIDED.firefly * box(torch.minimum(x.amax(1, keepdim=True), GUIDED.firefly * level),
-                                 PIPELINE.firefly_radius).clamp_min(0)
+    level = _level(color, emission, None, albedo, surface)
+    bound = _firefly_bound(x.amax(1, keepdim=True), level, GUIDED.firefly)
     step = backends.run(backends.AccumulateOp(x, bound, motion, normal, depth, surface, *state.tensors(), t.alpha,
                                               t.max_history, t.normal_tolerance, t.depth_tolerance))
     acc, hist_out, moments, length, hist_length, temporal_var, frames, lum = step.split([3, 3, 2, 1, 1, 1, 1, 1], 1)

@@ -307,9 +307,7 @@ def render_guide_rays(
         scene = load_scene(scene)
     check_int(spp, "spp", 1)
     check_int(bounces, "bounces", 0)
-    check_int(seed, "seed", 0)
-    if seed >= 1 << 32:
-        raise RangeError(f"seed: expected an int in [0, 2^32), got {seed}")
+    _check_seed(seed)
     check_option(integrator, "integrator", tuple(INTEGRATORS))
     check_int(chunk_size, "chunk_size", 1)
     width, height = scene.camera.resolution
@@ -435,6 +433,13 @@ def render(
     )
 
 
+def _check_seed(seed: int) -> None:
+    """``seed``: an int in [0, 2^32), else the error naming it."""
+    check_int(seed, "seed", 0)
+    if seed >= 1 << 32:
+        raise RangeError(f"seed: expected an int in [0, 2^32), got {seed}")
+
+
 def frame_seed(seed: int, frame: int) -> int:
     """The seed :func:`render_sequence` gives frame ``frame`` of a sequence started with ``seed``
     (a golden-ratio step modulo 2^32, so neighbouring sequences do not share frames' noise).
@@ -478,9 +483,7 @@ def render_sequence(
     if not isinstance(scene, Scene):
         scene = load_scene(scene)
     check_int(frames, "frames", 1)
-    check_int(seed, "seed", 0)
-    if seed >= 1 << 32:
-        raise RangeError(f"seed: expected an int in [0, 2^32), got {seed}")
+    _check_seed(seed)
     times = scene.path.times_of(frames) if scene.path is not None else [0.0] * frames
     previous = None
     for k, time in enumerate(times):
@@ -496,9 +499,7 @@ def _check_render_args(
 ) -> frozenset[str]:
     """Validate :func:`render`'s arguments; returns the skips to apply."""
     check_int(bounces, "bounces", 0)
-    check_int(seed, "seed", 0)
-    if seed >= 1 << 32:
-        raise RangeError(f"seed: expected an int in [0, 2^32), got {seed}")
+    _check_seed(seed)
     check_option(integrator, "integrator", tuple(INTEGRATORS))
     if isinstance(skip_unneeded, bool):
         skips = frozenset(SKIPS) if skip_unneeded else frozenset()
