@@ -15,6 +15,7 @@ pytest.importorskip("embreex", reason="the render extra is not installed")
 trimesh = pytest.importorskip("trimesh")
 
 import torchgi
+from torchgi import backends
 from torchgi.core import ConfigError, DTypeError, NonFiniteError, RangeError, ShapeError
 from torchgi.render import accel, scenes
 from torchgi.render.film import Film
@@ -161,12 +162,45 @@ def test_same_seed_same_image_different_seed_different():
     assert not torch.equal(a.color, c.color)
 
 
-def test_chunk_size_and_workers_change_no_pixel():
+@pytest.mark.parametrize("backend", ["c", "torch"])  # threads of the compiled tracer / worker processes
+def test_chunk_size_and_workers_change_no_pixel(backend):
     scene = scenes.sky(32)
-    a = torchgi.render(scene, spp=6, bounces=3, seed=1, workers=1, chunk_size=1024)
-    b = torchgi.render(scene, spp=6, bounces=3, seed=1, workers=2, chunk_size=1 << 15)
+    with backends.use(backend):
+        a = torchgi.render(scene, spp=6, bounces=3, seed=1, workers=1, chunk_size=1024)
+        b = torchgi.render(scene, spp=6, bounces=3, seed=1, workers=2, chunk_size=1 << 15)
+        c = torchgi.render(scene, spp=6, bounces=3, seed=1, workers=3, chunk_size=4096)
+    assert backends.status()["last"]["path"]["ran"] == backend
     for field in ("color", "emission", "direct", "indirect", "variance", "albedo", "normal", "depth"):
         assert torch.equal(getattr(a, field), getattr(b, field)), field
+        assert torch.equal(getattr(a, field), getattr(c, field)), field
+
+
+@pytest.mark.parametrize("name", ["cornell_glossy", "sky", "grass"])
+def test_compiled_tracer_matches_the_wavefronts_sample_for_sample(name):
+    # Two implementations of one estimator (the C tracer, one sample at a time on embree; the
+    # torch wavefronts on embreex) fed the same random numbers: the same paths, so the same
+    # pixels up to float rounding (fused multiply-adds, a branch flipped by the last bit).
+    scene = scenes.BUILTINS[name](24)
+    if backends.select(backends.GuideRaysOp(scene.arrays(), None, scene.camera))[0] != "c":
+        pytest.skip("no compiled tracer here")
+    ours = torchgi.render(scene, spp=8, bounces=4, seed=5)
+    with backends.use("torch"):
+        ref = torchgi.render(scene, spp=8, bounces=4, seed=5)
+    for field in ("emission", "direct", "indirect", "variance", "albedo", "normal", "depth"):
+        a, b = getattr(ours, field).double(), getattr(ref, field).double()
+        close = ((a - b).abs() <= 1e-4 * (1 + b.abs())).double().mean()
+        assert close >= 0.995, f"{field}: {float(close):.4f} of the values agree"
+        assert abs(float(a.mean() - b.mean())) <= 1e-3 * float(b.abs().mean()) + 1e-7, field
+    assert torch.equal(ours.hit, ref.hit)
+
+
+def test_compiled_tracer_leaves_what_it_does_not_take_to_the_torch_code():
+    scene = scenes.cornell(8)
+    torchgi.render(scene, spp=1, skip_unneeded={"dead_paths"})
+    last = backends.status()["last"]["path"]
+    assert last["ran"] == "torch"
+    assert "every skip" in last["skipped"].get("c", "every skip")
+    torchgi.render(scene, spp=1, integrator="basic")  # the readable integrator is torch code only
 
 
 def test_per_pixel_spp_split_across_chunks_changes_no_pixel():
@@ -337,7 +371,8 @@ class RayCounter:
 
 def test_bounces_zero_traces_no_indirect_rays(monkeypatch):
     count = RayCounter(monkeypatch)
-    gb = torchgi.render(scenes.cornell(16), spp=4, bounces=0, workers=1)
+    with backends.use("torch"):  # the wavefronts' ray counts (the compiled tracer skips the same work)
+        gb = torchgi.render(scenes.cornell(16), spp=4, bounces=0, workers=1)
     # camera rays for 4 spp, then the centre (guide) rays: nothing else is traced
     assert count.intersect == [16 * 16 * 4, 16 * 16]
     assert float(gb.indirect.abs().max()) == 0
@@ -347,7 +382,8 @@ def test_no_bounce_rays_from_misses_and_no_absent_light_types(monkeypatch):
     cam = Camera((0, 1, 3), (0, 0, 0), fov=60, resolution=(16, 16))
     scene = Scene(cam, [plane(size=1.0)], [PointLight((0, 2, 0), (5, 5, 5))])  # no area light, no sky
     count = RayCounter(monkeypatch)
-    gb = torchgi.render(scene, spp=2, bounces=1, workers=1)
+    with backends.use("torch"):
+        gb = torchgi.render(scene, spp=2, bounces=1, workers=1)
     hits = int(gb.hit.sum()) * 2  # approximately: jittered camera rays hit about as often as centres
     camera_rays, bounce_rays = count.intersect[0], count.intersect[1]
     assert camera_rays == 16 * 16 * 2
@@ -467,9 +503,10 @@ def test_workers_start_safely_after_embree_was_used_in_process(tmp_path):
         "import torch, torchgi\n"
         "from torchgi.render import engine\n"
         "scene = torchgi.scenes.sky(24)\n"
-        "one = torchgi.render(scene, spp=4, bounces=2, seed=2, workers=1)\n"
-        "method = engine.process_context().get_start_method()\n"
-        "two = torchgi.render(scene, spp=4, bounces=2, seed=2, workers=2)\n"
+        "with torchgi.backends.use('torch'):  # worker processes: the torch wavefronts\n"
+        "    one = torchgi.render(scene, spp=4, bounces=2, seed=2, workers=1)\n"
+        "    method = engine.process_context().get_start_method()\n"
+        "    two = torchgi.render(scene, spp=4, bounces=2, seed=2, workers=2)\n"
         "print(method, torch.equal(one.color, two.color), torch.equal(one.variance, two.variance))\n"
     )
     import subprocess

@@ -203,7 +203,8 @@ def test_renderer_traces_exactly_the_allocated_samples(monkeypatch):
     g = torchgi.render.render_guides(scene)
     imp = importance_map(g.normal, g.position, window=4, sigma_position=400.0, hit=g.hit)
     counts = allocate(imp, 3 * int(g.hit.sum()), min_samples=1, mask=g.hit)
-    torchgi.render(scene, counts, bounces=1, workers=1, chunk_size=1024)
+    with torchgi.backends.use("torch"):  # the spy sits in the torch integrator
+        torchgi.render(scene, counts, bounces=1, workers=1, chunk_size=1024)
     pixel = torch.cat([p for p, _ in traced])
     sample = torch.cat([s for _, s in traced])
     draws = torch.bincount(pixel, minlength=144).numpy()

@@ -1,7 +1,7 @@
 """Back ends: every kernel of torchgi chosen in one place.
 
-An op (box, guided, atrous, importance, allocate, and the Denoiser's guide statistics, edge share
-and restore pipeline) is described by a small dataclass in one
+An op (box, guided, atrous, importance, allocate, the Denoiser's guide statistics, edge share
+and restore pipeline, the temporal accumulation, and a tile of the renderer's path tracer) is described by a small dataclass in one
 convention (:class:`BoxOp`, :class:`GuidedOp`, :class:`ATrousOp`, :class:`ImportanceOp`,
 :class:`AllocateOp`); :func:`run` hands it to the first back end that supports it, in the
 order ``c`` (compiled CPU kernels, :mod:`torchgi.backends.c_kernels`), ``triton`` (CUDA,
@@ -30,9 +30,11 @@ from torchgi.backends.base import (
     BoxOp,
     EdgeShareOp,
     GuidedOp,
+    GuideRaysOp,
     GuideSpec,
     GuideStatsOp,
     ImportanceOp,
+    PathOp,
     RestoreOp,
     enabled,
     run,
@@ -42,6 +44,6 @@ from torchgi.backends.base import (
 )
 
 __all__ = [
-    "NAMES", "ORDER", "ATrousOp", "AccumulateOp", "AllocateOp", "BoxOp", "EdgeShareOp", "GuideSpec", "GuideStatsOp", "GuidedOp",
-    "ImportanceOp", "RestoreOp", "enabled", "run", "select", "status", "use",
+    "NAMES", "ORDER", "ATrousOp", "AccumulateOp", "AllocateOp", "BoxOp", "EdgeShareOp", "GuideRaysOp", "GuideSpec", "GuideStatsOp", "GuidedOp",
+    "ImportanceOp", "PathOp", "RestoreOp", "enabled", "run", "select", "status", "use",
 ]

@@ -28,8 +28,8 @@ from torchgi.core.check import is_tracing
 from torchgi.core.errors import OptionError
 
 __all__ = [
-    "NAMES", "ORDER", "ATrousOp", "AccumulateOp", "AllocateOp", "BoxOp", "EdgeShareOp", "GuideSpec", "GuideStatsOp", "GuidedOp",
-    "ImportanceOp", "RestoreOp", "blur3", "colour_scale", "eager",
+    "NAMES", "ORDER", "ATrousOp", "AccumulateOp", "AllocateOp", "BoxOp", "EdgeShareOp", "GuideRaysOp", "GuideSpec", "GuideStatsOp", "GuidedOp",
+    "ImportanceOp", "PathOp", "RestoreOp", "blur3", "colour_scale", "eager",
     "enabled", "float32_eager", "iterate_levels", "run", "scaled_guides", "select", "status", "use",
 ]
 
@@ -270,9 +270,60 @@ class AccumulateOp:
                 self.prev_normal, self.prev_depth, self.prev_surface)
 
 
-Op = BoxOp | GuidedOp | ATrousOp | ImportanceOp | AllocateOp | GuideStatsOp | EdgeShareOp | RestoreOp | AccumulateOp
+@dataclass(eq=False, slots=True)
+class PathOp:
+    """One tile of a render pass of :mod:`torchgi.render`'s "path" integrator: ``counts (P,)``
+    int64 samples (numpy) of the pixels ``first_pixel ... first_pixel + P - 1`` (global index
+    ``b*H*W + y*W + x``) of the scene ``arrays`` (``SceneArrays``) and its ``tables`` (``Tables``)
+    seen by ``camera``; ``bounces``, ``seed``, the pass's random ``stream`` and ``record``
+    ("all" / "direct" / "indirect"), the skips of DESIGN §4 that are on (``skip``), paths per
+    chunk (``chunk_size``), ``threads`` (>= 1) and ``on_chunk(samples)`` (progress, or None);
+    ``profile``: None, or a zeroed float64 ``(threads, 4)`` tensor into which the compiled tracer
+    adds, per thread, its seconds in embree's closest-hit and occlusion queries and their counts.
+    Returns numpy float64 ``mean (9, P)`` (emission, direct, indirect) and ``variance (3, P)``
+    of the colour's mean (0 below 2 samples)."""
+
+    arrays: Any
+    tables: Any
+    camera: Any
+    bounces: int
+    seed: int
+    stream: int
+    record: str
+    skip: frozenset[str]
+    first_pixel: int
+    counts: Any
+    chunk_size: int
+    threads: int = 1
+    on_chunk: Callable[[int], None] | None = None
+    profile: torch.Tensor | None = None  # (threads, 4) float64: the compiled tracer adds embree's seconds there
+
+    def tensors(self) -> tuple[torch.Tensor | None, ...]:
+        return ()
+
+
+@dataclass(eq=False, slots=True)
+class GuideRaysOp:
+    """The first-hit guides of one ray through each pixel centre of ``camera`` in the scene
+    ``arrays`` / ``tables`` (as :class:`PathOp`), on ``threads`` threads. Returns
+    ``albedo, normal, position (3, H*W)``, ``depth (1, H*W)`` float32 and ``hit (1, H*W)`` bool
+    (the normal faces the camera; everything 0 on a miss)."""
+
+    arrays: Any
+    tables: Any
+    camera: Any
+    chunk_size: int = 1 << 15
+    threads: int = 1
+
+    def tensors(self) -> tuple[torch.Tensor | None, ...]:
+        return ()
+
+
+Op = BoxOp | GuidedOp | ATrousOp | ImportanceOp | AllocateOp | GuideStatsOp | EdgeShareOp | RestoreOp | AccumulateOp | \
+    PathOp | GuideRaysOp
 _OPS = {BoxOp: "box", GuidedOp: "guided", ATrousOp: "atrous", ImportanceOp: "importance", AllocateOp: "allocate",
-        GuideStatsOp: "guide_stats", EdgeShareOp: "edge_share", RestoreOp: "restore", AccumulateOp: "accumulate"}
+        GuideStatsOp: "guide_stats", EdgeShareOp: "edge_share", RestoreOp: "restore", AccumulateOp: "accumulate",
+        PathOp: "path", GuideRaysOp: "guide_rays"}
 
 
 def eager(desc: Op) -> str | None:

@@ -45,8 +45,10 @@ from torchgi.backends.base import (
     BoxOp,
     EdgeShareOp,
     GuidedOp,
+    GuideRaysOp,
     GuideStatsOp,
     ImportanceOp,
+    PathOp,
     RestoreOp,
     colour_scale,
     float32_eager,
@@ -61,6 +63,7 @@ __all__ = ["NAME", "describe", "library", "padded", "supports"]
 NAME = "c"
 
 _SOURCE = Path(__file__).with_name("_native.c")
+_SOURCES = (_SOURCE, Path(__file__).with_name("_pathtracer.c"))  # one library
 _FLAGS = ["-O3", "-march=native", "-fno-math-errno", "-fPIC", "-shared"]
 # OpenMP first (threads shared with torch's libgomp, see _native.c), else the bands run serially
 _THREADING = (["-fopenmp"], [])
@@ -96,6 +99,11 @@ _SIGNATURES = {
     "torchgi_restore_coefficients": ([_I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _I, _I, _I, _I, _P, _F, _P, *_BANDS],
                                      None),
     "torchgi_accumulate": ([_P] * 13 + [_I, _I, _F, _F, _F, _F, _P, *_BANDS], None),
+    "torchgi_embree_init": ([_P], None),
+    "torchgi_scene_new": ([_P, _L], _P),
+    "torchgi_scene_free": ([_P], None),
+    "torchgi_render_pixels": ([_P, _P, _L, _P, _L, _P, _P, _I], None),
+    "torchgi_render_guides": ([_P, _P, _L, _P, _I], None),
     "torchgi_guided_finish": ([_P, _I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _I, _I, _I, _I, _P, _P, _P, _P, _P, _P, _F,
                                _P, *_BANDS], None),
 }
@@ -129,7 +137,7 @@ def _build() -> ctypes.CDLL:
 
 
 def _build_with(cc: str, flags: list[str]) -> ctypes.CDLL:
-    source = _SOURCE.read_bytes()
+    source = b"\0".join(p.read_bytes() for p in _SOURCES)
     cpu = ""
     if os.path.exists("/proc/cpuinfo"):  # -march=native: one library per CPU model
         cpu = next((ln for ln in Path("/proc/cpuinfo").read_text().splitlines() if ln.startswith("flags")), "")
@@ -141,7 +149,7 @@ def _build_with(cc: str, flags: list[str]) -> ctypes.CDLL:
         fd, tmp = tempfile.mkstemp(suffix=".so", dir=out.parent)
         os.close(fd)
         try:
-            proc = subprocess.run([cc, *flags, str(_SOURCE), "-o", tmp, "-lm"], capture_output=True, text=True,
+            proc = subprocess.run([cc, *flags, *map(str, _SOURCES), "-o", tmp, "-lm"], capture_output=True, text=True,
                                   check=False)
             if proc.returncode != 0:
                 raise RuntimeError(f"{cc} {' '.join(flags)} failed: {proc.stderr.strip()[-500:]}")
@@ -214,6 +222,8 @@ def supports(op: str, desc: BoxOp | GuidedOp | ATrousOp | ImportanceOp | Allocat
         why = float32_eager(op, desc, "C")
         if why is not None:
             return why
+    if op in ("path", "guide_rays"):
+        return _path_support(desc)
     if op == "accumulate" and (desc.x.numel() == 0 or desc.x.shape[-2] * desc.x.shape[-1] >= 2**31):
         return "the C accumulation takes non-empty images of fewer than 2^31 pixels"
     if op == "restore" and (desc.color.numel() == 0 or desc.color.shape[-2] * desc.color.shape[-1] >= 2**31):
@@ -687,3 +697,146 @@ def accumulate(desc: AccumulateOp) -> torch.Tensor:
         _run(lib.torchgi_accumulate, H, W, *(t[b].data_ptr() for t in ts), H, W, d.alpha, float(d.max_history),
              d.normal_tolerance, d.depth_tolerance, out[b].data_ptr(), 0)
     return out
+
+
+class _Render(ctypes.Structure):
+    """``pt_render`` of _pathtracer.c."""
+
+    _fields_ = [("tri", _P), ("light", _P), ("cdf", _P), ("points", _P), ("intensities", _P), ("sky", _P),
+                ("T", _L), ("L", _I), ("P", _I), ("any_glossy", _I), ("eps", _F), ("origin", _F * 3),
+                ("basis", _F * 9), ("tan_x", _F), ("tan_y", _F), ("width", _I), ("height", _I), ("bounces", _I),
+                ("roulette_from", _I), ("record", _I), ("head", ctypes.c_uint32), ("profile", _P)]
+
+
+_RECORD = {"all": 0, "direct": 1, "indirect": 2}
+_embree_status: str | None = None  # None: not tried yet; "": loaded
+_scene: tuple[str, int, tuple[torch.Tensor | None, ...]] | None = None  # (scene key, BVH handle, its tables)
+
+
+def _path_support(desc: PathOp | GuideRaysOp) -> str | None:
+    """Why the compiled tracer cannot take ``desc``, or None."""
+    from torchgi.render.integrators.common import SKIPS
+
+    if isinstance(desc, PathOp) and desc.skip != frozenset(SKIPS):
+        return "the compiled tracer applies every skip of DESIGN §4; with one off the torch code runs"
+    width, height = desc.camera.resolution
+    if desc.arrays.triangles.shape[0] >= 2**31 or width * height >= 2**31:
+        return "the compiled tracer takes fewer than 2^31 triangles and pixels"
+    if library() is None:
+        return _status
+    global _embree_status
+    if _embree_status is None:
+        with _lock:
+            if _embree_status is None:
+                try:
+                    from torchgi.render.accel import embree_functions
+
+                    library().torchgi_embree_init((ctypes.c_void_p * 13)(*embree_functions()))
+                    _embree_status = ""
+                except Exception as err:  # noqa: BLE001 - no embree 4 library: the torch code runs
+                    _embree_status = f"compiled tracer unavailable: {err}"
+    return _embree_status or None
+
+
+def _bvh(arrays, tables) -> tuple[int, tuple[torch.Tensor | None, ...]]:
+    """This scene's embree BVH (built once per process, the previous scene's freed) and its
+    tables laid out one row per triangle / light."""
+    global _scene
+    lib = library()
+    with _lock:
+        if _scene is None or _scene[0] != arrays.key:
+            if _scene is not None:
+                lib.torchgi_scene_free(_scene[1])
+                _scene = None
+            tri = torch.from_numpy(arrays.triangles).to(torch.float32).contiguous()
+            handle = lib.torchgi_scene_new(tri.data_ptr(), tri.shape[0])
+            if not handle:
+                raise RuntimeError("embree could not build the BVH")
+            keep = (tables.tri.T.contiguous(), tables.light.T.contiguous(), tables.light_cdf.contiguous(),
+                    tables.points.to(torch.float32).contiguous(), tables.intensities.to(torch.float32).contiguous(),
+                    None if tables.sky is None else tables.sky.reshape(3).to(torch.float32).contiguous())
+            _scene = (arrays.key, handle, keep)
+        return _scene[1], _scene[2]
+
+
+def _render_struct(desc: PathOp | GuideRaysOp, tables: tuple[torch.Tensor | None, ...]) -> _Render:
+    """The ``pt_render`` of a call: the tables, the camera, the pass."""
+    from torchgi.render.camera import camera_frame
+    from torchgi.render.integrators.common import RR_START
+    from torchgi.render.sampler import key_head
+
+    tri, light, cdf, points, intensities, sky = tables
+    forward, right, up, tan_x, tan_y = camera_frame(desc.camera)
+    width, height = desc.camera.resolution
+    path_op = isinstance(desc, PathOp)
+    record = desc.record if path_op else "direct"
+    return _Render(tri.data_ptr(), light.data_ptr(), cdf.data_ptr(), points.data_ptr(), intensities.data_ptr(),
+                   None if sky is None else sky.data_ptr(), tri.shape[0], light.shape[0], points.shape[0],
+                   int(desc.tables.any_glossy), max(desc.tables.scale * 2.0**-15, 1e-7),
+                   (_F * 3)(*desc.camera.position), (_F * 9)(*right, *up, *forward), tan_x, tan_y, width, height,
+                   desc.bounces if path_op and record != "direct" else 0, RR_START, _RECORD[record],
+                   key_head(desc.seed, desc.stream) if path_op else 0,
+                   desc.profile.data_ptr() if path_op and desc.profile is not None else None)
+
+
+def path(desc: PathOp) -> tuple:
+    """:class:`~torchgi.backends.base.PathOp` by the compiled tracer (``_pathtracer.c``): each
+    pixel's samples in order on one of ``desc.threads`` OpenMP threads, the film merged there.
+
+    Example:
+        >>> from torchgi.render import scenes
+        >>> from torchgi.render.lights import Tables
+        >>> from torchgi.render.integrators.common import SKIPS
+        >>> import numpy as np
+        >>> s = scenes.cornell(4); a = s.arrays()
+        >>> op = PathOp(a, Tables.from_arrays(a), s.camera, 1, 0, 0, "all", frozenset(SKIPS), 0, np.full(16, 2), 1 << 15)
+        >>> supports("path", op) is not None or path(op)[0].shape == (9, 16)
+        True
+    """
+    why = _path_support(desc)
+    if why is not None:
+        raise RuntimeError(why)
+    handle, tables = _bvh(desc.arrays, desc.tables)
+    r = _render_struct(desc, tables)
+    counts = torch.from_numpy(desc.counts).to(torch.int64).contiguous()
+    n = counts.numel()
+    mean = torch.zeros(9, n, dtype=torch.float64)
+    var = torch.zeros(3, n, dtype=torch.float64)
+    # pieces of about chunk_size samples per thread, so that progress is reported as it goes
+    ends = torch.cumsum(counts, 0)
+    step = desc.chunk_size * desc.threads
+    a = 0
+    while a < n:
+        done = int(ends[a - 1]) if a else 0
+        b = max(a + 1, int(torch.searchsorted(ends, done + step, right=True)))
+        m, v = torch.zeros(9, b - a, dtype=torch.float64), torch.zeros(3, b - a, dtype=torch.float64)
+        library().torchgi_render_pixels(handle, ctypes.byref(r), desc.first_pixel + a, counts[a:].data_ptr(), b - a,
+                                        m.data_ptr(), v.data_ptr(), desc.threads)
+        mean[:, a:b], var[:, a:b] = m, v
+        if desc.on_chunk is not None:
+            desc.on_chunk(int(ends[b - 1]) - done)
+        a = b
+    return mean.numpy(), var.numpy()
+
+
+def guide_rays(desc: GuideRaysOp) -> dict[str, torch.Tensor]:
+    """:class:`~torchgi.backends.base.GuideRaysOp` by the compiled tracer, on ``desc.threads`` threads.
+
+    Example:
+        >>> from torchgi.render import scenes
+        >>> from torchgi.render.lights import Tables
+        >>> s = scenes.cornell(4); a = s.arrays()
+        >>> op = GuideRaysOp(a, Tables.from_arrays(a), s.camera)
+        >>> supports("guide_rays", op) is not None or guide_rays(op)["hit"].dtype == torch.bool
+        True
+    """
+    why = _path_support(desc)
+    if why is not None:
+        raise RuntimeError(why)
+    handle, tables = _bvh(desc.arrays, desc.tables)
+    width, height = desc.camera.resolution
+    out = torch.empty(11, width * height, dtype=torch.float32)
+    library().torchgi_render_guides(handle, ctypes.byref(_render_struct(desc, tables)), width * height,
+                                    out.data_ptr(), desc.threads)
+    return {"albedo": out[0:3], "normal": out[3:6], "position": out[6:9], "depth": out[9:10], "hit": out[10:11] > 0}
+

@@ -31,8 +31,10 @@ from torchgi.backends.base import (
     BoxOp,
     EdgeShareOp,
     GuidedOp,
+    GuideRaysOp,
     GuideStatsOp,
     ImportanceOp,
+    PathOp,
     RestoreOp,
     colour_scale,
     eager,
@@ -765,3 +767,51 @@ def accumulate(desc: AccumulateOp) -> torch.Tensor:
     # frames averaged: 1/length while the weights are equal, (2 - α)/α once the average is exponential
     frames = torch.minimum(length, (2 - a) / a)
     return torch.cat([light, hist[:, 3:6], moments, length, hist_length, var, frames, lum], 1)
+
+
+def path(desc: PathOp) -> tuple:
+    """A tile of the renderer's "path" integrator by the torch wavefronts
+    (:func:`torchgi.render.integrators.path.radiance`, chunk by chunk into a film): the
+    reference the compiled tracer must match in expectation.
+
+    Example:
+        >>> from torchgi.render import scenes
+        >>> from torchgi.render.lights import Tables
+        >>> from torchgi.render.integrators.common import SKIPS
+        >>> import numpy as np
+        >>> s = scenes.cornell(4); a = s.arrays()
+        >>> mean, var = path(PathOp(a, Tables.from_arrays(a), s.camera, 1, 0, 0, "all", frozenset(SKIPS), 0,
+        ...                         np.full(16, 2), 1 << 15))
+        >>> mean.shape, var.shape
+        ((9, 16), (3, 16))
+    """
+    from torchgi.render.engine import film_tile  # the renderer sits above the back ends
+
+    return film_tile(desc, "path")
+
+
+def guide_rays(desc: GuideRaysOp) -> dict[str, torch.Tensor]:
+    """The guides of the pixel centres by embreex and :func:`torchgi.render.integrators.common.guides`,
+    ``chunk_size`` rays at a time.
+
+    Example:
+        >>> from torchgi.render import scenes
+        >>> from torchgi.render.lights import Tables
+        >>> s = scenes.cornell(4); a = s.arrays()
+        >>> guide_rays(GuideRaysOp(a, Tables.from_arrays(a), s.camera))["normal"].shape
+        torch.Size([3, 16])
+    """
+    from torchgi.render.engine import _context
+    from torchgi.render.integrators.common import guides
+
+    width, height = desc.camera.resolution
+    ctx = _context(desc.arrays, desc.camera, 0, 0)
+    channels = {"albedo": 3, "normal": 3, "position": 3, "depth": 1, "hit": 1}
+    g = {k: torch.zeros(c, width * height, dtype=torch.bool if k == "hit" else torch.float32)
+         for k, c in channels.items()}
+    for start in range(0, width * height, desc.chunk_size):
+        pixel = torch.arange(start, min(start + desc.chunk_size, width * height))
+        for k, v in guides(ctx, pixel).items():
+            g[k][:, start : start + pixel.numel()] = v
+    return g
+

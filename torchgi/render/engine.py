@@ -1,10 +1,13 @@
 """``torchgi.render``: scene + sample counts -> GBuffer, in memory-bounded chunks on all cores.
 
-The pixels are cut into tiles; each tile's samples are traced in chunks of at most
-``chunk_size`` paths and merged into its film. With ``workers > 1`` tiles go to a pool of
-processes (embreex holds the GIL while it traces, so threads would serialise), each running
-torch on one thread. Random numbers are keyed by (seed, pixel, sample, dimension) and the
-film merges fixed blocks of samples, so tiles, chunks and workers change no pixel.
+The "path" integrator runs in the compiled tracer where the C back end has it
+(:class:`torchgi.backends.PathOp`: each pixel's samples in order on embree, on ``workers``
+threads); otherwise, and for "basic", the torch wavefronts run: the pixels are cut into tiles;
+each tile's samples are traced in chunks of at most ``chunk_size`` paths and merged into its
+film; with ``workers > 1`` tiles go to a pool of processes (embreex holds the GIL while it
+traces, so threads would serialise), each running torch on one thread. Random numbers are keyed
+by (seed, pixel, sample, dimension) and the film merges fixed blocks of samples, so tiles,
+chunks, threads and workers change no pixel.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from torchgi import backends
 from torchgi.buffers import GBuffer
 from torchgi.core.check import check_int, check_option
 from torchgi.core.errors import DeviceError, DTypeError, RangeError, ShapeError
@@ -38,7 +42,7 @@ from torchgi.render.scene import Camera, Scene, SceneArrays, load_scene
 from torchgi.supersample import EyeSamples
 
 __all__ = [
-    "INTEGRATORS", "SKIPS", "frame_seed", "process_context", "render", "render_guide_rays", "render_guides",
+    "INTEGRATORS", "SKIPS", "film_tile", "frame_seed", "process_context", "render", "render_guide_rays", "render_guides",
     "render_sequence", "worker_pool",
 ]
 
@@ -65,19 +69,30 @@ class _Job:
     first_pixel: int
     counts: np.ndarray  # (P,) int64 samples of pixels first_pixel ... first_pixel + P - 1
     chunk_size: int
+    allowed: tuple[str, ...]  # the back ends allowed where render() was called
+    threads: int = 1
 
 
-_CONTEXTS: dict[str, tuple[Tables, Accel]] = {}
+_CONTEXTS: dict[str, tuple[Tables, Accel | None]] = {}
+
+
+def _tables(arrays: SceneArrays, bvh: bool = True) -> tuple[Tables, Accel | None]:
+    """The scene's tables and (``bvh``) its embreex BVH, each built once per process."""
+    if arrays.key not in _CONTEXTS:
+        _CONTEXTS.clear()
+        _CONTEXTS[arrays.key] = (Tables.from_arrays(arrays), None)
+    tables, accel = _CONTEXTS[arrays.key]
+    if bvh and accel is None:
+        accel = Accel(arrays.triangles)
+        _CONTEXTS[arrays.key] = (tables, accel)
+    return tables, accel
 
 
 def _context(
     arrays: SceneArrays, camera: Camera, bounces: int, seed: int, skip: frozenset[str] = frozenset(SKIPS)
 ) -> Context:
     """A render context; the BVH of a scene is built once per process."""
-    if arrays.key not in _CONTEXTS:
-        _CONTEXTS.clear()
-        _CONTEXTS[arrays.key] = (Tables.from_arrays(arrays), Accel(arrays.triangles))
-    tables, accel = _CONTEXTS[arrays.key]
+    tables, accel = _tables(arrays)
     return Context(tables, accel, camera, bounces, seed, skip)
 
 
@@ -93,12 +108,43 @@ def _chunks(block_counts: torch.Tensor, chunk_size: int) -> Iterator[tuple[int, 
         a = b
 
 
+def _path_op(job: _Job, on_chunk: Callable[[int], None] | None = None) -> backends.PathOp:
+    return backends.PathOp(job.arrays, _tables(job.arrays, bvh=False)[0], job.camera, job.bounces, job.seed,
+                           job.render_pass.stream, job.render_pass.record, job.skip, job.first_pixel, job.counts,
+                           job.chunk_size, job.threads, on_chunk)
+
+
 def _run_tile(job: _Job, on_chunk: Callable[[int], None] | None = None) -> tuple[np.ndarray, ...]:
-    """Trace one tile; returns its film's means of the radiance rows ``(9, P)`` and the
-    variance of the colour mean ``(3, P)``."""
-    ctx = _context(job.arrays, job.camera, job.bounces, job.seed, job.skip)
-    radiance = INTEGRATORS[job.integrator]
-    counts = torch.from_numpy(job.counts)
+    """Trace one tile (the "path" integrator through the back ends, "basic" by its torch code);
+    returns its film's means of the radiance rows ``(9, P)`` and the variance of the colour mean ``(3, P)``."""
+    with backends.use(*job.allowed):
+        if job.integrator == "path":
+            return backends.run(_path_op(job, on_chunk))
+        return film_tile(_path_op(job, on_chunk), job.integrator)
+
+
+def film_tile(op: backends.PathOp, integrator: str) -> tuple[np.ndarray, np.ndarray]:
+    """A tile of a render pass by the torch integrator ``integrator`` ("path": the wavefronts of
+    :mod:`~torchgi.render.integrators.path`; "basic"), chunk by chunk into a film.
+
+    Args:
+        op: the tile (:class:`torchgi.backends.PathOp`; ``threads`` is not used: one process, one thread).
+        integrator: a key of :data:`INTEGRATORS`.
+
+    Returns:
+        float64 numpy ``mean (9, P)`` (emission, direct, indirect radiance) and ``variance (3, P)``
+        of the colour's mean.
+
+    Example:
+        >>> from torchgi.render import scenes
+        >>> s = scenes.cornell(4); a = s.arrays()
+        >>> op = backends.PathOp(a, _tables(a)[0], s.camera, 1, 0, 0, "all", frozenset(SKIPS), 0, np.full(16, 2), 4096)
+        >>> film_tile(op, "basic")[0].shape
+        (9, 16)
+    """
+    ctx = _context(op.arrays, op.camera, op.bounces, op.seed, op.skip)
+    radiance = INTEGRATORS[integrator]
+    counts = torch.from_numpy(op.counts)
     film = Film(counts.numel(), rows=12)
     # Blocks: each pixel's samples cut at multiples of BLOCK (see film.py).
     nblocks = torch.div(counts + BLOCK - 1, BLOCK, rounding_mode="floor")
@@ -107,20 +153,18 @@ def _run_tile(job: _Job, on_chunk: Callable[[int], None] | None = None) -> tuple
     block_rank = torch.arange(block_pixel.numel()) - first_block[block_pixel]
     block_start = block_rank * BLOCK
     block_count = torch.minimum(counts[block_pixel] - block_start, torch.tensor(BLOCK))
-    for a, b in _chunks(block_count, job.chunk_size):
+    for a, b in _chunks(block_count, op.chunk_size):
         cnt = block_count[a:b]
         offsets = torch.cumsum(cnt, 0) - cnt
         n = int(cnt.sum())
         within = torch.arange(n) - torch.repeat_interleave(offsets, cnt)
         local = torch.repeat_interleave(block_pixel[a:b], cnt)
         sample = torch.repeat_interleave(block_start[a:b], cnt) + within
-        values = radiance(
-            ctx, local + job.first_pixel, sample, stream=job.render_pass.stream, record=job.render_pass.record
-        )
+        values = radiance(ctx, local + op.first_pixel, sample, stream=op.stream, record=op.record)
         color = values[0:3] + values[3:6] + values[6:9]
         film.add_blocks(torch.cat([values, color]), block_pixel[a:b], cnt, slice(9, 12))
-        if on_chunk is not None:
-            on_chunk(n)
+        if op.on_chunk is not None:
+            op.on_chunk(n)
     return film.mean[:9].numpy(), film.variance_of_mean().numpy()
 
 
@@ -256,15 +300,13 @@ def render_guides(scene: Scene | str | os.PathLike[str], *, chunk_size: int = 1 
     if not isinstance(scene, Scene):
         scene = load_scene(scene)
     check_int(chunk_size, "chunk_size", 1)
+    return _guides(scene, chunk_size, torch.get_num_threads())
+
+
+def _guides(scene: Scene, chunk_size: int, threads: int) -> GBuffer:
     width, height = scene.camera.resolution
-    ctx = _context(scene.arrays(), scene.camera, 0, 0)
-    channels = {"albedo": 3, "normal": 3, "position": 3, "depth": 1, "hit": 1}
-    g = {k: torch.zeros(c, width * height, dtype=torch.bool if k == "hit" else torch.float32)
-         for k, c in channels.items()}
-    for start in range(0, width * height, chunk_size):
-        pixel = torch.arange(start, min(start + chunk_size, width * height))
-        for k, v in guides(ctx, pixel).items():
-            g[k][:, start : start + pixel.numel()] = v
+    arrays = scene.arrays()
+    g = backends.run(backends.GuideRaysOp(arrays, _tables(arrays, bvh=False)[0], scene.camera, chunk_size, threads))
     return GBuffer(**{k: v.reshape(1, -1, height, width) for k, v in g.items()})
 
 
@@ -368,7 +410,9 @@ def render(
             ``bounces + 2``).
         seed: in [0, 2^32); the same seed gives the same image, bit for bit.
         integrator: "path" (fast: MIS, compaction, Russian roulette) or "basic" (readable).
-        workers: processes; None = all available cores for renders of >= 2^19 samples (see
+        workers: threads of the compiled tracer (None: ``torch.get_num_threads()``); where it
+            does not run (no C compiler, a skip turned off, ``integrator="basic"``), processes
+            (None: all available cores for renders of >= 2^19 samples; see
             :func:`process_context` for how they start; no main guard is needed).
         chunk_size: paths traced at once per worker (memory bound), >= 1024.
         progress: a progress bar (shown after 1 s); None = only on a terminal.
@@ -405,13 +449,11 @@ def render(
     else:
         passes = [(_Pass(0, "all"), flat)]
     total = sum(int(c.sum()) for _, c in passes)
-    if workers is None:
-        workers = (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
-        workers = workers if total >= _PARALLEL_MIN_SAMPLES else 1
+    allowed = tuple(name for name in backends.NAMES if backends.enabled(name))
     jobs = functools.partial(_Job, scene.arrays(), camera, integrator, bounces, seed)
     with _progress_bar(total, progress, f"render {scene.name}") as bar:
-        rows = _trace(jobs, passes, skips, chunk_size, workers, bar)
-    g = render_guides(scene, chunk_size=chunk_size)
+        rows = _trace(jobs, passes, skips, chunk_size, workers, total, allowed, bar)
+    g = _guides(scene, chunk_size, workers or torch.get_num_threads())
 
     def image(x: torch.Tensor) -> torch.Tensor:  # (C, B*H*W) -> (B, C, H, W)
         return x.reshape(x.shape[0], batch, height, width).permute(1, 0, 2, 3).contiguous()
@@ -513,16 +555,32 @@ def _check_render_args(
     return skips
 
 
+def _cores() -> int:
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
 def _trace(
-    jobs: Callable[..., _Job], passes: list, skips: frozenset[str], chunk_size: int, workers: int, bar,
+    jobs: Callable[..., _Job], passes: list, skips: frozenset[str], chunk_size: int, workers: int | None, total: int,
+    allowed: tuple[str, ...], bar,
 ) -> torch.Tensor:
-    """Trace every pass in tiles (here or on ``workers`` processes) into radiance rows 0-8
-    (emission, direct, indirect) and the colour variance 9-11, float32 ``(12, pixels)``; each
-    tile is merged as soon as it arrives, so only one tile's film is held at a time."""
+    """Trace every pass in tiles into radiance rows 0-8 (emission, direct, indirect) and the
+    colour variance 9-11, float32 ``(12, pixels)``: by the compiled tracer on ``workers`` threads
+    (None: every core) where it takes the render, else here or on ``workers`` processes (None:
+    every core from 2^19 samples); each tile is merged as soon as it arrives, so only one tile's
+    film is held at a time."""
     rows = torch.zeros(12, passes[0][1].numel())
+    probe = jobs(passes[0][0], skips, 0, passes[0][1][:1].numpy(), chunk_size, allowed)
+    with backends.use(*allowed):
+        compiled = probe.integrator == "path" and backends.select(_path_op(probe))[0] == "c"
+    if compiled:
+        threads, workers = workers or torch.get_num_threads(), 1
+    else:
+        threads = 1
+        workers = workers or (_cores() if total >= _PARALLEL_MIN_SAMPLES else 1)
     for render_pass, pass_counts in passes:
         tiles = _tiles(pass_counts, workers * _TILES_PER_WORKER if workers > 1 else 1)
-        tile_jobs = [jobs(render_pass, skips, a, pass_counts[a:b].numpy(), chunk_size) for a, b in tiles]
+        tile_jobs = [jobs(render_pass, skips, a, pass_counts[a:b].numpy(), chunk_size, allowed, threads)
+                     for a, b in tiles]
         if workers > 1:
             futures = {_pool(workers).submit(_run_tile, job): tile for job, tile in zip(tile_jobs, tiles)}
             done = ((futures[f], f.result()) for f in concurrent.futures.as_completed(futures))

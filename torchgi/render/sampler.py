@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["mix32", "sample_keys", "uniform"]
+__all__ = ["key_head", "mix32", "sample_keys", "uniform"]
 
 _MUL = 0x45D9F3B
 
@@ -41,6 +41,17 @@ def mix32(x: torch.Tensor | int) -> torch.Tensor | int:
     return ((x >> 16) & 0xFFFF) ^ x
 
 
+def key_head(seed: int, stream: int = 0) -> int:
+    """The part of every sample's key that comes from ``(seed, stream)``, an unsigned 32-bit int:
+    the key of ``(pixel, sample)`` is ``mix32(mix32(pixel ^ head) ^ sample)``.
+
+    Example:
+        >>> key_head(0) == mix32(mix32(0))
+        True
+    """
+    return mix32(mix32(seed) ^ ((stream * 0x9E3779B9) & 0xFFFFFFFF))
+
+
 def sample_keys(seed: int, pixel: torch.Tensor, sample: torch.Tensor, stream: int = 0) -> torch.Tensor:
     """One 32-bit key per sample from ``(seed, stream, pixel, sample)``.
 
@@ -58,7 +69,7 @@ def sample_keys(seed: int, pixel: torch.Tensor, sample: torch.Tensor, stream: in
         >>> k.dtype, bool(k[0] != k[1])
         (torch.int32, True)
     """
-    head = _signed(mix32(mix32(seed) ^ ((stream * 0x9E3779B9) & 0xFFFFFFFF)))
+    head = _signed(key_head(seed, stream))
     return mix32(mix32(pixel.to(torch.int32) ^ head) ^ sample.to(torch.int32))
 
 

@@ -21,9 +21,9 @@ from typing import Any
 
 import numpy as np
 
-from torchgi.core.check import require
 from torchgi.core.errors import ConfigError, NonFiniteError, RangeError
 from torchgi.core.registry import Registry
+from torchgi.io.mesh import read_mesh
 
 __all__ = [
     "LIGHTS",
@@ -454,14 +454,12 @@ _TRANSFORM_KEYS = ("scale", "rotate", "translate")
 
 
 def _load_mesh_file(path: str, key: str) -> tuple[np.ndarray, np.ndarray]:
-    if not os.path.isfile(path):
-        raise FileNotFoundError(f"{key}: mesh file {path!r} does not exist")
-    trimesh = require("trimesh", "render")
     try:
-        mesh = trimesh.load(path, force="mesh", process=False)
-    except Exception as exc:  # trimesh raises many types for unreadable files
-        raise ConfigError(f"{key}: could not read mesh {path!r}: {exc}") from exc
-    return np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
+        return read_mesh(path)
+    except FileNotFoundError as exc:
+        raise FileNotFoundError(f"{key}: {exc}") from None
+    except ConfigError as exc:
+        raise ConfigError(f"{key}: {exc}") from exc
 
 
 def _build(registry: Registry[Any], cfg: Any, key: str) -> Any:
