@@ -23,6 +23,7 @@ Example:
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import functools
 import hashlib
@@ -34,6 +35,7 @@ import subprocess
 import sys
 import tempfile
 import threading
+from collections.abc import Iterator
 from pathlib import Path
 
 import torch
@@ -710,7 +712,8 @@ class _Render(ctypes.Structure):
 
 _RECORD = {"all": 0, "direct": 1, "indirect": 2}
 _embree_status: str | None = None  # None: not tried yet; "": loaded
-_scene: tuple[str, int, tuple[torch.Tensor | None, ...]] | None = None  # (scene key, BVH handle, its tables)
+_SCENES_KEPT = 2  # BVHs a process keeps between calls
+_scenes: dict[str, list] = {}  # scene key -> [BVH handle, its tables, calls tracing it]; least recently used first
 
 
 def _path_support(desc: PathOp | GuideRaysOp) -> str | None:
@@ -738,16 +741,15 @@ def _path_support(desc: PathOp | GuideRaysOp) -> str | None:
     return _embree_status or None
 
 
-def _bvh(arrays, tables) -> tuple[int, tuple[torch.Tensor | None, ...]]:
-    """This scene's embree BVH (built once per process, the previous scene's freed) and its
-    tables laid out one row per triangle / light."""
-    global _scene
+@contextlib.contextmanager
+def _bvh(arrays, tables) -> Iterator[tuple[int, tuple[torch.Tensor | None, ...]]]:
+    """This scene's embree BVH (built once per process) and its tables laid out one row per
+    triangle / light, held for the ``with`` block: beyond :data:`_SCENES_KEPT` scenes the least
+    recently used one is freed, but never while a call (another thread's) still traces it."""
     lib = library()
     with _lock:
-        if _scene is None or _scene[0] != arrays.key:
-            if _scene is not None:
-                lib.torchgi_scene_free(_scene[1])
-                _scene = None
+        entry = _scenes.pop(arrays.key, None)
+        if entry is None:
             tri = torch.from_numpy(arrays.triangles).to(torch.float32).contiguous()
             handle = lib.torchgi_scene_new(tri.data_ptr(), tri.shape[0])
             if not handle:
@@ -755,8 +757,25 @@ def _bvh(arrays, tables) -> tuple[int, tuple[torch.Tensor | None, ...]]:
             keep = (tables.tri.T.contiguous(), tables.light.T.contiguous(), tables.light_cdf.contiguous(),
                     tables.points.to(torch.float32).contiguous(), tables.intensities.to(torch.float32).contiguous(),
                     None if tables.sky is None else tables.sky.reshape(3).to(torch.float32).contiguous())
-            _scene = (arrays.key, handle, keep)
-        return _scene[1], _scene[2]
+            entry = [handle, keep, 0]
+        _scenes[arrays.key] = entry  # the most recently used last
+        entry[2] += 1
+        _evict(lib)
+    try:
+        yield entry[0], entry[1]
+    finally:
+        with _lock:
+            entry[2] -= 1
+            _evict(lib)
+
+
+def _evict(lib: ctypes.CDLL) -> None:
+    """Free the least recently used idle BVHs beyond :data:`_SCENES_KEPT` (under ``_lock``)."""
+    while len(_scenes) > _SCENES_KEPT:
+        idle = next((key for key, entry in _scenes.items() if entry[2] == 0), None)
+        if idle is None:
+            return
+        lib.torchgi_scene_free(_scenes.pop(idle)[0])
 
 
 def _render_struct(desc: PathOp | GuideRaysOp, tables: tuple[torch.Tensor | None, ...]) -> _Render:
@@ -796,8 +815,11 @@ def path(desc: PathOp) -> tuple:
     why = _path_support(desc)
     if why is not None:
         raise RuntimeError(why)
-    handle, tables = _bvh(desc.arrays, desc.tables)
-    r = _render_struct(desc, tables)
+    with _bvh(desc.arrays, desc.tables) as (handle, tables):
+        return _trace_pixels(desc, handle, _render_struct(desc, tables))
+
+
+def _trace_pixels(desc: PathOp, handle: int, r: _Render) -> tuple:
     counts = torch.from_numpy(desc.counts).to(torch.int64).contiguous()
     n = counts.numel()
     mean = torch.zeros(9, n, dtype=torch.float64)
@@ -833,10 +855,10 @@ def guide_rays(desc: GuideRaysOp) -> dict[str, torch.Tensor]:
     why = _path_support(desc)
     if why is not None:
         raise RuntimeError(why)
-    handle, tables = _bvh(desc.arrays, desc.tables)
     width, height = desc.camera.resolution
     out = torch.empty(11, width * height, dtype=torch.float32)
-    library().torchgi_render_guides(handle, ctypes.byref(_render_struct(desc, tables)), width * height,
-                                    out.data_ptr(), desc.threads)
+    with _bvh(desc.arrays, desc.tables) as (handle, tables):
+        library().torchgi_render_guides(handle, ctypes.byref(_render_struct(desc, tables)), width * height,
+                                        out.data_ptr(), desc.threads)
     return {"albedo": out[0:3], "normal": out[3:6], "position": out[6:9], "depth": out[9:10], "hit": out[10:11] > 0}
 
