@@ -414,7 +414,8 @@ def render(
             does not run (no C compiler, a skip turned off, ``integrator="basic"``), processes
             (None: all available cores for renders of >= 2^19 samples; see
             :func:`process_context` for how they start; no main guard is needed).
-        chunk_size: paths traced at once per worker (memory bound), >= 1024.
+        chunk_size: paths the torch wavefronts trace at once per worker (memory bound); the
+            compiled tracer's progress step per thread; >= 1024.
         progress: a progress bar (shown after 1 s); None = only on a terminal.
         skip_unneeded: skip work the scene does not need (DESIGN §4): True = every skip,
             False = none, or the names to keep from ``SKIPS`` ("absent_lights", "dead_paths",
