@@ -232,8 +232,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--bounces", type=int, default=1, help="indirect bounces, 0 = direct light only (default 1)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--resolution", type=_positive_int, nargs=2, metavar=("W", "H"), help="override the camera's")
-    p.add_argument("--workers", type=_positive_int, default=None,
-                   help="threads of the compiled tracer, else processes (default: all cores)")
+    p.add_argument("--workers", type=_positive_int, default=None, help="tracer threads or processes (default: all)")
     p.add_argument("--frames", type=_positive_int, help="N frames of camera.path: <out>_<frame:04d>.exr, motion layer")
     p.add_argument("--out", required=True, help="output EXR (never overwritten unless --overwrite)")
     p.add_argument("--overwrite", action="store_true")
