@@ -820,24 +820,20 @@ def path(desc: PathOp) -> tuple:
 
 
 def _trace_pixels(desc: PathOp, handle: int, r: _Render) -> tuple:
+    from torchgi.render.engine import _chunks  # the torch wavefronts' cut into chunks
+
     counts = torch.from_numpy(desc.counts).to(torch.int64).contiguous()
     n = counts.numel()
     mean = torch.zeros(9, n, dtype=torch.float64)
     var = torch.zeros(3, n, dtype=torch.float64)
-    # pieces of about chunk_size samples per thread, so that progress is reported as it goes
-    ends = torch.cumsum(counts, 0)
-    step = desc.chunk_size * desc.threads
-    a = 0
-    while a < n:
-        done = int(ends[a - 1]) if a else 0
-        b = max(a + 1, int(torch.searchsorted(ends, done + step, right=True)))
+    # pieces of at most chunk_size samples per thread (>= 1 pixel), so that progress is reported as it goes
+    for a, b in _chunks(counts, desc.chunk_size * desc.threads):
         m, v = torch.zeros(9, b - a, dtype=torch.float64), torch.zeros(3, b - a, dtype=torch.float64)
         library().torchgi_render_pixels(handle, ctypes.byref(r), desc.first_pixel + a, counts[a:].data_ptr(), b - a,
                                         m.data_ptr(), v.data_ptr(), desc.threads)
         mean[:, a:b], var[:, a:b] = m, v
         if desc.on_chunk is not None:
-            desc.on_chunk(int(ends[b - 1]) - done)
-        a = b
+            desc.on_chunk(int(counts[a:b].sum()))
     return mean.numpy(), var.numpy()
 
 
