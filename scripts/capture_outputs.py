@@ -52,6 +52,14 @@ def cases(gb, size: int):
         for quality in ("fast", "balanced", "high"):
             yield f"denoiser-{method}-{quality}", lambda m=method, q=quality: Denoiser(m, q)(gb)
     yield "denoiser-guided-sub2", lambda: Denoiser("guided", subsample=2)(gb)
+    yield "denoiser-blend", lambda: Denoiser("blend")(gb)
+    yield "denoiser-blend-weights", lambda: Denoiser("blend").weights(gb)
+    yield "denoiser-guided-tiled", lambda: Denoiser("guided", max_memory_mb=2)(gb)
+    yield "denoiser-guided-split", lambda: Denoiser("guided", filter_direct=False)(gb)
+    yield "denoiser-no-emission", lambda: Denoiser("guided")(color=gb.color, albedo=gb.albedo, normal=gb.normal,
+                                                               depth=gb.depth)
+    yield "deployed-blend", lambda: Denoiser("blend").deploy(spp=1)(gb.color, gb.emission, gb.albedo, gb.normal,
+                                                                   gb.depth)
     yield "deployed-guided", lambda: Denoiser("guided").deploy(spp=1)(gb.color, gb.emission, gb.albedo, gb.normal,
                                                                      gb.depth)
     yield "deployed-atrous", lambda: Denoiser("atrous").deploy(spp=1, sigma_position=sx)(
@@ -98,7 +106,29 @@ def capture(size: int) -> dict[str, torch.Tensor]:
                 out[f"{name}/render-basic"] = render(scene, spp=2, bounces=2, seed=1, integrator="basic").color
                 gr, eye = render_guide_rays(scene, spp=4, seed=3)
                 out[f"{name}/supersample"] = Denoiser("guided", filter_direct=False).supersample(gr, eye)
+                for k in ("color", "direct", "indirect", "emission", "albedo", "normal", "depth", "position"):
+                    out[f"{name}/guide-rays/{k}"] = getattr(gr, k)
+                with torch_only():
+                    out[f"{name}/render-torch"] = render(scene, spp=2, bounces=2, seed=1).color
+                out[f"{name}/render-adaptive"] = render(scene, spp=adaptive_counts(gb, 2.0), bounces=1, seed=5).color
         print(name, flush=True)
+    out.update(temporal(size))
+    return out
+
+
+def temporal(size: int) -> dict[str, torch.Tensor]:
+    """A camera path's frames (motion included) and the TemporalDenoiser over them, both back ends."""
+    from torchgi import TemporalDenoiser, load_scene, render_sequence
+
+    root = Path(__file__).resolve().parents[1]
+    seq = load_scene(root / "configs/scenes/sequences/cornell_slide.yaml").with_resolution(size, size)
+    frames = render_sequence(seq, 5, spp=1, seed=2)
+    out = {f"sequence/{k}/{name}": getattr(f, name) for k, f in enumerate(frames) for name in ("color", "motion")}
+    for mode in ("default", "torch"):
+        with torch_only() if mode == "torch" else contextlib.nullcontext():
+            den = TemporalDenoiser()
+            for k, f in enumerate(frames):
+                out[f"temporal/{mode}/{k}"] = den(f)
     return out
 
 
