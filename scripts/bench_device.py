@@ -26,10 +26,9 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from benchmark_utils import SIZES, markdown_table, metadata, time_ms, write_results
+from benchmark_utils import SIZES, markdown_table, metadata, time_ms, triton_knob, write_results
 
 from torchgi import backends
-from torchgi.backends import triton_kernels as gpu
 from torchgi.filters import Guided, atrous, guided
 from torchgi.sampling import allocate, importance_map
 
@@ -54,7 +53,7 @@ def compiled_variants(timed, device: torch.device) -> None:
     measured against the issues' 1 ms target. First calls (compiles) are timed separately."""
     import time
 
-    from torchgi.backends.torch_code import _guided_reference
+    from torchgi.backends.torch_code.filter_guided import _guided_reference
     from torchgi.filters.guided import _check_eps
 
     H, W = SIZES["1080p"]
@@ -147,9 +146,7 @@ def apply_knobs(path: str | None) -> dict:
     ``sweep_gpu_tiles.py`` (None: nothing); returns them."""
     knobs = json.loads(Path(path).read_text()) if path else {}
     for k, v in knobs.items():
-        if not hasattr(gpu, k):
-            raise KeyError(f"{path}: torchgi.backends.triton_kernels has no knob {k}")
-        setattr(gpu, k, v)
+        setattr(triton_knob(k), k, v)
     return knobs
 
 
@@ -216,7 +213,7 @@ def main() -> None:
               paper_ms=PAPER["importance", window])
     meta = metadata(torch.get_num_threads())
     meta["device"] = torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu"
-    meta["knobs"] = {k: getattr(gpu, k) for k in knobs}
+    meta["knobs"] = {k: getattr(triton_knob(k), k) for k in knobs}
     out = Path(args.out)
     stem = f"device_{device.type}"
     write_results(rows, meta, out, stem)

@@ -53,7 +53,7 @@ def render_inputs(scene: str, H: int, W: int, cache: Path) -> dict[str, torch.Te
 def methods(inputs: dict[str, torch.Tensor], device: str) -> dict:
     """name -> zero-argument callable on ``inputs``."""
     from torchgi.filters import guide_from_gbuffer
-    from torchgi.filters.guided import _guided
+    from torchgi.filters import guided as guided_filter
     from torchgi.settings import GUIDED
 
     guided = Denoiser("guided")
@@ -64,7 +64,7 @@ def methods(inputs: dict[str, torch.Tensor], device: str) -> dict:
     fns = {
         'Denoiser("guided")': lambda: guided(**inputs),
         'Denoiser("guided", subsample=1)': lambda: full(**inputs),
-        f"guided kernel (r={radius})": lambda: _guided(x, guide, radius, GUIDED.eps, False, ws, 1),
+        f"guided kernel (r={radius})": lambda: guided_filter(x, guide, radius=radius, eps=GUIDED.eps, workspace=ws),
     }
     default = Denoiser()
     if default.method != "guided":

@@ -123,7 +123,7 @@ def profile(name: str, size: int, bounces: int, spp: int) -> dict:
     core): scene loading, the tables, the BVH build, the guide rays, and the samples split into
     embree's closest-hit and occlusion queries and the rest (sampling, BSDFs, lights, film)."""
     from torchgi.backends import c_kernels
-    from torchgi.render.engine import _tables
+    from torchgi.render.engine import guide_rays_op, path_op
     from torchgi.render.lights import Tables
 
     t0 = time.perf_counter()
@@ -131,8 +131,7 @@ def profile(name: str, size: int, bounces: int, spp: int) -> dict:
     arrays = scene.arrays()
     t_load = time.perf_counter() - t0
     t_tables = seconds(lambda: Tables.from_arrays(arrays))
-    tables = _tables(arrays, bvh=False)[0]
-    guides = backends.GuideRaysOp(arrays, tables, scene.camera, threads=1)
+    guides = guide_rays_op(arrays, scene.camera, threads=1)
     if backends.select(guides)[0] != "c":
         raise RuntimeError(f"no compiled tracer: {backends.status()['last']['guide_rays']}")
     lib = c_kernels.library()
@@ -145,12 +144,10 @@ def profile(name: str, size: int, bounces: int, spp: int) -> dict:
     backends.run(guides)  # this scene's BVH, built once
     t_guides = seconds(lambda: backends.run(guides))
     prof = torch.zeros(1, 4, dtype=torch.float64)
-    op = backends.PathOp(arrays, tables, scene.camera, bounces, 0, 0, "all", frozenset(SKIPS), 0,
-                         np.full(width * height, spp), 1 << 15, 1, None, prof)
+    op = path_op(arrays, scene.camera, np.full(width * height, spp), bounces=bounces, seed=0, profile=prof)
     t_trace = seconds(lambda: backends.run(op))
-    t_plain = seconds(lambda: backends.run(backends.PathOp(arrays, tables, scene.camera, bounces, 1, 0, "all",
-                                                            frozenset(SKIPS), 0, np.full(width * height, spp),
-                                                            1 << 15, 1)))
+    t_plain = seconds(lambda: backends.run(path_op(arrays, scene.camera, np.full(width * height, spp),
+                                                   bounces=bounces, seed=1)))
     samples = width * height * spp
     hit_s, occ_s, hit_n, occ_n = prof[0].tolist()
     return {

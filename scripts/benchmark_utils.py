@@ -46,6 +46,17 @@ def time_ms(fn: Callable[[], object], *, min_run_time: float = 1.0, device: str 
     return {"median_ms": m.median * 1e3, "iqr_ms": m.iqr * 1e3, "runs": len(m.times)}
 
 
+def triton_knob(name: str):
+    """The module of :mod:`torchgi.backends.triton_kernels` that holds the tile knob ``name``
+    (``_BH``, ``_COL_BW``, ``_PIX``, ...), for ``getattr`` / ``setattr``; KeyError if none does."""
+    from torchgi.backends.triton_kernels import filter_atrous, filter_guided
+
+    for mod in (filter_atrous, filter_guided):
+        if hasattr(mod, name):
+            return mod
+    raise KeyError(f"torchgi.backends.triton_kernels has no knob {name}")
+
+
 def write_results(rows: list[dict], meta: dict, out: Path, stem: str) -> None:
     """``stem.csv`` (rows), ``stem.json`` (metadata + rows)."""
     out.mkdir(parents=True, exist_ok=True)

@@ -23,10 +23,9 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_device import device_busy, inputs
-from benchmark_utils import SIZES, time_ms
+from benchmark_utils import SIZES, time_ms, triton_knob
 
 from torchgi import backends
-from torchgi.backends import triton_kernels as gpu
 from torchgi.filters import atrous, guided
 
 ATROUS = [{"_BH": bh, "_BW": bw, "_WARPS": w, "_UNROLL": u} for bh, bw, w, u in (
@@ -41,15 +40,15 @@ GUIDED = [{}, _BASE] + [{**_BASE, **v} for v in (
 
 
 def sweep(name: str, settings: list[dict], fn) -> dict:
-    """Times ``fn`` under each setting of the ``gpu`` module's knobs; returns the fastest setting
+    """Times ``fn`` under each setting of the Triton tile knobs; returns the fastest setting
     by GPU busy time (defaults restored)."""
-    defaults = {k: getattr(gpu, k) for s in settings for k in s}
+    defaults = {k: getattr(triton_knob(k), k) for s in settings for k in s}
     with backends.use("torch"):
         want = fn()
     results = []
     for setting in settings:
         for k, v in {**defaults, **setting}.items():
-            setattr(gpu, k, v)
+            setattr(triton_knob(k), k, v)
         try:
             err = float((fn() - want).abs().max())
             t = time_ms(fn, min_run_time=0.3, device="cuda")
@@ -61,7 +60,7 @@ def sweep(name: str, settings: list[dict], fn) -> dict:
         print(f"{name} {setting or 'defaults'}: busy {busy:.3f} ms, call {t['median_ms']:.3f} ms, "
               f"max abs diff to torch {err:.1e}", flush=True)
     for k, v in defaults.items():
-        setattr(gpu, k, v)
+        setattr(triton_knob(k), k, v)
     results.sort(key=lambda r: r[0])
     for busy, call, err, setting in results:
         print(f"  {name}: busy {busy:.3f} ms  call {call:.3f} ms  diff {err:.1e}  {setting or 'defaults'}")

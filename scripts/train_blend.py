@@ -6,7 +6,7 @@
 
 The data are the shards of ``configs/data_gen/blend.yaml``: four scenes that are never benchmark
 scenes. Each noisy shard goes through the Denoiser's own pipeline up to its filter (demodulation,
-light sources, firefly clamp: :func:`torchgi.denoise._restore` with a recording filter), so the
+light sources, firefly clamp: :func:`torchgi.light.restore` with a recording filter), so the
 network sees exactly what ``Denoiser("blend")`` hands it; the candidates and features are computed
 once per shard, then the per-pixel MLP is trained on random crops with Adam, the loss the
 benchmark's relMSE of the remodulated image against the reference. Fixed seeds throughout; with
@@ -27,12 +27,13 @@ from pathlib import Path
 
 import torch
 
-from torchgi import metrics
+from torchgi import light, metrics
 from torchgi.buffers import GBuffer
 from torchgi.data import ShardDataset
-from torchgi.denoise import _FIREFLY, Denoiser, _demodulator, _restore, _surface
-from torchgi.filters import guide_from
+from torchgi.denoise import Denoiser
+from torchgi.filters import box, guide_from
 from torchgi.filters.blend import BlendNet, blend_candidates, blend_features
+from torchgi.settings import GUIDED
 
 FEATURES = ("color", "albedo", "normal", "depth", "emission", "variance")
 
@@ -43,21 +44,21 @@ def prepared(sample: dict, net: BlendNet) -> dict:
     t = {k: sample[k][None] for k in FEATURES}
     H, W = t["color"].shape[-2:]
     gb = GBuffer(**t, spp=torch.full((1, 1, H, W), int(sample["spp"]), dtype=torch.int32))
-    surface = _surface(gb.hit, gb.albedo)
+    surface = light.surface_mask(gb.hit, gb.albedo)
     seen = {}
 
     def record(x):
         seen["x"] = x
         return torch.zeros_like(x)
 
-    kept = _restore(gb.color, gb.emission, None, gb.albedo, surface, record, _FIREFLY["blend"])
+    kept = light.restore(gb.color, gb.emission, None, gb.albedo, surface, record, GUIDED.firefly, box)
     guide = guide_from(gb.normal, gb.depth, depth_scale="image")  # as Denoiser('blend') builds it
     spp = Denoiser("blend")._spp(gb, surface)
     cands = blend_candidates(seen["x"], guide, radii=net.radii, eps=net.eps, colour_radii=net.colour_radii,
                              colour_scale=net.colour_scale, fine_radii=net.fine_radii,
                              fine_eps=net.fine_eps)
     return {"cands": torch.stack(cands, 1), "feats": blend_features(cands, guide, spp, net.reference),
-            "demod": _demodulator(gb.albedo, surface), "kept": kept, "target": sample["target"][None],
+            "demod": light.demodulator(gb.albedo, surface), "kept": kept, "target": sample["target"][None],
             "name": sample["name"], "spp": int(sample["spp"]), "gbuffer": gb}
 
 

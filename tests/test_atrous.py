@@ -185,7 +185,7 @@ def test_module_and_per_batch_sigmas():
 
 def test_pointwise_formulation_matches_oracle():
     """The per-channel pointwise level (what fused=True compiles), run eagerly."""
-    from torchgi.backends import torch_code as mod
+    from torchgi.backends.torch_code import filter_atrous as mod
 
     c, n, x = buffers(seed=21)
     real = mod._compiled_iteration

@@ -19,6 +19,8 @@ from tests.helpers import last_backend, rel_range
 from tests.oracles import ATROUS_CASES, atrous_case, atrous_error, box_oracle, fast_guided_oracle, guided_oracle, scene
 from torchgi import backends
 from torchgi.backends import triton_kernels as gpu
+from torchgi.backends.triton_kernels import filter_atrous as atrous_kernels
+from torchgi.backends.triton_kernels import filter_guided as guided_kernels
 from torchgi.filters import atrous, box, guided
 
 
@@ -145,7 +147,7 @@ def _interpret(code: str) -> list[float]:
     pytest.importorskip("triton")
     root = str(Path(__file__).resolve().parents[1])
     env = dict(os.environ, TRITON_INTERPRET="1", TORCHGI_NATIVE="1")
-    code = "from torchgi.backends import c_kernels\nc_kernels.library = lambda: None\n" + code.format(root=root)
+    code = "from torchgi.backends import c_kernels\nc_kernels.build.library = lambda: None\n" + code.format(root=root)
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=root,
                           timeout=600, check=False)
     assert proc.returncode == 0, proc.stderr[-2000:]
@@ -193,18 +195,18 @@ def test_kernels_off_inside_use_torch():
 def _variants():
     """Every Triton kernel with the compile-time arguments it is launched with (the À-Trous
     level: the common case and the one with every input)."""
-    level = {"BH": gpu._BH, "BW": gpu._BW}
+    level = {"BH": atrous_kernels._BH, "BW": atrous_kernels._BW}
     return [
-        (gpu._level, dict(C=C, N=True, X=True, CS=CS, V=V, VALID=VALID, UNROLL=gpu._unroll(C, V), **level), gpu._WARPS)
+        (atrous_kernels._level, dict(C=C, N=True, X=True, CS=CS, V=V, VALID=VALID, UNROLL=atrous_kernels._unroll(C, V), **level), atrous_kernels._WARPS)
         for C, CS, V, VALID in ((3, 1, False, False), (3, 1, False, True), (3, 2, True, False), (4, 1, False, True),
                                 (4, 2, True, True))
     ] + [
-        (gpu._level, dict(C=1, N=False, X=False, CS=0, V=False, VALID=False, UNROLL=gpu._unroll(1, False), **level),
-         gpu._WARPS),
-        (gpu._column_sums, {"CENTRE": True, "BW": gpu._COL_BW, "UNROLL": gpu._COL_UNROLL}, gpu._COL_WARPS),
-        (gpu._column_sums, {"CENTRE": False, "BW": gpu._COL_BW, "UNROLL": gpu._COL_UNROLL}, gpu._COL_WARPS),
-        (gpu._row_means, {"BH": gpu._ROW_BH, "BW": gpu._ROW_BW}, 4),
-    ] + [(k, {"N": n, "BLOCK": gpu._PIX}, 4) for k in (gpu._solve, gpu._apply) for n in (1, 2, 3, 4)]
+        (atrous_kernels._level, dict(C=1, N=False, X=False, CS=0, V=False, VALID=False, UNROLL=atrous_kernels._unroll(1, False), **level),
+         atrous_kernels._WARPS),
+        (guided_kernels._column_sums, {"CENTRE": True, "BW": guided_kernels._COL_BW, "UNROLL": guided_kernels._COL_UNROLL}, guided_kernels._COL_WARPS),
+        (guided_kernels._column_sums, {"CENTRE": False, "BW": guided_kernels._COL_BW, "UNROLL": guided_kernels._COL_UNROLL}, guided_kernels._COL_WARPS),
+        (guided_kernels._row_means, {"BH": guided_kernels._ROW_BH, "BW": guided_kernels._ROW_BW}, 4),
+    ] + [(k, {"N": n, "BLOCK": guided_kernels._PIX}, 4) for k in (guided_kernels._solve, guided_kernels._apply) for n in (1, 2, 3, 4)]
 
 
 def test_kernels_compile_for_a_gpu_without_register_spills():

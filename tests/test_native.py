@@ -15,7 +15,7 @@ from torchgi.backends import c_kernels as native
 from torchgi.filters import atrous, guided
 from torchgi.sampling import allocate, importance_map
 
-pytestmark = pytest.mark.skipif(native._compiler() is None, reason="no C compiler: the kernels cannot be built")
+pytestmark = pytest.mark.skipif(native.build._compiler() is None, reason="no C compiler: the kernels cannot be built")
 
 
 def test_kernels_build_with_the_system_compiler():
@@ -30,7 +30,7 @@ def test_kernels_build_with_the_system_compiler():
 @pytest.fixture
 def two_bands(monkeypatch):
     """Every image split into bands of rows on two threads, however small."""
-    monkeypatch.setattr(native, "_MIN_BAND_PIXELS", 16)
+    monkeypatch.setattr(native.runtime, "_MIN_BAND_PIXELS", 16)
     threads = torch.get_num_threads()
     torch.set_num_threads(2)
     yield
@@ -86,9 +86,9 @@ def test_disabled_and_unbuildable_fall_back(monkeypatch, tmp_path):
     # a compiler that fails: no library, a reason, the torch code
     monkeypatch.setenv("CC", "false")
     monkeypatch.setenv("TORCHGI_CACHE", str(tmp_path))
-    monkeypatch.setattr(native, "_lib", None)
-    monkeypatch.setattr(native, "_tried", False)
-    monkeypatch.setattr(native, "_status", "not built yet")
+    monkeypatch.setattr(native.build, "_lib", None)
+    monkeypatch.setattr(native.build, "_tried", False)
+    monkeypatch.setattr(native.build, "_status", "not built yet")
     assert native.library() is None
     assert "unavailable" in native.describe() and "false" in native.describe()
     assert float((guided(p, I, radius=4).double() - ref).abs().max()) < 1e-5

@@ -88,7 +88,7 @@ def test_bands_on_two_threads_give_the_one_thread_result(render, monkeypatch):
     try:
         torch.set_num_threads(1)
         one = d(render)
-        monkeypatch.setattr(c_kernels, "_MIN_BAND_PIXELS", 16)
+        monkeypatch.setattr(c_kernels.runtime, "_MIN_BAND_PIXELS", 16)
         torch.set_num_threads(2)
         two = d(render)
     finally:

@@ -18,6 +18,7 @@ import torchgi
 from torchgi import backends
 from torchgi.core import ConfigError, DTypeError, NonFiniteError, RangeError, ShapeError
 from torchgi.render import accel, scenes
+from torchgi.render.engine import guide_rays_op
 from torchgi.render.film import Film
 from torchgi.render.materials import bsdf_eval, bsdf_sample
 from torchgi.render.sampler import sample_keys, uniform
@@ -181,7 +182,7 @@ def test_compiled_tracer_matches_the_wavefronts_sample_for_sample(name):
     # torch wavefronts on embreex) fed the same random numbers: the same paths, so the same
     # pixels up to float rounding (fused multiply-adds, a branch flipped by the last bit).
     scene = scenes.BUILTINS[name](24)
-    if backends.select(backends.GuideRaysOp(scene.arrays(), None, scene.camera))[0] != "c":
+    if backends.select(guide_rays_op(scene.arrays(), scene.camera))[0] != "c":
         pytest.skip("no compiled tracer here")
     ours = torchgi.render(scene, spp=8, bounces=4, seed=5)
     with backends.use("torch"):
@@ -210,7 +211,7 @@ def test_compiled_tracer_renders_scenes_from_many_threads_at_once():
 def test_without_embree_4_the_torch_code_renders(monkeypatch):
     from torchgi.backends import c_kernels
 
-    monkeypatch.setattr(c_kernels, "_embree_status", "compiled tracer unavailable: no embree 4 library found")
+    monkeypatch.setattr(c_kernels.tracer, "_embree_status", "compiled tracer unavailable: no embree 4 library found")
     gb = torchgi.render(scenes.cornell(8), spp=2)
     last = backends.status()["last"]["path"]
     assert last["ran"] == "torch" and "no embree 4" in last["skipped"]["c"]

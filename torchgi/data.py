@@ -402,7 +402,7 @@ def _run_tasks(config: DataGenConfig, todo: list[Task], out: Path, workers: int,
 def _sigma_position(position: torch.Tensor, hit: torch.Tensor | None) -> torch.Tensor:
     """σ_x of each sample of ``position (B, 3, H, W)``, ``(B,)``: the Denoiser's rule on its own
     pixels (all of them without ``hit``)."""
-    from torchgi.sampling import sigma_position_rule
+    from torchgi.geometry import sigma_position_rule
     from torchgi.settings import ATROUS
 
     if hit is None:
@@ -496,7 +496,7 @@ class FilterFeatures(torch.nn.Module):
     """Add filtered versions of the noisy colour to a sample as extra features.
 
     ``atrous``: edge-avoiding À-Trous of ``color`` guided by ``normal`` (and ``position`` when
-    present, σ_x by :func:`~torchgi.sampling.sigma_position_rule` as the Denoiser's, from each
+    present, σ_x by :func:`~torchgi.geometry.sigma_position_rule` as the Denoiser's, from each
     sample's own positions and ``hit``); ``guided``: the guided filter of ``color`` with the
     Denoiser's guide (:func:`~torchgi.filters.guide_from`: normal, and depth over each sample's
     largest). A sample's features do not depend on the batch it is in. Works on single samples

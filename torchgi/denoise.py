@@ -29,11 +29,14 @@ from typing import Any
 
 import torch
 
-from torchgi import backends
+from torchgi import backends, light
 from torchgi.buffers import GBuffer
-from torchgi.core.check import check_finite, check_option, finite_or_sanitized_all, is_recording
+from torchgi.core.check import check_finite, check_option, finite_or_sanitized_all
 from torchgi.core.errors import ShapeError
 from torchgi.core.registry import Registry
+from torchgi.filters import atrous, box, cross_bilateral, guide_from, guided
+from torchgi.filters.blend import blend, default_net
+from torchgi.geometry import sigma_position_rule
 from torchgi.settings import ATROUS, BILATERAL, GUIDED, PIPELINE
 from torchgi.supersample import EyeSamples
 
@@ -47,134 +50,12 @@ _INPUTS = ("color", "albedo", "normal", "position", "depth", "emission", "direct
            "hit")
 
 
-def _surface(hit: torch.Tensor | None, albedo: torch.Tensor) -> torch.Tensor:
-    """``(B,1,H,W)`` bool: pixels on geometry - ``hit`` when given, else non-zero albedo."""
-    return hit if hit is not None else albedo.amax(1, keepdim=True) > 0
-
-
-def _demodulator(albedo: torch.Tensor, surface: torch.Tensor) -> torch.Tensor:
-    """What light is divided by: the albedo (at least ``PIPELINE.albedo_floor``) on surfaces, 1 on the background,
-    which is filtered as it is."""
-    return torch.where(surface, albedo.clamp_min(PIPELINE.albedo_floor),
-                       torch.ones((), dtype=albedo.dtype, device=albedo.device))
-
-
 def _noise_free(gb: GBuffer) -> bool:
     """The colour carries no noise to filter (DESIGN §4): a measured variance of 0 everywhere,
     from at least 2 samples in every pixel (with 1 sample the variance is unknown, stored as 0)."""
     if gb.variance is None or gb.spp is None:
         return False
     return int(gb.spp.min()) >= 2 and not bool(gb.variance.any())
-
-
-def _every4(t: torch.Tensor | None) -> torch.Tensor | None:
-    """Every 4th row and column of ``t (B,C,H,W)`` (a view), None for None."""
-    return None if t is None else t[:, :, ::4, ::4]
-
-
-def _median_level(x: torch.Tensor, surface: torch.Tensor) -> torch.Tensor:
-    """``(B,1,1,1)``: per image, the (lower) median over surface pixels of the channel maximum of
-    ``x (B,C,H,W)``, read on every 4th row and column (a scale for thresholds, so 1/16 of the
-    pixels is plenty; pass :func:`_every4` views, so that nothing else is computed); 1 where
-    there is none or it is not > 0. Plain tensor ops (exportable)."""
-    peak = x.amax(1).flatten(1)
-    on = surface[:, 0].flatten(1)
-    ranked = torch.where(on, peak, torch.full((), float("inf"), dtype=x.dtype, device=x.device))
-    count = on.sum(1, keepdim=True)
-    if is_recording():  # a sort exports; eager calls select in linear time
-        m = ranked.sort(1).values.gather(1, ((count - 1).clamp_min(0) // 2))
-    else:
-        m = torch.stack([ranked[b].kthvalue(max(int(count[b]) - 1, 0) // 2 + 1).values for b in range(len(ranked))]
-                        ).view(-1, 1) if ranked.shape[1] else ranked.new_ones(len(ranked), 1)
-    return torch.where((count > 0) & (m > 0), m, torch.ones_like(m)).reshape(-1, 1, 1, 1)
-
-
-def _light_sources(emission: torch.Tensor, threshold: torch.Tensor) -> torch.Tensor:
-    """``(B,1,H,W)`` bool: pixels whose emission exceeds ``threshold`` and that lie in a square of
-    ``PIPELINE.light_square`` (3x3) such pixels (a morphological opening: whole lights, corners
-    included, stay; single pixels and one-pixel fringes that a few samples hit along a light's
-    silhouette do not)."""
-    from torchgi.filters import box
-
-    bright = emission.amax(1, keepdim=True) > threshold
-    if not is_recording() and not bool(bright.any()):
-        return bright  # no light source in view: nothing to open
-    r = PIPELINE.light_square // 2
-    core = box(bright.to(emission.dtype), r) > 1 - 1e-3  # erosion: the whole window is bright
-    return bright & (box(core.to(emission.dtype), r) > 0)  # dilation back
-
-
-def _firefly_bound(peak: torch.Tensor, scene_level: torch.Tensor, k: float) -> torch.Tensor:
-    """``(B,1,H,W)``: ``k`` x the local level of the channel maximum ``peak (B,1,H,W)``: the box
-    mean of ``peak`` capped at ``k`` x ``scene_level`` (:func:`_median_level`)."""
-    from torchgi.filters import box
-
-    # (box sums round: a mean of zeros can come out as -1e-9, so the bound is clamped at 0)
-    return k * box(torch.minimum(peak, k * scene_level), PIPELINE.firefly_radius).clamp_min(0)
-
-
-def _clamp_fireflies(x: torch.Tensor, scene_level: torch.Tensor, k: float) -> torch.Tensor:
-    """Scale pixels of ``x (B,C,H,W)`` (>= 0) whose maximum exceeds ``k`` x their local level down
-    to that bound (:func:`_firefly_bound`), hue kept."""
-    peak = x.amax(1, keepdim=True)
-    bound = _firefly_bound(peak, scene_level, k)
-    over = peak > bound  # so peak > 0 wherever it divides
-    return torch.where(over, x * (bound / torch.where(over, peak, 1.0)), x)
-
-
-def _filter_light(
-    x: torch.Tensor, level: torch.Tensor, filter_fn: Callable[[torch.Tensor], torch.Tensor], firefly: float
-) -> torch.Tensor:
-    """``filter_fn`` of demodulated light ``x (B,C,H,W)`` with its fireflies clamped at ``firefly``
-    x their local level (``level`` from :func:`_median_level`), clamped at 0: light is >= 0 and
-    linear models can undershoot."""
-    return filter_fn(_clamp_fireflies(x, level, firefly)).clamp_min(0)
-
-
-def _level(color: torch.Tensor, emission: torch.Tensor | None, kept: torch.Tensor | None, albedo: torch.Tensor,
-           surface: torch.Tensor) -> torch.Tensor:
-    """``(B,1,1,1)``: :func:`_median_level` of the demodulated light without emission and kept
-    light, computed on every 4th row and column only."""
-    c, e, k, a, on = (_every4(t) for t in (color, emission, kept, albedo, surface))
-    base = c - k if k is not None else c
-    return _median_level((base - e if e is not None else base) / _demodulator(a, on), on)
-
-
-def _centre(color: torch.Tensor, emission: torch.Tensor | None, kept: torch.Tensor | None, albedo: torch.Tensor,
-            surface: torch.Tensor, cap: torch.Tensor) -> torch.Tensor:
-    """``(B, 3)`` float64 on the CPU: per image and channel the mean of the demodulated light
-    (without emission and kept light, at most ``cap (B,1,1,1)``) on every 4th row and column:
-    a constant near the clamped light's mean, to centre it by before the filter's sums."""
-    c, e, k, a, on = (_every4(t) for t in (color, emission, kept, albedo, surface))
-    base = c - k if k is not None else c
-    x = (base - e if e is not None else base) / _demodulator(a, on)
-    return torch.minimum(x, cap).double().mean(dim=(2, 3)).cpu()
-
-
-def _restore(
-    color: torch.Tensor, emission: torch.Tensor | None, kept: torch.Tensor | None, albedo: torch.Tensor,
-    surface: torch.Tensor, filter_fn: Callable[[torch.Tensor], torch.Tensor], firefly: float,
-    level: torch.Tensor | None = None,
-) -> torch.Tensor:
-    """The module docstring's pipeline around ``filter_fn`` (demodulated light in, filtered out),
-    shared by :class:`Denoiser`, :class:`DeployedDenoiser` and the torch code of the fused guided
-    pipeline: all ``(B, C, H, W)``; ``kept`` is light added back unfiltered (direct light in the
-    papers' split) or None; ``firefly`` the method's clamp factor; ``level`` :func:`_level` (None:
-    computed here)."""
-    if level is None:
-        level = _level(color, emission, kept, albedo, surface)
-    albedo = _demodulator(albedo, surface)
-    base = color - kept if kept is not None else color
-    lights = _light_sources(emission if emission is not None else base / albedo, PIPELINE.light * level)
-    if emission is not None:
-        light = torch.where(lights, emission, 0.0)
-        kept = light if kept is None else kept + light
-        x = (base - light) / albedo
-    else:  # no emission input: a light source's pixels pass whole and enter the filter at the median level
-        x = torch.where(lights, level.expand_as(color), base / albedo)
-    out = _filter_light(x, level, filter_fn, firefly) * albedo
-    out = out + kept if kept is not None else out
-    return out if emission is not None else torch.where(lights, color, out)
 
 
 class Denoiser(torch.nn.Module):
@@ -273,8 +154,6 @@ class Denoiser(torch.nn.Module):
         """
         p = self.filter_params
         if self.method == "blend":
-            from torchgi.filters.blend import default_net
-
             return DeployedDenoiser("blend", {"spp": float(spp)}, net=default_net())
         if self.method == "guided":
             params = {"radius": self._radius(spp, GUIDED.radius), "eps": p.get("eps", GUIDED.eps)}
@@ -331,13 +210,13 @@ class Denoiser(torch.nn.Module):
                 check_finite(getattr(gb, name), name)  # named here, not as the filter's input
         if _noise_free(gb) or gb.color.numel() == 0:  # nothing to filter (an empty batch included)
             return gb.color if self.hdr else gb.color.clamp(0, 1)
-        surface = _surface(gb.hit, gb.albedo)
+        surface = light.surface_mask(gb.hit, gb.albedo)
         kept = gb.direct if split else None  # the papers' split: direct light as sampled
         if self.method == "guided":
             out = self._guided_pipeline(gb, kept, surface)
         else:
-            out = _restore(gb.color, gb.emission, kept, gb.albedo, surface, lambda x: self._filter(x, gb, surface),
-                           _FIREFLY[self.method])
+            out = light.restore(gb.color, gb.emission, kept, gb.albedo, surface,
+                                lambda x: self._filter(x, gb, surface), _FIREFLY[self.method], box)
         return out if self.hdr else out.clamp(0, 1)
 
     def _guided_pipeline(self, gb: GBuffer, kept: torch.Tensor | None, surface: torch.Tensor) -> torch.Tensor:
@@ -345,7 +224,7 @@ class Denoiser(torch.nn.Module):
         in the compiled back ends)."""
         spec, guide_means = self._guide_spec(gb)
         H, W = gb.color.shape[-2:]
-        level = _level(gb.color, gb.emission, kept, gb.albedo, surface)
+        level = light.level(gb.color, gb.emission, kept, gb.albedo, surface)
         radius, s = self._radius(self._spp(gb, surface), GUIDED.radius), self._subsample(spec, H, W)
 
         def op(rows: slice = slice(None), cols: slice = slice(None), workspace: dict | None = None) -> torch.Tensor:
@@ -359,7 +238,7 @@ class Denoiser(torch.nn.Module):
                                                    workspace, centres[0], centres[1]))
 
         # light and guide centred by constants of each image, so that tiles compute the untiled sums
-        centres = (_centre(gb.color, gb.emission, kept, gb.albedo, surface, GUIDED.firefly * level), guide_means)
+        centres = (light.centre(gb.color, gb.emission, kept, gb.albedo, surface, GUIDED.firefly * level), guide_means)
 
         if self.max_memory_mb is None:
             return op(workspace=self._workspace)
@@ -417,20 +296,20 @@ class Denoiser(torch.nn.Module):
         for name in ("emission", "direct", "indirect", "albedo", "normal", "depth"):
             if getattr(gb, name) is None:
                 raise ShapeError(f"gb.{name}: required by supersample (render with render_guide_rays)")
-        surface = _surface(gb.hit, gb.albedo)
-        albedo = _demodulator(gb.albedo, surface)
+        surface = light.surface_mask(gb.hit, gb.albedo)
+        albedo = light.demodulator(gb.albedo, surface)
         x = (gb.indirect + gb.direct if self.filter_direct else gb.indirect) / albedo
         if self.method == "none":
-            light = x
+            lit = x
         else:
-            light = _filter_light(x, _median_level(_every4(x), _every4(surface)), lambda v: self._filter(v, gb, surface),
-                                  _FIREFLY[self.method])
-        light = torch.where(surface, light, 0.0)  # no reflected light without a surface
+            lit = light.filter_light(x, light.median_level(light.every4(x), light.every4(surface)),
+                                     lambda v: self._filter(v, gb, surface), _FIREFLY[self.method], box)
+        lit = torch.where(surface, lit, 0.0)  # no reflected light without a surface
         own, sample_own = gb.emission, samples.emission
         if not self.filter_direct:
             own, sample_own = own + gb.direct, sample_own + samples.direct
-        out = composite(own, gb.albedo, light, sample_own, samples.albedo,
-                        distribute(light, gb.normal, gb.depth, samples))
+        out = composite(own, gb.albedo, lit, sample_own, samples.albedo,
+                        distribute(lit, gb.normal, gb.depth, samples))
         return out if self.hdr else out.clamp(0, 1)
 
     def weights(self, gb: GBuffer) -> torch.Tensor:
@@ -497,14 +376,9 @@ class Denoiser(torch.nn.Module):
         return 2 if backends.run(backends.EdgeShareOp(spec, GUIDED.edge)) < GUIDED.edge_share else 1
 
     def _filter(self, x: torch.Tensor, gb: GBuffer, surface: torch.Tensor) -> torch.Tensor:
-        from torchgi.filters import atrous, cross_bilateral, guide_from
-        from torchgi.filters.guided import _guided
-
         p = self.filter_params
         spp = self._spp(gb, surface)
         if self.method == "blend":
-            from torchgi.filters.blend import blend
-
             # depth over each image's largest, as in training and in the exported form
             out, w = blend(x, guide_from(gb.normal, gb.depth, depth_scale="image"), spp=spp, return_weights=True)
             if self._capture is not None:
@@ -512,8 +386,8 @@ class Denoiser(torch.nn.Module):
             return out
         if self.method == "guided":  # the workspace of the CPU path is kept between calls
             spec = self._guide_spec(gb)[0]
-            return _guided(x, spec.build(), self._radius(spp, GUIDED.radius), p.get("eps", GUIDED.eps), False,
-                           self._workspace, self._subsample(spec, *x.shape[-2:]))
+            return guided(x, spec.build(), radius=self._radius(spp, GUIDED.radius), eps=p.get("eps", GUIDED.eps),
+                          subsample=self._subsample(spec, *x.shape[-2:]), workspace=self._workspace)
         scale = self.input_scale
         if scale is None:
             mean = float(x[surface.expand_as(x)].mean()) if bool(surface.any()) else 0.0
@@ -522,8 +396,6 @@ class Denoiser(torch.nn.Module):
             iterations = self._iterations(spp)
             sigma_x = p.get("sigma_position")
             if sigma_x is None and gb.position is not None:
-                from torchgi.sampling.adaptive import sigma_position_rule
-
                 sigma_x = sigma_position_rule(gb.position, surface, ATROUS.sigma_position_footprints)
             out = atrous(x * scale, gb.normal, gb.position, iterations=iterations,
                          sigma_normal=p.get("sigma_normal", ATROUS.sigma_normal), sigma_position=sigma_x,
@@ -543,8 +415,6 @@ def _fill_holes(tensors: list[torch.Tensor]) -> list[torch.Tensor]:
     ``PIPELINE.hole_radius`` (normalised convolution; 0 where there is none), so nothing
     non-finite reaches the filter and the hole's output comes from its neighbours. Plain
     tensor ops (exportable); finite inputs pass unchanged."""
-    from torchgi.filters import box
-
     ok = torch.stack([torch.isfinite(t).all(1, keepdim=True) for t in tensors]).all(0)
     w = ok.to(tensors[0].dtype)
     count = box(w, PIPELINE.hole_radius)
@@ -618,15 +488,11 @@ class DeployedDenoiser(torch.nn.Module):
 
     def forward(self, color: torch.Tensor, emission: torch.Tensor, albedo: torch.Tensor, normal: torch.Tensor,
                 geometry: torch.Tensor) -> torch.Tensor:
-        from torchgi.filters import atrous, guide_from, guided
-
         color, emission, albedo, normal, geometry = _fill_holes([color, emission, albedo, normal, geometry])
-        surface = _surface(None, albedo)
+        surface = light.surface_mask(None, albedo)
 
         def filter_fn(x: torch.Tensor) -> torch.Tensor:
             if self.method == "blend":
-                from torchgi.filters.blend import blend
-
                 return blend(x, guide_from(normal, geometry, depth_scale="image"), spp=self.params["spp"], net=self.net)
             if self.method == "guided":
                 return guided(x, guide_from(normal, geometry, depth_scale="image"), radius=self.params["radius"],
@@ -635,7 +501,7 @@ class DeployedDenoiser(torch.nn.Module):
                           sigma_normal=self.params["sigma_normal"], sigma_position=self.params["sigma_position"],
                           sigma_color=self.params["sigma_color"])
 
-        return _restore(color, emission, None, albedo, surface, filter_fn, _FIREFLY[self.method])
+        return light.restore(color, emission, None, albedo, surface, filter_fn, _FIREFLY[self.method], box)
 
     def extra_repr(self) -> str:
         return f"method={self.method!r}, " + ", ".join(f"{k}={v!r}" for k, v in self.params.items())

@@ -38,10 +38,12 @@ from collections.abc import Callable
 
 import torch
 
-from torchgi import backends
+from torchgi import backends, light
 from torchgi.buffers import GBuffer
 from torchgi.core.check import finite_or_sanitized_all, is_recording
 from torchgi.core.errors import ShapeError
+from torchgi.denoise import Denoiser
+from torchgi.filters import box
 from torchgi.settings import GUIDED, PIPELINE, TEMPORAL
 
 __all__ = ["DeployedTemporal", "TemporalDenoiser", "TemporalState", "temporal_step"]
@@ -149,19 +151,16 @@ def temporal_step(
         >>> out.shape, int(state.length.max())
         (torch.Size([1, 3, 16, 16]), 2)
     """
-    from torchgi.denoise import Denoiser, _demodulator, _firefly_bound, _level, _surface
-    from torchgi.filters import box
-
     t = TEMPORAL
     spatial = spatial or Denoiser("guided", radius=t.radius, eps=t.eps, subsample=1)
-    surface = _surface(hit, albedo)
+    surface = light.surface_mask(hit, albedo)
     emission = torch.zeros_like(color) if emission is None else emission
-    demod = _demodulator(albedo, surface)
+    demod = light.demodulator(albedo, surface)
     state = TemporalState.empty(color) if state is None else state
     x = (color - emission) / demod
     # fireflies: above GUIDED.firefly x their local level (as the Denoiser does), before they enter the history
-    level = _level(color, emission, None, albedo, surface)
-    bound = _firefly_bound(x.amax(1, keepdim=True), level, GUIDED.firefly)
+    level = light.level(color, emission, None, albedo, surface)
+    bound = light.firefly_bound(x.amax(1, keepdim=True), level, GUIDED.firefly, box)
     step = backends.run(backends.AccumulateOp(x, bound, motion, normal, depth, surface, *state.tensors(), t.alpha,
                                               t.max_history, t.normal_tolerance, t.depth_tolerance))
     acc, hist_out, moments, length, hist_length, temporal_var, frames, lum = step.split([3, 3, 2, 1, 1, 1, 1, 1], 1)
@@ -173,13 +172,13 @@ def temporal_step(
     if fresh is not None:
         out = _blend_fresh(out, length, inputs, fresh, fresh_share)
     # the output history (demodulated), within sqrt(clamp x the accumulated light's noise variance) of this frame's
-    light = (out - emission) / demod
+    lit = (out - emission) / demod
     sigma = torch.sqrt(t.clamp * box(var / frames, 1))
-    h = torch.maximum(torch.minimum(hist_out, light + sigma), light - sigma)
+    h = torch.maximum(torch.minimum(hist_out, lit + sigma), lit - sigma)
     beta = torch.maximum(1.0 / length, torch.full((), t.output_alpha, dtype=x.dtype, device=x.device))
-    light = torch.where(hist_length > 0, h + beta * (light - h), light)
-    nxt = TemporalState(acc, light, moments, length, normal, depth, surface.to(x.dtype))
-    return light * demod + emission, nxt
+    lit = torch.where(hist_length > 0, h + beta * (lit - h), lit)
+    nxt = TemporalState(acc, lit, moments, length, normal, depth, surface.to(x.dtype))
+    return lit * demod + emission, nxt
 
 
 def _check_inputs(tensors: dict[str, torch.Tensor]) -> GBuffer:
@@ -220,7 +219,6 @@ class TemporalDenoiser(torch.nn.Module):
     """
 
     def __init__(self, *, sanitize: bool = False) -> None:
-        from torchgi.denoise import Denoiser
 
         super().__init__()
         self.sanitize = sanitize
@@ -277,7 +275,6 @@ class DeployedTemporal(torch.nn.Module):
     """
 
     def __init__(self, fresh: bool = True) -> None:
-        from torchgi.denoise import Denoiser
 
         super().__init__()
         self.spatial = Denoiser("guided", radius=TEMPORAL.radius, eps=TEMPORAL.eps).deploy(spp=1)

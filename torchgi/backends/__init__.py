@@ -36,7 +36,12 @@ from torchgi.backends.base import (
     ImportanceOp,
     PathOp,
     RestoreOp,
+    TraceSetup,
+    box_mean,
+    chunks,
+    embree_started,
     enabled,
+    mark_embree_started,
     run,
     select,
     status,
@@ -44,6 +49,7 @@ from torchgi.backends.base import (
 )
 
 __all__ = [
-    "NAMES", "ORDER", "ATrousOp", "AccumulateOp", "AllocateOp", "BoxOp", "EdgeShareOp", "GuideRaysOp", "GuideSpec", "GuideStatsOp", "GuidedOp",
-    "ImportanceOp", "PathOp", "RestoreOp", "enabled", "run", "select", "status", "use",
+    "NAMES", "ORDER", "ATrousOp", "AccumulateOp", "AllocateOp", "BoxOp", "EdgeShareOp", "GuideRaysOp", "GuideSpec",
+    "GuideStatsOp", "GuidedOp", "ImportanceOp", "PathOp", "RestoreOp", "TraceSetup", "box_mean", "chunks",
+    "embree_started", "enabled", "mark_embree_started", "run", "select", "status", "use",
 ]

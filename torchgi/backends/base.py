@@ -25,12 +25,14 @@ from typing import Any
 import torch
 
 from torchgi.core.check import is_tracing
+from torchgi.core.dtypes import compute_dtype
 from torchgi.core.errors import OptionError
 
 __all__ = [
-    "NAMES", "ORDER", "ATrousOp", "AccumulateOp", "AllocateOp", "BoxOp", "EdgeShareOp", "GuideRaysOp", "GuideSpec", "GuideStatsOp", "GuidedOp",
-    "ImportanceOp", "PathOp", "RestoreOp", "blur3", "colour_scale", "eager",
-    "enabled", "float32_eager", "iterate_levels", "run", "scaled_guides", "select", "status", "use",
+    "NAMES", "ORDER", "ATrousOp", "AccumulateOp", "AllocateOp", "BoxOp", "EdgeShareOp", "GuideRaysOp", "GuideSpec",
+    "GuideStatsOp", "GuidedOp", "ImportanceOp", "PathOp", "RestoreOp", "TraceSetup", "blur3", "box_mean", "chunks",
+    "colour_scale", "eager", "embree_started", "enabled", "float32_eager", "iterate_levels", "mark_embree_started", "run",
+    "scaled_guides", "select", "status", "use",
 ]
 
 NAMES = ("torch", "c", "triton")
@@ -270,6 +272,26 @@ class AccumulateOp:
                 self.prev_normal, self.prev_depth, self.prev_surface)
 
 
+@dataclass(frozen=True, slots=True)
+class TraceSetup:
+    """What a back end needs from the renderer to trace a pass, beyond the scene's tables (the
+    back ends sit below :mod:`torchgi.render` and import nothing of it; the renderer builds this,
+    ``torchgi.render.engine.trace_setup``): the camera's ``origin`` (3 floats), its ``basis``
+    (right, up, forward: 9 floats), the tangents of its half field of view ``tan_x``, ``tan_y``;
+    the pass's sampler ``key_head`` (an unsigned 32-bit int), ``roulette_from`` (bounces before
+    Russian roulette may end a path), ``every_skip`` (every skip of DESIGN §4 is on), and
+    ``wavefronts(op)``: the renderer's torch code for the op, the torch back end's reference."""
+
+    origin: tuple[float, ...]
+    basis: tuple[float, ...]
+    tan_x: float
+    tan_y: float
+    key_head: int
+    roulette_from: int
+    every_skip: bool
+    wavefronts: Callable[[Any], Any]
+
+
 @dataclass(eq=False, slots=True)
 class PathOp:
     """One tile of a render pass of :mod:`torchgi.render`'s "path" integrator: ``counts (P,)``
@@ -277,11 +299,12 @@ class PathOp:
     ``b*H*W + y*W + x``) of the scene ``arrays`` (``SceneArrays``) and its ``tables`` (``Tables``)
     seen by ``camera``; ``bounces``, ``seed``, the pass's random ``stream`` and ``record``
     ("all" / "direct" / "indirect"), the skips of DESIGN §4 that are on (``skip``), paths per
-    chunk (``chunk_size``), ``threads`` (>= 1) and ``on_chunk(samples)`` (progress, or None);
-    ``profile``: None, or a zeroed float64 ``(threads, 4)`` tensor into which the compiled tracer
-    adds, per thread, its seconds in embree's closest-hit and occlusion queries and their counts.
-    Returns numpy float64 ``mean (9, P)`` (emission, direct, indirect) and ``variance (3, P)``
-    of the colour's mean (0 below 2 samples)."""
+    chunk (``chunk_size``), the renderer's :class:`TraceSetup`, ``threads`` (>= 1) and
+    ``on_chunk(samples)`` (progress, or None); ``profile``: None, or a zeroed float64
+    ``(threads, 4)`` tensor into which the compiled tracer adds, per thread, its seconds in
+    embree's closest-hit and occlusion queries and their counts. Returns numpy float64
+    ``mean (9, P)`` (emission, direct, indirect) and ``variance (3, P)`` of the colour's mean (0
+    below 2 samples). Built by ``torchgi.render.engine.path_op``."""
 
     arrays: Any
     tables: Any
@@ -294,6 +317,7 @@ class PathOp:
     first_pixel: int
     counts: Any
     chunk_size: int
+    setup: TraceSetup
     threads: int = 1
     on_chunk: Callable[[int], None] | None = None
     profile: torch.Tensor | None = None  # (threads, 4) float64: the compiled tracer adds embree's seconds there
@@ -305,13 +329,15 @@ class PathOp:
 @dataclass(eq=False, slots=True)
 class GuideRaysOp:
     """The first-hit guides of one ray through each pixel centre of ``camera`` in the scene
-    ``arrays`` / ``tables`` (as :class:`PathOp`), on ``threads`` threads. Returns
-    ``albedo, normal, position (3, H*W)``, ``depth (1, H*W)`` float32 and ``hit (1, H*W)`` bool
-    (the normal faces the camera; everything 0 on a miss)."""
+    ``arrays`` / ``tables`` (as :class:`PathOp`, with its :class:`TraceSetup`), on ``threads``
+    threads. Returns ``albedo, normal, position (3, H*W)``, ``depth (1, H*W)`` float32 and
+    ``hit (1, H*W)`` bool (the normal faces the camera; everything 0 on a miss). Built by
+    ``torchgi.render.engine.guide_rays_op``."""
 
     arrays: Any
     tables: Any
     camera: Any
+    setup: TraceSetup
     chunk_size: int = 1 << 15
     threads: int = 1
 
@@ -539,3 +565,58 @@ def colour_scale(desc: ATrousOp, i: int, var: torch.Tensor | None, factor_only: 
     if var is not None:
         return desc.inv_color / (blur3(var).sum(1, keepdim=True) + 1e-12)
     return 2.0**i if factor_only else desc.inv_color * (2.0**i)
+
+
+def box_mean(x: torch.Tensor, radius: int) -> torch.Tensor:
+    """The ``(2r+1)²`` box mean of ``x (B,C,H,W)`` through the seam (:class:`BoxOp`), summed in the
+    compute dtype and cast back, without :func:`torchgi.filters.box`'s argument checks: what the
+    back ends hand :mod:`torchgi.light` as its box.
+
+    Example:
+        >>> box_mean(torch.arange(3.0).view(1, 1, 1, 3), 1)
+        tensor([[[[0.5000, 1.0000, 1.5000]]]])
+    """
+    return run(BoxOp(x.to(compute_dtype(x.dtype)), radius)).to(x.dtype)
+
+
+def chunks(counts: torch.Tensor, size: int) -> Iterator[tuple[int, int]]:
+    """Consecutive index ranges ``[a, b)`` of ``counts (N,)`` int64 holding at most ``size`` in
+    total each (at least one index each): how the tracers cut a tile's samples into pieces.
+
+    Example:
+        >>> list(chunks(torch.tensor([2, 2, 5, 1]), 4))
+        [(0, 2), (2, 3), (3, 4)]
+    """
+    ends = torch.cumsum(counts, 0)
+    a, total = 0, len(counts)
+    while a < total:
+        done = int(ends[a - 1]) if a else 0
+        b = int(torch.searchsorted(ends, done + size, right=True))
+        b = max(b, a + 1)
+        yield a, b
+        a = b
+
+
+_EMBREE_STARTED = [False]
+
+
+def embree_started() -> bool:
+    """True once this process has built an embree BVH (by the compiled tracer or embreex):
+    embree's TBB worker threads then exist, and a process forked from this one must not use
+    embree (``torchgi.render.engine.process_context``).
+
+    Example:
+        >>> isinstance(embree_started(), bool)
+        True
+    """
+    return _EMBREE_STARTED[0]
+
+
+def mark_embree_started() -> None:
+    """Record that this process has started embree (see :func:`embree_started`).
+
+    Example:
+        >>> mark_embree_started(); embree_started()
+        True
+    """
+    _EMBREE_STARTED[0] = True

@@ -18,7 +18,6 @@ from torch import nn
 from torchgi import backends
 from torchgi.backends.torch_code import PlaneBoxer
 from torchgi.core.check import check_finite, check_floating, check_int, check_shape
-from torchgi.core.dtypes import compute_dtype
 
 __all__ = ["Box", "PlaneBoxer", "box"]
 
@@ -42,7 +41,7 @@ def box(x: torch.Tensor, radius: int) -> torch.Tensor:
     check_floating(x, "x")
     check_finite(x, "x")
     check_int(radius, "radius")
-    return backends.run(backends.BoxOp(x.to(compute_dtype(x.dtype)), radius)).to(x.dtype)
+    return backends.box_mean(x, radius)
 
 
 class Box(nn.Module):

@@ -22,11 +22,9 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 
-from torchgi import backends
-from torchgi.backends.torch_code import apply_coefficients
+from torchgi.backends.torch_code import guided_filter
 from torchgi.buffers import GBuffer
 from torchgi.core.check import (
     check_floating,
@@ -85,36 +83,10 @@ def _guided(
     check_int(subsample, "subsample", 1)
     (src, guide), check_finite_inputs = finite_or_sanitized_later({"src": src, "guide": guide}, sanitize)
     e, check_eps = _check_eps(eps, src.shape[0], n, guide, compute_dtype(src.dtype))
-    out = _filtered(src, guide, radius, e, _holder, subsample)
+    out = guided_filter(src, guide, radius, e, _holder, subsample)
     check_finite_inputs()  # the values read back here: on a GPU the kernels are queued by now
     check_eps()
     return out
-
-
-def _filtered(
-    src: torch.Tensor, guide: torch.Tensor, radius: int, e: torch.Tensor, _holder: dict | None, subsample: int,
-) -> torch.Tensor:
-    """:func:`_guided` after the argument checks (``e``: ε ``(B, n, 1, 1)`` in the compute dtype)."""
-    ct = compute_dtype(src.dtype)
-    if src.numel() == 0:
-        return src.clone()
-    g, p = guide.to(ct), src.to(ct)
-    mean_g, mean_p = g.mean(dim=(2, 3), keepdim=True), p.mean(dim=(2, 3), keepdim=True)
-    if subsample == 1:
-        return backends.run(backends.GuidedOp(g, p, mean_g, mean_p, radius, e, workspace=_holder)).to(src.dtype)
-    # He & Sun 2015: coefficients from s x s means at radius r / s, upsampled bilinearly, applied
-    # to the full-resolution guide
-    gc = g - mean_g
-    low_g = F.avg_pool2d(gc, subsample, ceil_mode=True)
-    low_p = F.avg_pool2d(p - mean_p, subsample, ceil_mode=True)
-    zero_g, zero_p = torch.zeros_like(mean_g), torch.zeros_like(mean_p)  # low_g, low_p are centred
-    coeffs = backends.run(backends.GuidedOp(low_g, low_p, zero_g, zero_p, round(radius / subsample), e,
-                                            coefficients_only=True, workspace=_holder))
-    # upsampled by the factor s (the grid of pixel centres does not depend on the size: tiles agree)
-    coeffs = F.interpolate(coeffs.flatten(1, 2), scale_factor=subsample, mode="bilinear",
-                           align_corners=False)[..., : src.shape[-2], : src.shape[-1]]
-    return (apply_coefficients(coeffs.unflatten(1, (guide.shape[1] + 1, src.shape[1])), gc)
-            + mean_p).to(src.dtype)
 
 
 def guided(
@@ -125,6 +97,7 @@ def guided(
     eps: float | torch.Tensor = 0.01,
     subsample: int = 1,
     sanitize: bool = False,
+    workspace: dict | None = None,
 ) -> torch.Tensor:
     """Guided image filter of ``src`` with a 1-4 channel ``guide``; cost independent of ``radius``.
 
@@ -144,6 +117,8 @@ def guided(
             full-resolution guide
             (about ``s²`` times less work; edges stay those of the full guide).
         sanitize: replace NaN/Inf in the inputs by 0 (with a warning) instead of raising.
+        workspace: None, or a dict in which the CPU path keeps its scratch buffers between calls
+            of the same size (what :class:`Guided` does); it is not read otherwise.
 
     Returns:
         ``(B, C, H, W)`` filtered image, dtype and device of ``src``. float16/bfloat16 inputs
@@ -161,7 +136,7 @@ def guided(
         ...                box(box(src[..., :8, :8], 1), 1), atol=1e-6)
         True
     """
-    return _guided(src, guide, radius, eps, sanitize, None, subsample)
+    return _guided(src, guide, radius, eps, sanitize, workspace, subsample)
 
 
 def guide_from_gbuffer(

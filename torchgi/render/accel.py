@@ -8,54 +8,23 @@ parallel rendering uses processes (``torchgi.render.engine``), not threads.
 
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
-import glob
-import os
-
 import numpy as np
 import torch
 
+from torchgi import backends
 from torchgi.core.check import require
 
-__all__ = ["EMBREE_FUNCTIONS", "Accel", "embree_functions", "embree_started", "offset"]
-
-_EMBREE_STARTED = False
-# the embree 4 entry points the compiled path tracer calls, in the order it takes them
-EMBREE_FUNCTIONS = ("rtcNewDevice", "rtcNewScene", "rtcNewGeometry", "rtcSetNewGeometryBuffer", "rtcCommitGeometry",
-                    "rtcAttachGeometry", "rtcReleaseGeometry", "rtcCommitScene", "rtcReleaseScene",
-                    "rtcReleaseDevice", "rtcIntersect1", "rtcOccluded1", "rtcGetDeviceError")
-
+__all__ = ["Accel", "embree_started", "offset"]
 
 def embree_started() -> bool:
-    """True once this process has built a BVH: embree's TBB worker threads then exist, and a
-    process forked from this one must not use embree (see ``engine.process_context``)."""
-    return _EMBREE_STARTED
-
-
-def embree_functions() -> list[int]:
-    """Addresses of :data:`EMBREE_FUNCTIONS` in the embree 4 library that embreex ships (else one
-    the system has), for the compiled path tracer; marks embree as started in this process (its
-    BVH builds start TBB threads). Raises ``RuntimeError`` naming what is missing.
+    """True once this process has started embree (:func:`torchgi.backends.embree_started`): a
+    process forked from this one must not use it (see ``engine.process_context``).
 
     Example:
-        >>> len(embree_functions()) == len(EMBREE_FUNCTIONS)
+        >>> isinstance(embree_started(), bool)
         True
     """
-    global _EMBREE_STARTED
-    embreex = require("embreex", "render")
-    root = os.path.dirname(os.path.dirname(os.path.abspath(embreex.__file__)))
-    found = sorted(glob.glob(os.path.join(root, "embreex.libs", "libembree4*"))
-                   + glob.glob(os.path.join(root, "embreex", ".dylibs", "libembree4*")))
-    path = found[0] if found else ctypes.util.find_library("embree4")
-    if path is None:
-        raise RuntimeError("no embree 4 library found beside embreex or on the system")
-    lib = ctypes.CDLL(path)
-    missing = [name for name in EMBREE_FUNCTIONS if not hasattr(lib, name)]
-    if missing:
-        raise RuntimeError(f"{path} lacks {', '.join(missing)}")
-    _EMBREE_STARTED = True
-    return [ctypes.cast(getattr(lib, name), ctypes.c_void_p).value for name in EMBREE_FUNCTIONS]
+    return backends.embree_started()
 
 
 class Accel:
@@ -70,10 +39,9 @@ class Accel:
     """
 
     def __init__(self, triangles: np.ndarray) -> None:
-        global _EMBREE_STARTED
         rtcs = require("embreex.rtcore_scene", "render")
         mesh_construction = require("embreex.mesh_construction", "render")
-        _EMBREE_STARTED = True
+        backends.mark_embree_started()
         self._scene = rtcs.EmbreeScene()
         self._mesh = mesh_construction.TriangleMesh(self._scene, np.ascontiguousarray(triangles, dtype=np.float32))
 

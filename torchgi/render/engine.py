@@ -32,18 +32,18 @@ from torchgi.buffers import GBuffer
 from torchgi.core.check import check_int, check_option
 from torchgi.core.errors import DeviceError, DTypeError, RangeError, ShapeError
 from torchgi.render.accel import Accel, embree_started
-from torchgi.render.camera import motion_vectors
+from torchgi.render.camera import camera_frame, motion_vectors
 from torchgi.render.film import BLOCK, Film
 from torchgi.render.integrators import basic, path
-from torchgi.render.integrators.common import CAMERA_DIMS, SKIPS, Context, guides
+from torchgi.render.integrators.common import CAMERA_DIMS, RR_START, SKIPS, Context, guides
 from torchgi.render.lights import Tables
-from torchgi.render.sampler import sample_keys, uniform
+from torchgi.render.sampler import key_head, sample_keys, uniform
 from torchgi.render.scene import Camera, Scene, SceneArrays, load_scene
 from torchgi.supersample import EyeSamples
 
 __all__ = [
-    "INTEGRATORS", "SKIPS", "film_tile", "frame_seed", "process_context", "render", "render_guide_rays", "render_guides",
-    "render_sequence", "worker_pool",
+    "INTEGRATORS", "SKIPS", "film_tile", "frame_seed", "guide_rays_op", "path_op", "process_context", "render",
+    "render_guide_rays", "render_guides", "render_sequence", "trace_setup", "worker_pool",
 ]
 
 INTEGRATORS: dict[str, Callable[..., torch.Tensor]] = {"path": path.radiance, "basic": basic.radiance}
@@ -96,22 +96,80 @@ def _context(
     return Context(tables, accel, camera, bounces, seed, skip)
 
 
-def _chunks(block_counts: torch.Tensor, chunk_size: int) -> Iterator[tuple[int, int]]:
-    """Consecutive block ranges ``[a, b)`` holding at most ``chunk_size`` samples (>= 1 block)."""
-    ends = torch.cumsum(block_counts, 0)
-    a, total = 0, len(block_counts)
-    while a < total:
-        done = int(ends[a - 1]) if a else 0
-        b = int(torch.searchsorted(ends, done + chunk_size, right=True))
-        b = max(b, a + 1)
-        yield a, b
-        a = b
+def trace_setup(camera: Camera, seed: int = 0, stream: int = 0, skip: Collection[str] = SKIPS,
+                wavefronts: Callable[[Any], Any] | None = None) -> backends.TraceSetup:
+    """What the back ends need to trace ``camera``'s view (:class:`torchgi.backends.TraceSetup`):
+    its frame, the pass's sampler key head from ``seed`` and ``stream``, the Russian-roulette start,
+    whether every skip is on, and the torch wavefronts (``wavefronts``; default: the "path"
+    integrator's film, :func:`film_tile`).
+
+    Example:
+        >>> from torchgi.render import scenes
+        >>> trace_setup(scenes.cornell(4).camera).roulette_from
+        3
+    """
+    forward, right, up, tan_x, tan_y = camera_frame(camera)
+    return backends.TraceSetup(tuple(float(v) for v in camera.position),
+                               tuple(float(v) for v in (*right, *up, *forward)), tan_x, tan_y, key_head(seed, stream),
+                               RR_START, frozenset(skip) == frozenset(SKIPS), wavefronts or _path_wavefronts)
+
+
+def path_op(arrays: SceneArrays, camera: Camera, counts: np.ndarray, *, bounces: int, seed: int, stream: int = 0,
+            record: str = "all", skip: Collection[str] = SKIPS, first_pixel: int = 0, chunk_size: int = 1 << 15,
+            threads: int = 1, on_chunk: Callable[[int], None] | None = None,
+            profile: torch.Tensor | None = None) -> backends.PathOp:
+    """A :class:`torchgi.backends.PathOp`: ``counts (P,)`` samples of the pixels ``first_pixel ...``
+    of the scene ``arrays`` seen by ``camera`` (the other arguments as in the op).
+
+    Example:
+        >>> from torchgi.render import scenes
+        >>> s = scenes.cornell(4)
+        >>> backends.run(path_op(s.arrays(), s.camera, np.full(16, 2), bounces=1, seed=0))[0].shape
+        (9, 16)
+    """
+    return backends.PathOp(arrays, _tables(arrays, bvh=False)[0], camera, bounces, seed, stream, record,
+                           frozenset(skip), first_pixel, counts, chunk_size, trace_setup(camera, seed, stream, skip),
+                           threads, on_chunk, profile)
+
+
+def guide_rays_op(arrays: SceneArrays, camera: Camera, chunk_size: int = 1 << 15,
+                  threads: int = 1) -> backends.GuideRaysOp:
+    """A :class:`torchgi.backends.GuideRaysOp`: one ray through each pixel centre of ``camera``.
+
+    Example:
+        >>> from torchgi.render import scenes
+        >>> s = scenes.cornell(4)
+        >>> backends.run(guide_rays_op(s.arrays(), s.camera))["hit"].shape
+        torch.Size([1, 16])
+    """
+    return backends.GuideRaysOp(arrays, _tables(arrays, bvh=False)[0], camera,
+                                trace_setup(camera, wavefronts=_guide_wavefronts), chunk_size, threads)
+
+
+def _path_wavefronts(op: backends.PathOp) -> tuple[np.ndarray, np.ndarray]:
+    """The torch code of :class:`~torchgi.backends.PathOp` (the torch back end calls it)."""
+    return film_tile(op, "path")
+
+
+def _guide_wavefronts(op: backends.GuideRaysOp) -> dict[str, torch.Tensor]:
+    """The torch code of :class:`~torchgi.backends.GuideRaysOp`: embreex and
+    :func:`~torchgi.render.integrators.common.guides`, ``chunk_size`` rays at a time."""
+    width, height = op.camera.resolution
+    ctx = _context(op.arrays, op.camera, 0, 0)
+    channels = {"albedo": 3, "normal": 3, "position": 3, "depth": 1, "hit": 1}
+    g = {k: torch.zeros(c, width * height, dtype=torch.bool if k == "hit" else torch.float32)
+         for k, c in channels.items()}
+    for start in range(0, width * height, op.chunk_size):
+        pixel = torch.arange(start, min(start + op.chunk_size, width * height))
+        for k, v in guides(ctx, pixel).items():
+            g[k][:, start : start + pixel.numel()] = v
+    return g
 
 
 def _path_op(job: _Job, on_chunk: Callable[[int], None] | None = None) -> backends.PathOp:
-    return backends.PathOp(job.arrays, _tables(job.arrays, bvh=False)[0], job.camera, job.bounces, job.seed,
-                           job.render_pass.stream, job.render_pass.record, job.skip, job.first_pixel, job.counts,
-                           job.chunk_size, job.threads, on_chunk)
+    return path_op(job.arrays, job.camera, job.counts, bounces=job.bounces, seed=job.seed,
+                   stream=job.render_pass.stream, record=job.render_pass.record, skip=job.skip,
+                   first_pixel=job.first_pixel, chunk_size=job.chunk_size, threads=job.threads, on_chunk=on_chunk)
 
 
 def _run_tile(job: _Job, on_chunk: Callable[[int], None] | None = None) -> tuple[np.ndarray, ...]:
@@ -138,8 +196,7 @@ def film_tile(op: backends.PathOp, integrator: str) -> tuple[np.ndarray, np.ndar
     Example:
         >>> from torchgi.render import scenes
         >>> s = scenes.cornell(4); a = s.arrays()
-        >>> op = backends.PathOp(a, _tables(a)[0], s.camera, 1, 0, 0, "all", frozenset(SKIPS), 0, np.full(16, 2), 4096)
-        >>> film_tile(op, "basic")[0].shape
+        >>> film_tile(path_op(a, s.camera, np.full(16, 2), bounces=1, seed=0, chunk_size=4096), "basic")[0].shape
         (9, 16)
     """
     ctx = _context(op.arrays, op.camera, op.bounces, op.seed, op.skip)
@@ -153,7 +210,7 @@ def film_tile(op: backends.PathOp, integrator: str) -> tuple[np.ndarray, np.ndar
     block_rank = torch.arange(block_pixel.numel()) - first_block[block_pixel]
     block_start = block_rank * BLOCK
     block_count = torch.minimum(counts[block_pixel] - block_start, torch.tensor(BLOCK))
-    for a, b in _chunks(block_count, op.chunk_size):
+    for a, b in backends.chunks(block_count, op.chunk_size):
         cnt = block_count[a:b]
         offsets = torch.cumsum(cnt, 0) - cnt
         n = int(cnt.sum())
@@ -306,7 +363,7 @@ def render_guides(scene: Scene | str | os.PathLike[str], *, chunk_size: int = 1 
 def _guides(scene: Scene, chunk_size: int, threads: int) -> GBuffer:
     width, height = scene.camera.resolution
     arrays = scene.arrays()
-    g = backends.run(backends.GuideRaysOp(arrays, _tables(arrays, bvh=False)[0], scene.camera, chunk_size, threads))
+    g = backends.run(guide_rays_op(arrays, scene.camera, chunk_size, threads))
     return GBuffer(**{k: v.reshape(1, -1, height, width) for k, v in g.items()})
 
 

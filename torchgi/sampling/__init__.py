@@ -1,7 +1,8 @@
 """Adaptive sampling (Bauszat et al. 2011): importance from the filters' geometry weights and an
 exact apportionment of a fixed sample budget, wired into the renderer (``adaptive_render``)."""
 
-from torchgi.sampling.adaptive import adaptive_counts, adaptive_render, pixel_footprint, sigma_position_rule
+from torchgi.geometry import pixel_footprint, sigma_position_rule
+from torchgi.sampling.adaptive import adaptive_counts, adaptive_render
 from torchgi.sampling.allocate import allocate, exclusive_scan
 from torchgi.sampling.batches import SampleBatch, accumulate, sample_batches
 from torchgi.sampling.importance import importance_map

@@ -1,0 +1,89 @@
+"""The C back end: compiled CPU kernels of the filters (one À-Trous level, the guided filter and
+the box filter it is built from), the Denoiser's guided pipeline, the sampling importance map and
+the sample allocation, the temporal accumulation and the path tracer, float32.
+
+One file per op family, in Python and in C: :mod:`.filters` (``atrous.c``, ``guided.c``),
+:mod:`.pipeline` (``pipeline.c``), :mod:`.sampling` (``importance.c``, ``allocate.c``),
+:mod:`.accumulation` (``accumulate.c``), :mod:`.tracer` (``tracer.c``, embree 4 through
+:mod:`.embree`); :mod:`.build` compiles and loads the library (``native.c`` includes the family
+files and ``common.h``), :mod:`.runtime` holds how a call is cut into bands. This module is
+the back end's registry: :func:`supports`, :func:`describe` and one function per op.
+
+The torch code walks the image once per element-wise op; these kernels do a
+level, or a guided-filter pass, in one walk over each band of rows, with the channel loops
+unrolled and the pixel loop vectorised. Same maths as the torch code (the guided box sums
+accumulate in double, so they are closer to a float64 oracle). They take eager float32 CPU
+calls without autograd or tracing (:func:`supports` says why not otherwise).
+
+The source is compiled on first use with the system C compiler (``$CC``, else ``cc`` or
+``gcc``; ``-O3 -march=native``, a few seconds) into ``$TORCHGI_CACHE`` (default
+``~/.cache/torchgi``) and loaded with ctypes; later processes load the cached library. Without
+a compiler :func:`library` returns None and :func:`describe` says why. Each call runs one band
+of rows per thread (``torch.get_num_threads()`` threads) on OpenMP threads where the compiler
+has ``-fopenmp`` — the same libgomp, and so the same worker threads, as torch (a separate pool
+competes with torch's spinning workers; docs/calibration.md) — else on the calling thread.
+
+Example:
+    >>> from torchgi.backends import c_kernels
+    >>> isinstance(c_kernels.describe(), str)
+    True
+"""
+
+from __future__ import annotations
+
+import torch
+
+from torchgi.backends.base import (
+    AllocateOp,
+    ATrousOp,
+    BoxOp,
+    EdgeShareOp,
+    GuidedOp,
+    GuideStatsOp,
+    ImportanceOp,
+    RestoreOp,
+    float32_eager,
+)
+from torchgi.backends.c_kernels import build
+from torchgi.backends.c_kernels.accumulation import accumulate
+from torchgi.backends.c_kernels.build import describe, library
+from torchgi.backends.c_kernels.filters import atrous, box, guided
+from torchgi.backends.c_kernels.pipeline import edge_share, guide_stats, restore
+from torchgi.backends.c_kernels.runtime import empty_planes, padded
+from torchgi.backends.c_kernels.sampling import allocate, importance
+from torchgi.backends.c_kernels.tracer import _path_support, guide_rays, path
+
+__all__ = [
+    "NAME", "accumulate", "allocate", "atrous", "box", "describe", "edge_share", "empty_planes", "guide_rays",
+    "guide_stats", "guided", "importance", "library", "padded", "path", "restore", "supports",
+]
+
+NAME = "c"
+
+
+def supports(op: str, desc: BoxOp | GuidedOp | ATrousOp | ImportanceOp | AllocateOp | GuideStatsOp | EdgeShareOp |
+             RestoreOp) -> str | None:
+    """None when the kernels take ``desc``: eager float32 CPU tensors (float32/float64
+    importance for the allocation, fewer than 2^31 pixels per image), a built library; else why not.
+
+    Example:
+        >>> supports("box", BoxOp(torch.ones(1, 1, 2, 2, dtype=torch.float64), 1))
+        'the C kernels take float32'
+    """
+    ts = [t for t in desc.tensors() if t is not None]
+    if any(t.device.type != "cpu" for t in ts):
+        return "the C kernels take CPU tensors"
+    if op == "allocate":
+        if desc.q.dtype not in (torch.float32, torch.float64) or desc.q.shape[1] >= 2**31:
+            return "the C allocation takes float32/float64 with fewer than 2^31 pixels per image"
+    else:
+        why = float32_eager(op, desc, "C")
+        if why is not None:
+            return why
+    if op in ("path", "guide_rays"):
+        return _path_support(desc)
+    if op == "accumulate" and (desc.x.numel() == 0 or desc.x.shape[-2] * desc.x.shape[-1] >= 2**31):
+        return "the C accumulation takes non-empty images of fewer than 2^31 pixels"
+    if op == "restore" and (desc.color.numel() == 0 or desc.color.shape[-2] * desc.color.shape[-1] >= 2**31):
+        return "the C pipeline takes non-empty images of fewer than 2^31 pixels"
+    return None if build.library() is not None else build._status

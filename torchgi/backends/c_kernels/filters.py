@@ -1,0 +1,171 @@
+"""The C back end's filters: the box filter, the guided filter (its coefficient and apply
+passes) and one À-Trous level per call."""
+
+from __future__ import annotations
+
+import torch
+
+from torchgi.backends.base import (
+    ATrousOp,
+    BoxOp,
+    GuidedOp,
+    colour_scale,
+    iterate_levels,
+    scaled_guides,
+)
+from torchgi.backends.c_kernels import build
+from torchgi.backends.c_kernels.runtime import (
+    _PAD,
+    _as_padded,
+    _box_scratch,
+    _layout,
+    _ptr,
+    _run,
+    _taps,
+    empty_planes,
+    padded,
+)
+from torchgi.core.dtypes import variance_rounding
+
+
+def _atrous_level(
+    c: torch.Tensor, feat: torch.Tensor | None, feat_scale: list[float], var: torch.Tensor | None,
+    valid: torch.Tensor | None, step: int, colour_scale: torch.Tensor | None,
+) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
+    """One À-Trous level with the arguments of ``torch_code._iteration``, except that ``feat`` holds
+    groups of 3 planes whose squared distances are multiplied by ``feat_scale`` (one per group;
+    the level's ``1 / step²`` for normals). Returns the filtered colour ``(B,C,H,W)`` and the
+    propagated variance, both in :func:`padded` layout (pass them on as they are), and the
+    weight sum ``(B,1,H,W)``."""
+    taps = _taps()
+    lib = build.library()
+    B, C, H, W = c.shape
+    F = 0 if feat is None else feat.shape[1]
+    if F % 3 or len(feat_scale) != F // 3:
+        raise ValueError(f"feat: expected groups of 3 planes with one scale each, got {F} planes, {feat_scale}")
+    fs = torch.tensor(list(feat_scale) or [1.0], dtype=torch.float32)
+    rs, ps = _layout(H, W)
+    c = _as_padded(c)
+    feat = None if feat is None else _as_padded(feat)
+    var = None if var is None else _as_padded(var)
+    valid = None if valid is None else _as_padded(valid.to(torch.float32).expand(B, 1, H, W))
+    plane = colour_scale is not None and colour_scale.shape[-2:] == (H, W)
+    cs = None if colour_scale is None else _as_padded(colour_scale.expand(B, 1, H, W)) if plane else \
+        colour_scale.reshape(B).contiguous()
+    out = padded(B, C, H, W)
+    var_out = None if var is None else padded(B, C, H, W)
+    den = torch.empty(B, 1, H, W, dtype=torch.float32)
+    for b in range(B):
+        cs_b = None if cs is None else (cs[b] if plane else cs[b : b + 1])
+        _run(lib.torchgi_atrous_level, H, W, c[b].data_ptr(), C, _ptr(None if feat is None else feat[b]), F,
+             fs.data_ptr(), _ptr(None if var is None else var[b]), _ptr(None if valid is None else valid[b]), _ptr(cs_b),
+             int(plane), H, W, rs, ps, step, taps.data_ptr(), out[b].data_ptr(),
+             _ptr(None if var_out is None else var_out[b]), den[b].data_ptr(),
+             (2 * C + 1) * (W + _PAD))
+    return out, var_out, den
+
+
+def _box(x: torch.Tensor, r: int) -> torch.Tensor:
+    """Count-normalised box means over ``(2r+1)²`` windows of float32 ``x (B,C,H,W)`` (the
+    coefficient pass of the guided filter without the apply)."""
+    lib = build.library()
+    B, C, H, W = x.shape
+    x = x.contiguous()
+    out = torch.empty_like(x)
+    for b in range(B):
+        _run(lib.torchgi_guided_apply, H, W, x[b].data_ptr(), 0, C, None, None, None, H, W, r, out[b].data_ptr(),
+             _box_scratch(C, W))
+    return out
+
+
+def _guided(
+    I: torch.Tensor, p: torch.Tensor, mean_I: torch.Tensor, mean_p: torch.Tensor, offset: torch.Tensor, r: int,
+    eps: torch.Tensor, coefficients_only: bool = False, holder: dict | None = None,
+) -> torch.Tensor:
+    """Guided filter of ``p (B,Cs,H,W)`` by ``I (B,n,H,W)`` (n <= 4), both centred inside by
+    ``mean_p``, ``mean_I`` (``(B,C,1,1)``), ``eps (B,n,1,1)`` (>= 0), radius ``r``;
+    ``offset (B,Cs,1,1)`` is added to the output. Returns ``(B,Cs,H,W)``, or the box-filtered
+    coefficients ``(B,n+1,Cs,H,W)`` (``a_0..a_{n-1}, b``). ``holder`` keeps the coefficient
+    planes between calls of one size (no page faults)."""
+    lib = build.library()
+    B, n, H, W = I.shape
+    Cs = p.shape[1]
+    I, p = I.contiguous(), p.contiguous()
+    K = n + Cs + n * (n + 1) // 2 + n * Cs
+    Q = (n + 1) * Cs
+    key = (n, Cs, H, W)
+    if holder is not None and holder.get("native_key") == key:
+        coef = holder["native_coef"]
+    else:
+        coef = torch.empty(Q, H, W, dtype=torch.float32)
+        if holder is not None:
+            holder["native_key"], holder["native_coef"] = key, coef
+    out = torch.empty((B, n + 1, Cs, H, W) if coefficients_only else (B, Cs, H, W), dtype=torch.float32)
+    eps = eps.reshape(B, n).to(torch.float32).clamp_min(torch.finfo(torch.float32).tiny).contiguous()
+    offset = offset.reshape(B, Cs).to(torch.float32).contiguous()
+    mean_I = mean_I.reshape(B, n).to(torch.float32).contiguous()
+    mean_p = mean_p.reshape(B, Cs).to(torch.float32).contiguous()
+    unit = variance_rounding(torch.float32)
+    for b in range(B):
+        _run(lib.torchgi_guided_coefficients, H, W, I[b].data_ptr(), mean_I[b].data_ptr(), n, p[b].data_ptr(),
+             mean_p[b].data_ptr(), Cs, H, W, r,
+             eps[b].data_ptr(), unit, coef.data_ptr(),
+             _box_scratch(K, W))
+        _run(lib.torchgi_guided_apply, H, W, coef.data_ptr(), n, Cs, None if coefficients_only else I[b].data_ptr(),
+             mean_I[b].data_ptr(), offset[b].data_ptr(), H, W, r, out[b].data_ptr(),
+             _box_scratch(Q, W))
+    return out
+
+
+# ---------------------------------------------------------------------------------------- ops
+def box(desc: BoxOp) -> torch.Tensor:
+    """:class:`~torchgi.backends.base.BoxOp` by the guided kernel's box passes.
+
+    Example:
+        >>> build.library() is None or box(BoxOp(torch.arange(3.0).view(1, 1, 1, 3), 1)).tolist() == [[[[0.5, 1.0, 1.5]]]]
+        True
+    """
+    return _box(desc.x, desc.radius)
+
+
+def guided(desc: GuidedOp) -> torch.Tensor:
+    """:class:`~torchgi.backends.base.GuidedOp` in two kernels (coefficients, apply).
+
+    Example:
+        >>> p = torch.rand(1, 1, 6, 6); m = p.mean((2, 3), keepdim=True)
+        >>> out = build.library() is None or guided(GuidedOp(torch.ones(1, 1, 6, 6), p, torch.ones(1, 1, 1, 1), m, 0,
+        ...                                           torch.zeros(1, 1, 1, 1)))
+        >>> out is True or torch.allclose(out, p, atol=1e-6)   # r = 0 and a constant guide: the source
+        True
+    """
+    return _guided(desc.guide, desc.src, desc.mean_guide, desc.mean_src, desc.mean_src, desc.radius, desc.eps,
+                   coefficients_only=desc.coefficients_only, holder=desc.workspace)
+
+
+def atrous(desc: ATrousOp) -> tuple[torch.Tensor, list[torch.Tensor]]:
+    """:class:`~torchgi.backends.base.ATrousOp`, a level per kernel call: the guides divided by
+    the square roots of their σ's once, into :func:`padded` planes; the kernel scales the normals'
+    distances by ``1 / step²``.
+
+    Example:
+        >>> c = torch.full((1, 3, 8, 8), 0.5)
+        >>> desc = ATrousOp(c, None, None, None, None, torch.ones(1, 1, 1, 1), None, None, iterations=2)
+        >>> build.library() is None or torch.allclose(atrous(desc)[0], c)   # a constant image stays constant
+        True
+    """
+    guides = scaled_guides(desc)
+    feat = None
+    if guides:
+        feat = empty_planes(desc.color, 3 * len(guides))
+        for k, (g, s, _) in enumerate(guides):
+            torch.mul(g, s, out=feat[:, 3 * k : 3 * k + 3])
+
+    def level(c, var, valid, i):
+        step = 2**i
+        scale = colour_scale(desc, i, var)
+        return _atrous_level(c, feat, [1.0 / step**2 if per_step else 1.0 for _, _, per_step in guides], var, valid,
+                             step, scale)
+
+    return iterate_levels(desc, level)
+
+

@@ -1,0 +1,162 @@
+"""The C back end's Denoiser pipeline: the guide statistics, the edge share and the fused guided
+pipeline (:class:`~torchgi.backends.base.RestoreOp`)."""
+
+from __future__ import annotations
+
+import torch
+
+from torchgi.backends.base import (
+    EdgeShareOp,
+    GuideStatsOp,
+    RestoreOp,
+)
+from torchgi.backends.c_kernels import build
+from torchgi.backends.c_kernels.filters import _box
+from torchgi.backends.c_kernels.runtime import (
+    _box_scratch,
+    _buffer,
+    _parts,
+    _ptr,
+    _run,
+    _threads,
+)
+from torchgi.core.dtypes import variance_rounding
+
+
+def guide_stats(desc: GuideStatsOp) -> torch.Tensor:
+    """:class:`~torchgi.backends.base.GuideStatsOp` in one walk per image.
+
+    Example:
+        >>> n = torch.zeros(1, 3, 2, 2); d = torch.tensor([[[[1.0, 2.0], [3.0, 4.0]]]])
+        >>> build.library() is None or guide_stats(GuideStatsOp(n, d, d > 2.5))[0, [3, 8]].tolist() == [1.0, 4.0]
+        True
+    """
+    lib = build.library()
+    n = desc.normal.contiguous()
+    d = None if desc.depth is None else desc.depth.contiguous()
+    hit = None if desc.hit is None else desc.hit.contiguous()
+    B, _, H, W = n.shape
+    rows = []
+    for b in range(B):
+        threads = _threads(H, H * W)
+        buf = torch.zeros(threads, 15, dtype=torch.float64)
+        lib.torchgi_guide_stats(n[b].data_ptr(), _ptr(None if d is None else d[b]),
+                                _ptr(None if hit is None else hit[b]), H, W, threads, buf.data_ptr(), 120)
+        rows.append(torch.cat([buf[:, :4].amin(0), buf[:, 4:9].amax(0), buf[:, 9:].sum(0)]))
+    return torch.stack(rows)
+
+
+def _plane_ptrs(planes: list[torch.Tensor], b: int) -> list[int | None]:
+    """Image ``b``'s pointer of each guide plane, None past the guide's channels (4 in all)."""
+    return [p[b, 0].data_ptr() for p in planes] + [None] * (4 - len(planes))
+
+
+def _spec_planes(spec) -> tuple[list[torch.Tensor], torch.Tensor, torch.Tensor]:
+    """A :class:`~torchgi.backends.base.GuideSpec`'s ``(B,1,H,W)`` source planes (contiguous),
+    scales and offsets (float32)."""
+    normal = spec.normal.contiguous()
+    depth = None if spec.depth is None else spec.depth.contiguous()
+    planes = [normal[:, c : c + 1] if c < 3 else depth for c in spec.channels]
+    return planes, torch.tensor(spec.scale, dtype=torch.float32), torch.tensor(spec.offset, dtype=torch.float32)
+
+
+def edge_share(desc: EdgeShareOp) -> float:
+    """:class:`~torchgi.backends.base.EdgeShareOp` on the guide's source planes (no guide built).
+
+    Example:
+        >>> from torchgi.backends.base import GuideSpec
+        >>> n = torch.zeros(1, 3, 2, 3); n[..., 2] = 1.0
+        >>> build.library() is None or edge_share(EdgeShareOp(GuideSpec(n, None, (0,), (0.5,), (0.5,)), 0.1)) == 0.5
+        True
+    """
+    lib = build.library()
+    planes, scale, _ = _spec_planes(desc.spec)
+    B, _, H, W = planes[0].shape
+    count = 0.0
+    for b in range(B):
+        count += float(_parts(lib.torchgi_guide_edges, H, H * W, len(planes), *_plane_ptrs(planes, b),
+                              scale.data_ptr(), H, W, float(desc.edge), doubles=1, extra_bytes=4 * W)[0])
+    total = B * ((H + 1) // 2) * max(W - 1, 0)
+    return count / total if total else float("nan")
+
+
+def restore(desc: RestoreOp) -> torch.Tensor:
+    """:class:`~torchgi.backends.base.RestoreOp` fused: per image a walk for the light-source mask,
+    one for the demodulated light and its capped peak, the firefly bound's box, one for the clamp
+    (with the s x s means of light and guide at half resolution), the guided filter's coefficient
+    pass, and its last pass with the remodulation (the coefficients upsampled first at half
+    resolution). The guide is read from its normal and depth planes, never built. Raises
+    :class:`~torchgi.core.errors.NonFiniteError` naming an input with NaN/Inf.
+
+    Example:
+        >>> from torchgi.backends.base import GuideSpec
+        >>> c = torch.rand(1, 3, 8, 8); a = torch.full_like(c, 0.5)
+        >>> spec = GuideSpec(torch.zeros_like(c), None, (0,), (0.5,), (0.5,))
+        >>> build.library() is None or restore(RestoreOp(c, None, None, a, None, spec, torch.ones(1, 1, 1, 1), 1, 1e-4, 1,
+        ...                                        4.0)).shape == (1, 3, 8, 8)
+        True
+    """
+    from torchgi.core.check import check_finite
+    from torchgi.settings import PIPELINE
+
+    lib = build.library()
+    color, albedo = desc.color.contiguous(), desc.albedo.contiguous()
+    emission = None if desc.emission is None else desc.emission.contiguous()
+    kept = None if desc.kept is None else desc.kept.contiguous()
+    hit = None if desc.hit is None else desc.hit.contiguous()
+    planes, scale, offset = _spec_planes(desc.spec)
+    B, _, H, W = color.shape
+    n, s = len(planes), desc.subsample
+    h, w = -(-H // s), -(-W // s)
+    r_low = desc.radius if s == 1 else round(desc.radius / s)
+    K, Q = n + 3 + n * (n + 1) // 2 + 3 * n, (n + 1) * 3
+    ws = desc.workspace
+    x, peak = _buffer(ws, "x", (3, H, W)), _buffer(ws, "peak", (1, 1, H, W))
+    mask = _buffer(ws, "mask", (H, W), torch.uint8)
+    low_x = _buffer(ws, "low_x", (3, h, w)) if s > 1 else None
+    low_g = _buffer(ws, "low_g", (n, h, w)) if s > 1 else None
+    coef = _buffer(ws, "coef", (Q, h, w))
+    coef_box = _buffer(ws, "coef_box", (Q, h, w)) if s > 1 else None
+    out = torch.empty(B, 3, H, W, dtype=torch.float32)
+    eps = torch.full((n,), max(float(desc.eps), torch.finfo(torch.float32).tiny), dtype=torch.float32)
+    unit, floor, k = variance_rounding(torch.float32), float(PIPELINE.albedo_floor), float(desc.firefly)
+    r_light = PIPELINE.light_square // 2
+    ones, zeros = torch.ones(n, dtype=torch.float32), torch.zeros(n, dtype=torch.float32)
+    rows = -(-H // _threads(H, H * W)) + 1  # the most rows of one band
+    for b in range(B):
+        level = float(desc.level[b].reshape(()))
+        light_in = [color[b].data_ptr(), _ptr(None if emission is None else emission[b]),
+                    _ptr(None if kept is None else kept[b]), albedo[b].data_ptr(), _ptr(None if hit is None else hit[b]),
+                    floor]
+        seen = _parts(lib.torchgi_lights, H, H * W, *light_in, H, W, PIPELINE.light * level, r_light,
+                      mask.data_ptr(), doubles=1, extra_bytes=12 * W + 3 * (rows + 4 * r_light) * W + W)[0]
+        lights = mask.data_ptr() if seen > 0 else None
+        bad = _parts(lib.torchgi_prepare, H, H * W, *light_in, H, W, lights, level, k * level, x.data_ptr(),
+                     peak.data_ptr(), doubles=4, extra_bytes=21 * W)
+        if bool(bad.any()):  # counted in the walk: the named error (with its counts) from the torch check
+            for name, t in desc.light_inputs():
+                check_finite(t, name)
+        mean = _box(peak, PIPELINE.firefly_radius)
+        mean_p = (_parts(lib.torchgi_clamp, h, H * W, x.data_ptr(), mean.data_ptr(), k, H, W, s, _ptr(low_x),
+                         doubles=3, extra_bytes=8 * W) / (H * W)).float()
+        g = _plane_ptrs(planes, b)
+        mean_g = (_parts(lib.torchgi_guide_pool, h, H * W, n, *g, scale.data_ptr(), offset.data_ptr(), H, W, s,
+                         _ptr(low_g), doubles=n) / (H * W)).float()
+        if desc.centre_src is not None:  # given (tiles of one image share them), not this call's means
+            mean_p = desc.centre_src[b].reshape(-1).to(torch.float32).expand(3).contiguous()
+            mean_g = desc.centre_guide[b].to(torch.float32).contiguous()
+        # the coefficients from the guide's planes, or at half resolution from its block means
+        g_low, sc_low, of_low = (g, scale, offset) if s == 1 else \
+            ([p.data_ptr() for p in low_g] + [None] * (4 - n), ones, zeros)
+        _run(lib.torchgi_restore_coefficients, h, w, n, *g_low, sc_low.data_ptr(), of_low.data_ptr(), mean_g.data_ptr(),
+             (x if s == 1 else low_x).data_ptr(), mean_p.data_ptr(), 3, h, w, r_low, eps.data_ptr(), unit,
+             coef.data_ptr(), _box_scratch(K, w))
+        if s > 1:  # the coefficients' box means at low resolution, upsampled in the last pass
+            _run(lib.torchgi_guided_apply, h, w, coef.data_ptr(), n, 3, None, None, None, h, w, r_low,
+                 coef_box.data_ptr(), _box_scratch(Q, w))
+        _run(lib.torchgi_guided_finish, H, W, (coef if s == 1 else coef_box).data_ptr(), n, 3, *g, scale.data_ptr(),
+             offset.data_ptr(), mean_g.data_ptr(), mean_p.data_ptr(), H, W, r_low, s, out[b].data_ptr(), *light_in,
+             lights, _box_scratch(Q, W) + 3 * W if s == 1 else 7 * W + w)
+    return out
+
+

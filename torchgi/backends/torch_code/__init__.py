@@ -1,0 +1,48 @@
+"""The torch back end: the torch code of every op - the reference (autograd, tracing, ONNX
+export, float64, any device) and the CPU in-place paths used where no compiled kernel applies.
+
+One file per op family: :mod:`.filter_box`, :mod:`.filter_guided`, :mod:`.filter_atrous` (the
+filters), :mod:`.sampling` (importance, allocation), :mod:`.pipeline` (the Denoiser's guided
+pipeline), :mod:`.accumulation` (temporal accumulation), :mod:`.tracer` (the renderer's torch
+wavefronts).
+This module is the back end's registry: :func:`supports`, :func:`describe` and one function
+per op name of :mod:`torchgi.backends.base`.
+"""
+
+from __future__ import annotations
+
+from torchgi.backends.torch_code.accumulation import accumulate
+from torchgi.backends.torch_code.filter_atrous import atrous, channel_planes, squared_distance
+from torchgi.backends.torch_code.filter_box import PlaneBoxer, box, box_cumsum, in_place
+from torchgi.backends.torch_code.filter_guided import apply_coefficients, guided, guided_filter, solve
+from torchgi.backends.torch_code.pipeline import edge_share, guide_stats, restore
+from torchgi.backends.torch_code.sampling import allocate, importance
+from torchgi.backends.torch_code.tracer import guide_rays, path
+
+__all__ = [
+    "NAME", "PlaneBoxer", "accumulate", "allocate", "apply_coefficients", "atrous", "box", "box_cumsum",
+    "channel_planes", "describe", "edge_share", "guide_rays", "guide_stats", "guided", "guided_filter", "importance",
+    "in_place", "path", "restore", "solve", "squared_distance", "supports",
+]
+
+NAME = "torch"
+
+
+def supports(op: str, desc: object) -> str | None:
+    """The torch code takes every call.
+
+    Example:
+        >>> supports("box", object()) is None
+        True
+    """
+    return None
+
+
+def describe() -> str:
+    """One line for :func:`torchgi.backends.status`.
+
+    Example:
+        >>> describe().startswith("always available")
+        True
+    """
+    return "always available: the reference, autograd, tracing and export"

@@ -1,0 +1,127 @@
+"""The torch code of an À-Trous level: the 25 taps as shifted views of padded tensors (never a
+``(B, 25·C, H, W)`` unfold), optionally through ``torch.compile`` (``fused``)."""
+
+from __future__ import annotations
+
+import functools
+
+import torch
+
+from torchgi.backends.base import (
+    ATrousOp,
+    colour_scale,
+    iterate_levels,
+    scaled_guides,
+)
+from torchgi.core.taps import Padded, kernel_5x5
+
+_TAPS = kernel_5x5()
+
+
+def squared_distance(a: list[torch.Tensor], b: list[torch.Tensor]) -> torch.Tensor:
+    """Σ (a - b)² over channels ``(B,1,H,W)``: either one ``(B,C,H,W)`` tensor each (a channel
+    reduction: few ops, compact ONNX graphs) or lists of ``(B,1,H,W)`` planes (pointwise only:
+    what ``torch.compile`` fuses into one loop).
+
+    Example:
+        >>> squared_distance([torch.ones(1, 2, 1, 1)], [torch.zeros(1, 2, 1, 1)]).item()
+        2.0
+    """
+    out = (a[0] - b[0]).square().sum(1, keepdim=True)
+    for u, v in zip(a[1:], b[1:]):
+        out = out + (u - v).square()
+    return out
+
+
+def channel_planes(t: torch.Tensor, split: bool) -> list[torch.Tensor]:
+    """``t (B,C,H,W)`` as a list of channel planes (``split``) or as ``[t]``.
+
+    Example:
+        >>> [p.shape[1] for p in channel_planes(torch.ones(1, 3, 2, 2), True)]
+        [1, 1, 1]
+    """
+    return [t[:, k : k + 1] for k in range(t.shape[1])] if split else [t]
+
+
+def _iteration(
+    c: torch.Tensor, feat: torch.Tensor | None, var: torch.Tensor | None, valid: torch.Tensor | None,
+    step: int, colour_scale: torch.Tensor | None, split: bool = False,
+) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
+    """One À-Trous level.
+
+    ``feat`` ``(B,F,H,W)`` holds the geometry guides already divided by the square roots of
+    their σ's (normal also by the step), so ``w_n · w_x = exp(-|f(p) - f(q)|²``); None: no
+    geometry weight. ``colour_scale`` is ``1/σ_rt,i`` ``(B,1,1,1)`` or, variance-guided,
+    ``1/(σ² · blur(Var))`` ``(B,1,H,W)``; None: no colour weight. ``valid`` ``(B,1,H,W)``
+    marks pixels that may act as sources (None: all). Returns the filtered colour, the
+    propagated variance and the weight sum.
+
+    With ``split`` every channel is its own plane and the level is pure pointwise arithmetic
+    over shifted views, which ``torch.compile`` fuses into one loop (the ``fused=True`` path);
+    without it channels are reduced with ``sum`` (fewer ops for eager code and ONNX).
+    """
+    pad = 2 * step
+    pc = Padded(c, pad)
+    pf = Padded(feat, pad) if feat is not None else None
+    pv = Padded(torch.ones_like(c[:, :1]) if valid is None else valid.to(c.dtype), pad)  # 0 outside / on holes
+    pvar = Padded(var, pad) if var is not None else None
+    cc = channel_planes(c, split)
+    ff = channel_planes(feat, split) if feat is not None else []
+    num: list[torch.Tensor] = []
+    var_num: list[torch.Tensor] = []
+    den = torch.zeros_like(c[:, :1])
+    for dy, dx, h in _TAPS:
+        oy, ox = dy * step, dx * step
+        cq = channel_planes(pc.at(oy, ox), split)
+        d = None
+        if colour_scale is not None:
+            d = squared_distance(cc, cq) * colour_scale
+        if pf is not None:
+            dg = squared_distance(ff, channel_planes(pf.at(oy, ox), split))
+            d = dg if d is None else d + dg
+        w = pv.at(oy, ox) * h
+        if d is not None:
+            w = w * torch.exp(-d)
+        num = [w * q for q in cq] if not num else [a + w * q for a, q in zip(num, cq)]
+        den = den + w
+        if pvar is not None:
+            w2 = w.square()
+            vq = channel_planes(pvar.at(oy, ox), split)
+            var_num = [w2 * q for q in vq] if not var_num else [a + w2 * q for a, q in zip(var_num, vq)]
+    ok = den > 0
+    safe = torch.where(ok, den, torch.ones_like(den))
+    out = torch.where(ok, torch.cat(num, 1) / safe, c)  # no weight at all: keep the centre pixel
+    var_out = torch.where(ok, torch.cat(var_num, 1) / safe.square(), var) if var is not None else None
+    return out, var_out, den
+
+
+@functools.cache
+def _compiled_iteration():
+    """``torch.compile(_iteration, dynamic=True)``, built on first use (one compile serves
+    every size and step)."""
+    return torch.compile(_iteration, dynamic=True)
+
+
+
+def atrous(desc: ATrousOp) -> tuple[torch.Tensor, list[torch.Tensor]]:
+    """:class:`~torchgi.backends.base.ATrousOp` in torch: per level, the guides divided by the
+    square roots of their σ's (normals also by the step) so ``w_n · w_x = exp(-|f(p) - f(q)|²)``.
+
+    Example:
+        >>> c = torch.full((1, 3, 8, 8), 0.5)   # a constant image stays constant
+        >>> out, _ = atrous(ATrousOp(c, None, None, None, None, torch.ones(1, 1, 1, 1), None, None, iterations=2))
+        >>> torch.equal(out, c)
+        True
+    """
+    guides = scaled_guides(desc)
+    level_fn = _compiled_iteration() if desc.fused else _iteration
+
+    def level(c, var, valid, i):
+        step = 2**i
+        scale = colour_scale(desc, i, var)
+        feat = torch.cat([g * (s / step if per_step else s) for g, s, per_step in guides], 1) if guides else None
+        return level_fn(c, feat, var, valid, step, scale, desc.fused)
+
+    return iterate_levels(desc, level)
+
+

@@ -1,0 +1,292 @@
+"""The torch code of the guided filter: products of the centred guide and source
+box-filtered, the per-pixel ``C x C`` solve as a closed-form LDLᵀ in element-wise ops
+(:func:`solve`: exportable, half-safe, no ``torch.linalg``), coefficients box-filtered and
+applied; eagerly on the CPU the same through a :class:`~torchgi.backends.torch_code.filter_box.PlaneBoxer`
+one image at a time with the solve in row strips. :func:`guided_filter` composes the filter at
+1 / s resolution (He & Sun 2015) around the seam's :class:`~torchgi.backends.base.GuidedOp`."""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+from torchgi.backends.base import (
+    GuidedOp,
+    run,
+)
+from torchgi.backends.torch_code.filter_box import PlaneBoxer, box_cumsum, in_place
+from torchgi.core.dtypes import compute_dtype, variance_rounding
+
+
+def _pairs(n: int) -> list[tuple[int, int]]:
+    """Lower-triangle index pairs ``(i, j), j <= i`` of an ``n x n`` symmetric matrix."""
+    return [(i, j) for i in range(n) for j in range(i + 1)]
+
+
+def solve(
+    mI: list[torch.Tensor], mp: torch.Tensor, mII: dict[tuple[int, int], torch.Tensor],
+    mIp: list[torch.Tensor], eps: torch.Tensor, out: list[torch.Tensor] | None = None,
+) -> tuple[list[torch.Tensor], torch.Tensor]:
+    """Per-pixel ``a = (Σ + diag(ε))^-1 cov`` and ``b = mean(p) - aᵀ mean(I)``.
+
+    ``mI[i]`` is ``(B,1,H,W)``, ``mp`` ``(B,Cs,H,W)``, ``mII[(i,j)]`` ``(B,1,H,W)`` for j <= i,
+    ``mIp[i]`` ``(B,Cs,H,W)``; ``eps`` is ``(B,n,1,1)``. Returns ``a`` as a list over guide
+    channels of ``(B,Cs,H,W)`` and ``b (B,Cs,H,W)``, written into ``out`` (``n + 1`` tensors)
+    when given. LDLᵀ (``E = L·D``), no square roots, no branches, elementwise ops only.
+
+    ``Σ_ii = E[I_i²] - E[I_i]²`` carries a rounding error of a few ``finfo.eps · E[I_i²]``;
+    each ε_i is raised to ``16 · finfo.eps · E[I_i²]`` per pixel (plus the smallest normal
+    number) and pivots are clamped there, so flat guides and ``eps = 0`` give finite, exact
+    box means instead of amplified rounding noise.
+
+    Example:
+        >>> one = torch.ones(1, 1, 1, 1)   # E[I] = 0, E[I²] = 1, E[p] = 0, E[Ip] = 0.5: a = 0.5 / (1 + ε)
+        >>> a, b = solve([0 * one], 0 * one, {(0, 0): one}, [0.5 * one], torch.zeros(1, 1, 1, 1))
+        >>> round(float(a[0]), 5), float(b)   # ε raised to the rounding level, 16 · eps(float32)
+        (0.5, 0.0)
+    """
+    n = len(mI)
+    unit = variance_rounding(mp.dtype)
+    eps = eps.clamp_min(torch.finfo(mp.dtype).tiny)
+    outs: list[dict] = [{} if out is None else {"out": o} for o in (out or [None] * (n + 1))]
+    A: dict[tuple[int, int], torch.Tensor] = {}
+    eps_eff: list[torch.Tensor] = []
+    for i, j in _pairs(n):
+        s = torch.addcmul(mII[(i, j)], mI[i], mI[j], value=-1)
+        if i == j:
+            eps_eff.append(torch.maximum(mII[(i, i)] * unit, eps[:, i : i + 1]))
+            s = s.clamp_min(0) + eps_eff[i]
+        A[(i, j)] = s
+    L: dict[tuple[int, int], torch.Tensor] = {}
+    E: dict[tuple[int, int], torch.Tensor] = {}
+    D: list[torch.Tensor] = []
+    for j in range(n):
+        d = A[(j, j)]
+        for k in range(j):
+            d = torch.addcmul(d, L[(j, k)], E[(j, k)], value=-1)
+        D.append(torch.maximum(d, eps_eff[j]))
+        for i in range(j + 1, n):
+            v = A[(i, j)]
+            for k in range(j):
+                v = torch.addcmul(v, L[(i, k)], E[(j, k)], value=-1)
+            E[(i, j)] = v
+            L[(i, j)] = v / D[j]
+    y: list[torch.Tensor] = []
+    for i in range(n):
+        v = torch.addcmul(mIp[i], mI[i], mp, value=-1)  # cov(I_i, p)
+        for k in range(i):
+            v = torch.addcmul(v, L[(i, k)], y[k], value=-1)
+        y.append(v)
+    a: list[torch.Tensor] = [mp] * n
+    for i in reversed(range(n)):
+        last = i + 1 == n
+        v = torch.div(y[i], D[i], **(outs[i] if last else {}))
+        for k in range(i + 1, n):
+            v = torch.addcmul(v, L[(k, i)], a[k], value=-1, **(outs[i] if k + 1 == n else {}))
+        a[i] = v
+    b = mp
+    for i in range(n):
+        b = torch.addcmul(b, a[i], mI[i], value=-1, **(outs[n] if i + 1 == n else {}))
+    return a, b
+
+
+def _product_specs(n: int, Cs: int) -> list[tuple[str, int, str, int]]:
+    """The planes whose box means the solve needs, in a fixed order:
+    ``I_i``, ``p_c``, ``I_i I_j (j <= i)``, ``I_i p_c`` as (tensor, index, tensor, index);
+    an empty second name means the plane itself."""
+    return (
+        [("I", i, "", 0) for i in range(n)]
+        + [("p", c, "", 0) for c in range(Cs)]
+        + [("I", i, "I", j) for i, j in _pairs(n)]
+        + [("I", i, "p", c) for i in range(n) for c in range(Cs)]
+    )
+
+
+def _unpack(planes: list[torch.Tensor], n: int, Cs: int):
+    """Split box means ordered as :func:`_product_specs` (``(B,1,H,W)`` each) into the
+    ``mI, mp, mII, mIp`` arguments of :func:`solve`."""
+    pairs = _pairs(n)
+    mI = planes[:n]
+    mp = torch.cat(planes[n : n + Cs], 1)
+    off = n + Cs
+    mII = dict(zip(pairs, planes[off : off + len(pairs)]))
+    off += len(pairs)
+    mIp = [torch.cat(planes[off + i * Cs : off + (i + 1) * Cs], 1) for i in range(n)]
+    return mI, mp, mII, mIp
+
+
+def _guided_reference(
+    I: torch.Tensor, p: torch.Tensor, r: int, eps: torch.Tensor, coefficients_only: bool = False
+) -> torch.Tensor:
+    """Differentiable, traceable path: cumsum box filters over stacked planes. Returns the output
+    without ``mean(p)`` (centred inputs), or the box-filtered coefficients ``(B, n + 1, Cs, H, W)``
+    (``a_0 .. a_{n-1}, b``)."""
+    n, Cs = I.shape[1], p.shape[1]
+    tensors = {"I": I, "p": p}
+    planes = [
+        tensors[a][:, i : i + 1] * (tensors[b][:, j : j + 1] if b else 1) if b else tensors[a][:, i : i + 1]
+        for a, i, b, j in _product_specs(n, Cs)
+    ]
+    m = box_cumsum(torch.cat(planes, 1), r)
+    a, b = solve(*_unpack(list(m.split(1, 1)), n, Cs), eps)
+    coeffs = box_cumsum(torch.cat(a + [b], 1), r)
+    if coefficients_only:
+        return coeffs.unflatten(1, (n + 1, Cs))
+    return apply_coefficients(coeffs.unflatten(1, (n + 1, Cs)), I)
+
+
+def apply_coefficients(coeffs: torch.Tensor, I: torch.Tensor) -> torch.Tensor:
+    """``b + Σ_i a_i I_i`` for coefficients ``(B, n + 1, Cs, H, W)`` and a centred guide ``(B, n, H, W)``.
+
+    Example:
+        >>> coeffs = torch.tensor([2.0, 1.0]).view(1, 2, 1, 1, 1)   # a = 2, b = 1
+        >>> apply_coefficients(coeffs, torch.full((1, 1, 1, 1), 3.0)).item()
+        7.0
+    """
+    n = I.shape[1]
+    out = coeffs[:, n]
+    for i in range(n):
+        out = out + coeffs[:, i] * I[:, i : i + 1]
+    return out
+
+
+_STRIP_ELEMENTS = 1 << 16  # pixels per strip of the per-pixel solve: temporaries stay in L2
+
+
+class _Workspace:
+    """Buffers of the CPU path for one (guide channels, source channels, H, W, r, dtype).
+
+    glibc returns large freed blocks to the OS, so fresh buffers are page-faulted in on every
+    call (a large share of the run time, docs/calibration.md). :class:`Guided` keeps one workspace
+    between calls; the functional form builds a new one each time.
+    """
+
+    def __init__(self, n: int, Cs: int, H: int, W: int, r: int, dtype: torch.dtype) -> None:
+        self.key = (n, Cs, H, W, r, dtype)
+        self.boxer = PlaneBoxer(H, W, r, dtype)
+        self.I = torch.empty(n, H, W, dtype=dtype)  # centred guide of one image
+        self.p = torch.empty(Cs, H, W, dtype=dtype)  # centred source of one image
+        self.mI = torch.empty(n, H, W, dtype=dtype)
+        self.mp = torch.empty(Cs, H, W, dtype=dtype)
+        self.mII = torch.empty(len(_pairs(n)), H, W, dtype=dtype)
+        self.mIp = torch.empty(n, Cs, H, W, dtype=dtype)
+        self.coeffs = torch.empty(n + 1, Cs, H, W, dtype=dtype)  # a_0 .. a_{n-1}, b
+
+    @classmethod
+    def get(cls, holder: dict | None, n: int, Cs: int, H: int, W: int, r: int, dtype: torch.dtype) -> _Workspace:
+        key = (n, Cs, H, W, r, dtype)
+        if holder is not None and holder.get("ws") is not None and holder["ws"].key == key:
+            return holder["ws"]
+        ws = cls(*key)
+        if holder is not None:
+            holder["ws"] = ws
+        return ws
+
+
+def _guided_fast(
+    g: torch.Tensor, p: torch.Tensor, mean_g: torch.Tensor, mean_p: torch.Tensor, r: int,
+    eps: torch.Tensor, holder: dict | None = None, coefficients_only: bool = False,
+) -> torch.Tensor:
+    """CPU eager path: box means one plane at a time (cache-resident, reused buffers), the
+    solve in row strips so its temporaries stay small; strips of the grouped buffers are views.
+    Centring (by ``mean_g``, ``mean_p``) happens here, into the workspace. Returns the output,
+    or the box-filtered coefficients ``(B, n + 1, Cs, H, W)``."""
+    B, n, H, W = g.shape
+    Cs = p.shape[1]
+    ws = _Workspace.get(holder, n, Cs, H, W, r, g.dtype)
+    boxer, pairs = ws.boxer, _pairs(n)
+    out = torch.empty((B, n + 1, Cs, H, W) if coefficients_only else (B, Cs, H, W), dtype=g.dtype)
+    for bi in range(B):
+        Ib = torch.sub(g[bi], mean_g[bi], out=ws.I)
+        pb = torch.sub(p[bi], mean_p[bi], out=ws.p)
+        boxer(Ib, ws.mI)
+        boxer(pb, ws.mp)
+        # products and their box means a stack at a time: while a stack is in cache
+        for group, factors in (
+            (ws.mII, [(Ib[i], Ib[j]) for i, j in pairs]),
+            (ws.mIp.view(n * Cs, H, W), [(Ib[i], pb[c]) for i in range(n) for c in range(Cs)]),
+        ):
+            for a in range(0, len(factors), boxer.stack):
+                stack = group[a : a + boxer.stack]
+                for dst, (u, v) in zip(stack, factors[a : a + boxer.stack]):
+                    torch.mul(u, v, out=dst)
+                boxer(stack, stack)
+        e = eps[bi : bi + 1]
+        strip = max(1, _STRIP_ELEMENTS // W)
+        for y in range(0, H, strip):
+            rows = slice(y, y + strip)
+            solve(
+                [ws.mI[i : i + 1, rows][None] for i in range(n)], ws.mp[:, rows][None],
+                {pr: ws.mII[k : k + 1, rows][None] for k, pr in enumerate(pairs)},
+                [ws.mIp[i, :, rows][None] for i in range(n)], e,
+                out=[ws.coeffs[k, :, rows][None] for k in range(n + 1)],
+            )
+        planes = ws.coeffs.view(-1, H, W)
+        boxer(planes, planes)
+        if coefficients_only:
+            out[bi].copy_(ws.coeffs)
+            continue
+        acc = torch.add(ws.coeffs[n], mean_p[bi], out=out[bi])
+        for i in range(n):
+            acc.addcmul_(ws.coeffs[i], Ib[i : i + 1])
+    return out
+
+
+
+def guided(desc: GuidedOp) -> torch.Tensor:
+    """:class:`~torchgi.backends.base.GuidedOp` in torch: the in-place CPU path eagerly on the
+    CPU, else the differentiable reference.
+
+    Example:
+        >>> p = torch.rand(1, 1, 6, 6); m = p.mean((2, 3), keepdim=True)
+        >>> flat = torch.ones(1, 1, 6, 6)   # a constant guide: the box mean of the box mean
+        >>> out = guided(GuidedOp(flat, p, torch.ones(1, 1, 1, 1), m, 1, torch.zeros(1, 1, 1, 1)))
+        >>> torch.allclose(out, box_cumsum(box_cumsum(p, 1), 1), atol=1e-6)
+        True
+    """
+    g, p, e = desc.guide, desc.src, desc.eps
+    if in_place(desc):
+        return _guided_fast(g, p, desc.mean_guide, desc.mean_src, desc.radius, e, desc.workspace,
+                            desc.coefficients_only)
+    out = _guided_reference(g - desc.mean_guide, p - desc.mean_src, desc.radius, e, desc.coefficients_only)
+    return out if desc.coefficients_only else out + desc.mean_src
+
+
+
+
+def guided_filter(
+    src: torch.Tensor, guide: torch.Tensor, radius: int, eps: torch.Tensor, workspace: dict | None = None,
+    subsample: int = 1,
+) -> torch.Tensor:
+    """The guided filter of ``src (B,C,H,W)`` on ``guide (B,G,H,W)`` after its argument checks, each
+    :class:`~torchgi.backends.base.GuidedOp` through the seam (:func:`~torchgi.backends.base.run`):
+    light and guide centred by their means, and at ``subsample`` s > 1 the fast guided filter (He &
+    Sun 2015): coefficients from s x s means at radius ``round(radius / s)``, upsampled bilinearly
+    by the factor s (the grid of pixel centres does not depend on the size: tiles agree) and
+    applied to the full-resolution guide. ``eps``: ``(B, G, 1, 1)`` in the compute dtype;
+    ``workspace``: a dict the CPU path keeps its buffers in between calls, or None. Returns
+    ``(B, C, H, W)`` in the dtype of ``src``.
+
+    Example:
+        >>> src, guide = torch.rand(1, 3, 16, 16), torch.rand(1, 2, 16, 16)
+        >>> eps = torch.full((1, 2, 1, 1), 0.01)
+        >>> (guided_filter(src, guide, 2, eps, None, 2) - src).abs().mean() < 0.5
+        tensor(True)
+    """
+    ct = compute_dtype(src.dtype)
+    if src.numel() == 0:
+        return src.clone()
+    g, p = guide.to(ct), src.to(ct)
+    mean_g, mean_p = g.mean(dim=(2, 3), keepdim=True), p.mean(dim=(2, 3), keepdim=True)
+    if subsample == 1:
+        return run(GuidedOp(g, p, mean_g, mean_p, radius, eps, workspace=workspace)).to(src.dtype)
+    gc = g - mean_g
+    low_g = F.avg_pool2d(gc, subsample, ceil_mode=True)
+    low_p = F.avg_pool2d(p - mean_p, subsample, ceil_mode=True)
+    zero_g, zero_p = torch.zeros_like(mean_g), torch.zeros_like(mean_p)  # low_g, low_p are centred
+    coeffs = run(GuidedOp(low_g, low_p, zero_g, zero_p, round(radius / subsample), eps, coefficients_only=True,
+                          workspace=workspace))
+    coeffs = F.interpolate(coeffs.flatten(1, 2), scale_factor=subsample, mode="bilinear",
+                           align_corners=False)[..., : src.shape[-2], : src.shape[-1]]
+    return (apply_coefficients(coeffs.unflatten(1, (guide.shape[1] + 1, src.shape[1])), gc)
+            + mean_p).to(src.dtype)

@@ -1,0 +1,81 @@
+"""The torch code of the Denoiser's guided pipeline: its guide statistics, the edge share
+that decides half resolution, and the whole pipeline (:func:`torchgi.light.restore` around
+:func:`~torchgi.backends.torch_code.filter_guided.guided_filter`)."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from torchgi import light
+from torchgi.backends.base import (
+    EdgeShareOp,
+    GuideStatsOp,
+    RestoreOp,
+    box_mean,
+)
+from torchgi.backends.torch_code.filter_guided import guided_filter
+from torchgi.core.check import check_finite
+from torchgi.core.dtypes import compute_dtype
+
+
+def guide_stats(desc: GuideStatsOp) -> torch.Tensor:
+    """:class:`~torchgi.backends.base.GuideStatsOp` by reductions.
+
+    Example:
+        >>> n = torch.zeros(1, 3, 2, 2); d = torch.tensor([[[[1.0, 2.0], [3.0, 4.0]]]])
+        >>> guide_stats(GuideStatsOp(n, d, d > 2.5))[0, [3, 8]].tolist()   # depth min, depth max on hit
+        [1.0, 4.0]
+    """
+    n, d = desc.normal, desc.depth
+    B = n.shape[0]
+    planes = n if d is None else torch.cat([n, d], 1)
+    lo, hi = planes.amin(dim=(2, 3)).double(), planes.amax(dim=(2, 3)).double()
+    if d is None:
+        lo, hi = torch.cat([lo, lo.new_full((B, 1), math.inf)], 1), torch.cat([hi, hi.new_full((B, 1), -math.inf)], 1)
+        dmax = lo.new_full((B, 1), -math.inf)
+    else:
+        valid = d if desc.hit is None else torch.where(desc.hit, d, -torch.inf)
+        dmax = valid.amax(dim=(1, 2, 3)).double().view(B, 1)
+    bad_n = (~torch.isfinite(n)).flatten(1).sum(1, keepdim=True).double()
+    bad_d = torch.zeros_like(bad_n) if d is None else (~torch.isfinite(d)).flatten(1).sum(1, keepdim=True).double()
+    sums = planes.double().sum(dim=(2, 3))
+    sums = sums if d is not None else torch.cat([sums, sums.new_zeros(B, 1)], 1)
+    return torch.cat([lo, hi, dmax, bad_n, bad_d, sums], 1).cpu()
+
+
+def edge_share(desc: EdgeShareOp) -> float:
+    """:class:`~torchgi.backends.base.EdgeShareOp` on the guide built by torch ops.
+
+    Example:
+        >>> from torchgi.backends.base import GuideSpec
+        >>> n = torch.zeros(1, 3, 2, 3); n[..., 2] = 1.0
+        >>> edge_share(EdgeShareOp(GuideSpec(n, None, (0,), (0.5,), (0.5,)), 0.1))   # 1 of 2 neighbours
+        0.5
+    """
+    guide = desc.spec.build()
+    edges = (guide[:, :, ::2, 1:] - guide[:, :, ::2, :-1]).square().sum(1) > desc.edge**2
+    return float(edges.float().mean())
+
+
+def restore(desc: RestoreOp) -> torch.Tensor:
+    """:class:`~torchgi.backends.base.RestoreOp` as the Denoiser's torch code: the steps of
+    :func:`torchgi.light.restore` in eager ops around the guided filter (whose own back end is
+    chosen through the seam, as for :func:`torchgi.filters.guided`).
+
+    Example:
+        >>> from torchgi.backends.base import GuideSpec
+        >>> c = torch.rand(1, 3, 8, 8); a = torch.full_like(c, 0.5)
+        >>> spec = GuideSpec(torch.zeros_like(c), None, (0,), (0.5,), (0.5,))
+        >>> restore(RestoreOp(c, None, None, a, None, spec, torch.ones(1, 1, 1, 1), 1, 1e-4, 1, 4.0)).shape
+        torch.Size([1, 3, 8, 8])
+    """
+    for name, t in desc.light_inputs():
+        check_finite(t, name)
+    guide = desc.spec.build()
+    B, n = guide.shape[:2]
+    eps = torch.full((B, n, 1, 1), float(desc.eps), dtype=compute_dtype(guide.dtype), device=guide.device)
+    return light.restore(desc.color, desc.emission, desc.kept, desc.albedo, light.surface_mask(desc.hit, desc.albedo),
+                         lambda x: guided_filter(x, guide, desc.radius, eps, desc.workspace, desc.subsample),
+                         desc.firefly, box_mean, desc.level)

@@ -1,0 +1,221 @@
+"""The Denoiser's light maths (DESIGN §4): which pixels are surfaces, what light is divided by,
+which pixels are light sources, the firefly bound, the scene's light level and the whole
+demodulate / filter / remodulate step around a filter.
+
+It sits below the back ends: :mod:`torchgi.denoise`, :mod:`torchgi.temporal` and the torch
+back end's reference pipeline (``backends.torch_code``) all take it from here, and it imports
+nothing of torchgi but :mod:`torchgi.core` and :mod:`torchgi.settings`. The two steps that
+need a box mean (the light-source opening, the firefly bound) take it as an argument
+``box(x, r)`` (``(B, C, H, W)`` mean over ``(2r+1)²``, count-normalised at borders): the
+Denoiser hands in :func:`torchgi.filters.box`, a back end its own seam call, so that each
+caller keeps its choice of kernel.
+
+All tensors are ``(B, C, H, W)``; light is linear radiance (the renderer's units).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+
+from torchgi.core.check import is_recording
+from torchgi.settings import PIPELINE
+
+__all__ = [
+    "BoxFn", "centre", "clamp_fireflies", "demodulator", "every4", "filter_light", "firefly_bound", "level",
+    "light_sources", "median_level", "restore", "surface_mask",
+]
+
+BoxFn = Callable[[torch.Tensor, int], torch.Tensor]  # box(x (B,C,H,W), r) -> the (2r+1)² mean, same shape
+
+
+def surface_mask(hit: torch.Tensor | None, albedo: torch.Tensor) -> torch.Tensor:
+    """``(B,1,H,W)`` bool: pixels on geometry - ``hit`` when given, else non-zero albedo.
+
+    Example:
+        >>> surface_mask(None, torch.tensor([[[[0.0, 0.5]]]])).tolist()
+        [[[[False, True]]]]
+    """
+    return hit if hit is not None else albedo.amax(1, keepdim=True) > 0
+
+
+def demodulator(albedo: torch.Tensor, surface: torch.Tensor) -> torch.Tensor:
+    """What light is divided by: the albedo (at least ``PIPELINE.albedo_floor``) on surfaces, 1 on
+    the background, which is filtered as it is.
+
+    Example:
+        >>> a = torch.tensor([[[[0.0, 0.5]]]])
+        >>> demodulator(a, surface_mask(None, a)).tolist()
+        [[[[1.0, 0.5]]]]
+    """
+    return torch.where(surface, albedo.clamp_min(PIPELINE.albedo_floor),
+                       torch.ones((), dtype=albedo.dtype, device=albedo.device))
+
+
+def every4(t: torch.Tensor | None) -> torch.Tensor | None:
+    """Every 4th row and column of ``t (B,C,H,W)`` (a view), None for None.
+
+    Example:
+        >>> every4(torch.zeros(1, 1, 8, 9)).shape
+        torch.Size([1, 1, 2, 3])
+    """
+    return None if t is None else t[:, :, ::4, ::4]
+
+
+def median_level(x: torch.Tensor, surface: torch.Tensor) -> torch.Tensor:
+    """``(B,1,1,1)``: per image, the (lower) median over surface pixels of the channel maximum of
+    ``x (B,C,H,W)`` (a scale for thresholds; pass :func:`every4` views, so that 1/16 of the pixels
+    is read); 1 where there is none or it is not > 0. Plain tensor ops (exportable).
+
+    Example:
+        >>> x = torch.tensor([[[[1.0, 2.0, 9.0]]]])
+        >>> median_level(x, torch.ones(1, 1, 1, 3, dtype=torch.bool)).flatten().tolist()
+        [2.0]
+    """
+    peak = x.amax(1).flatten(1)
+    on = surface[:, 0].flatten(1)
+    ranked = torch.where(on, peak, torch.full((), float("inf"), dtype=x.dtype, device=x.device))
+    count = on.sum(1, keepdim=True)
+    if is_recording():  # a sort exports; eager calls select in linear time
+        m = ranked.sort(1).values.gather(1, ((count - 1).clamp_min(0) // 2))
+    else:
+        m = torch.stack([ranked[b].kthvalue(max(int(count[b]) - 1, 0) // 2 + 1).values for b in range(len(ranked))]
+                        ).view(-1, 1) if ranked.shape[1] else ranked.new_ones(len(ranked), 1)
+    return torch.where((count > 0) & (m > 0), m, torch.ones_like(m)).reshape(-1, 1, 1, 1)
+
+
+def light_sources(emission: torch.Tensor, threshold: torch.Tensor, box: BoxFn) -> torch.Tensor:
+    """``(B,1,H,W)`` bool: pixels whose emission exceeds ``threshold (B,1,1,1)`` and that lie in a
+    square of ``PIPELINE.light_square`` (3x3) such pixels (a morphological opening by two ``box``
+    passes: whole lights, corners included, stay; single pixels and one-pixel fringes that a few
+    samples hit along a light's silhouette do not).
+
+    Example:
+        >>> from torchgi.filters import box
+        >>> e = torch.zeros(1, 3, 6, 6); e[..., 1:4, 1:4] = 10.0; e[..., 5, 5] = 10.0
+        >>> int(light_sources(e, torch.ones(1, 1, 1, 1), box).sum())   # the 3x3 light, not the lone pixel
+        9
+    """
+    bright = emission.amax(1, keepdim=True) > threshold
+    if not is_recording() and not bool(bright.any()):
+        return bright  # no light source in view: nothing to open
+    r = PIPELINE.light_square // 2
+    core = box(bright.to(emission.dtype), r) > 1 - 1e-3  # erosion: the whole window is bright
+    return bright & (box(core.to(emission.dtype), r) > 0)  # dilation back
+
+
+def firefly_bound(peak: torch.Tensor, scene_level: torch.Tensor, k: float, box: BoxFn) -> torch.Tensor:
+    """``(B,1,H,W)``: ``k`` x the local level of the channel maximum ``peak (B,1,H,W)``: the box
+    mean (``PIPELINE.firefly_radius``) of ``peak`` capped at ``k`` x ``scene_level``
+    (:func:`median_level`).
+
+    Example:
+        >>> from torchgi.filters import box
+        >>> firefly_bound(torch.ones(1, 1, 4, 4), torch.ones(1, 1, 1, 1), 4.0, box).flatten().tolist()[:2]
+        [4.0, 4.0]
+    """
+    # (box sums round: a mean of zeros can come out as -1e-9, so the bound is clamped at 0)
+    return k * box(torch.minimum(peak, k * scene_level), PIPELINE.firefly_radius).clamp_min(0)
+
+
+def clamp_fireflies(x: torch.Tensor, scene_level: torch.Tensor, k: float, box: BoxFn) -> torch.Tensor:
+    """Scale pixels of ``x (B,C,H,W)`` (>= 0) whose maximum exceeds ``k`` x their local level down
+    to that bound (:func:`firefly_bound`), hue kept.
+
+    Example:
+        >>> from torchgi.filters import box
+        >>> x = torch.ones(1, 3, 9, 9); x[..., 4, 4] = 1000.0
+        >>> float(clamp_fireflies(x, torch.ones(1, 1, 1, 1), 4.0, box)[0, 0, 4, 4]) < 5
+        True
+    """
+    peak = x.amax(1, keepdim=True)
+    bound = firefly_bound(peak, scene_level, k, box)
+    over = peak > bound  # so peak > 0 wherever it divides
+    return torch.where(over, x * (bound / torch.where(over, peak, 1.0)), x)
+
+
+def filter_light(x: torch.Tensor, scene_level: torch.Tensor, filter_fn: Callable[[torch.Tensor], torch.Tensor],
+                 firefly: float, box: BoxFn) -> torch.Tensor:
+    """``filter_fn`` of demodulated light ``x (B,C,H,W)`` with its fireflies clamped at ``firefly``
+    x their local level (``scene_level`` from :func:`median_level`), clamped at 0: light is >= 0
+    and linear models can undershoot.
+
+    Example:
+        >>> from torchgi.filters import box
+        >>> filter_light(-torch.ones(1, 3, 4, 4), torch.ones(1, 1, 1, 1), lambda v: v, 4.0, box).max().item()
+        0.0
+    """
+    return filter_fn(clamp_fireflies(x, scene_level, firefly, box)).clamp_min(0)
+
+
+def _without(color: torch.Tensor, emission: torch.Tensor | None, kept: torch.Tensor | None, albedo: torch.Tensor,
+             surface: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """On every 4th row and column: the demodulated light without emission and kept light, and the surface."""
+    c, e, k, a, on = (every4(t) for t in (color, emission, kept, albedo, surface))
+    base = c - k if k is not None else c
+    return (base - e if e is not None else base) / demodulator(a, on), on
+
+
+def level(color: torch.Tensor, emission: torch.Tensor | None, kept: torch.Tensor | None, albedo: torch.Tensor,
+          surface: torch.Tensor) -> torch.Tensor:
+    """``(B,1,1,1)``: :func:`median_level` of the demodulated light without emission and kept
+    light (each ``(B,3,H,W)`` or None), computed on every 4th row and column only.
+
+    Example:
+        >>> c = torch.full((1, 3, 8, 8), 0.5); a = torch.full_like(c, 0.5)
+        >>> level(c, None, None, a, surface_mask(None, a)).flatten().tolist()
+        [1.0]
+    """
+    return median_level(*_without(color, emission, kept, albedo, surface))
+
+
+def centre(color: torch.Tensor, emission: torch.Tensor | None, kept: torch.Tensor | None, albedo: torch.Tensor,
+           surface: torch.Tensor, cap: torch.Tensor) -> torch.Tensor:
+    """``(B, 3)`` float64 on the CPU: per image and channel the mean of the demodulated light
+    (without emission and kept light, at most ``cap (B,1,1,1)``) on every 4th row and column:
+    a constant near the clamped light's mean, to centre it by before the filter's sums.
+
+    Example:
+        >>> c = torch.full((1, 3, 8, 8), 0.5); a = torch.full_like(c, 0.5)
+        >>> centre(c, None, None, a, surface_mask(None, a), torch.full((1, 1, 1, 1), 4.0)).tolist()
+        [[1.0, 1.0, 1.0]]
+    """
+    x, _ = _without(color, emission, kept, albedo, surface)
+    return torch.minimum(x, cap).double().mean(dim=(2, 3)).cpu()
+
+
+def restore(
+    color: torch.Tensor, emission: torch.Tensor | None, kept: torch.Tensor | None, albedo: torch.Tensor,
+    surface: torch.Tensor, filter_fn: Callable[[torch.Tensor], torch.Tensor], firefly: float, box: BoxFn,
+    scene_level: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """The Denoiser's pipeline around ``filter_fn`` (demodulated light in, filtered out): light
+    sources found (from ``emission``, else from the bright coherent regions of ``color``) and kept
+    whole, the rest demodulated by :func:`demodulator`, its fireflies clamped, filtered, clamped at
+    0 and remodulated. All ``(B, C, H, W)``; ``kept`` is light added back unfiltered (direct light
+    in the papers' split) or None; ``firefly`` the method's clamp factor; ``scene_level``
+    :func:`level` (None: computed here). Returns the ``(B, 3, H, W)`` radiance.
+
+    Example:
+        >>> from torchgi.filters import box
+        >>> c = torch.rand(1, 3, 8, 8); a = torch.full_like(c, 0.5)
+        >>> out = restore(c, None, None, a, surface_mask(None, a), lambda x: x.mean((2, 3), keepdim=True).expand_as(x),
+        ...               4.0, box)
+        >>> out.shape, bool((out >= 0).all())
+        (torch.Size([1, 3, 8, 8]), True)
+    """
+    if scene_level is None:
+        scene_level = level(color, emission, kept, albedo, surface)
+    albedo = demodulator(albedo, surface)
+    base = color - kept if kept is not None else color
+    lights = light_sources(emission if emission is not None else base / albedo, PIPELINE.light * scene_level, box)
+    if emission is not None:
+        light = torch.where(lights, emission, 0.0)
+        kept = light if kept is None else kept + light
+        x = (base - light) / albedo
+    else:  # no emission input: a light source's pixels pass whole and enter the filter at the median level
+        x = torch.where(lights, scene_level.expand_as(color), base / albedo)
+    out = filter_light(x, scene_level, filter_fn, firefly, box) * albedo
+    out = out + kept if kept is not None else out
+    return out if emission is not None else torch.where(lights, color, out)
