@@ -58,31 +58,32 @@ def tol(dtype: torch.dtype) -> tuple[float, float]:
 
 
 def _find_meshes() -> str | None:
-    """The shared mesh folder: $TORCHGI_MESHES, else ``shared/data/meshes`` beside a parent."""
-    env = os.environ.get("TORCHGI_MESHES")
-    if env:
-        return env if os.path.isdir(env) else None
-    roots = [os.path.dirname(os.path.abspath(__file__))]
-    try:  # a clone made from a local checkout: look beside that checkout too
+    """The shared mesh folder: :func:`torchgi.render.mesh_root` ($TORCHGI_MESHES, else
+    ``shared/data/meshes`` beside the checkout) when it exists, else (a clone made from a local
+    checkout) the one beside that checkout."""
+    from torchgi.render import mesh_root
+
+    if os.environ.get("TORCHGI_MESHES") or mesh_root().is_dir():
+        return str(mesh_root()) if mesh_root().is_dir() else None
+    here = os.path.dirname(os.path.abspath(__file__))
+    try:
         origin = subprocess.run(["git", "config", "--get", "remote.origin.url"], capture_output=True, text=True,
-                                cwd=roots[0], timeout=10, check=False).stdout.strip()
-        if origin and os.path.isdir(origin):
-            roots.append(os.path.join(os.path.abspath(origin), "tests"))
+                                cwd=here, timeout=10, check=False).stdout.strip()
     except (OSError, subprocess.SubprocessError):
-        pass
-    for here in roots:
-        for _ in range(4):
-            here = os.path.dirname(here)
-            candidate = os.path.join(here, "shared", "data", "meshes")
-            if os.path.isdir(candidate):
-                return candidate
-    return None
+        return None
+    candidate = os.path.join(os.path.dirname(os.path.abspath(origin)), "shared", "data", "meshes") if origin else ""
+    return candidate if origin and os.path.isdir(origin) and os.path.isdir(candidate) else None
+
+
+MESHES = _find_meshes()
+if MESHES is not None:  # scene files name their shared meshes relative to this root
+    os.environ["TORCHGI_MESHES"] = MESHES
+NO_MESHES = "the shared mesh folder is absent: set TORCHGI_MESHES to the folder of the shared meshes"
 
 
 @pytest.fixture(scope="session")
 def meshes_dir() -> str:
     """Real meshes made by others (never copied into the project); skipped when absent."""
-    found = _find_meshes()
-    if found is None:
-        pytest.skip("the shared mesh folder is absent (set TORCHGI_MESHES)")
-    return found
+    if MESHES is None:
+        pytest.skip(NO_MESHES)
+    return MESHES

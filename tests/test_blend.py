@@ -84,6 +84,15 @@ def test_scale_free():
     assert rel(out_k, out * 1000) < 1e-4 and rel(w_k, w) < 1e-4
 
 
+def test_light_beyond_the_float32_features_blends_as_scaled():
+    """Finite light of 1e30 (whose squares overflow float32) is blended as the same light scaled
+    down by a power of two, against the float64 oracle of the unscaled blend."""
+    x, guide = _inputs(seed=2)
+    out, w = blend(x * 1e30, guide, spp=1.0, return_weights=True)
+    ref, ref_w, _ = blend_oracle(x, guide, 1.0, default_net())
+    assert bool(torch.isfinite(out).all()) and rel(out, ref * 1e30) < 1e-4 and rel(w, ref_w) < 1e-4
+
+
 def test_gradients_in_float64():
     net = BlendNet(radii=(1, 2), colour_radii=(1,), reference=2, hidden=4, context=(1,)).double()
     x, guide = _inputs(H=6, W=7, dtype=torch.float64)

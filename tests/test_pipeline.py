@@ -148,8 +148,9 @@ def test_memory_bounds_and_sanitize_are_checked(render):
         Denoiser("guided", max_memory_mb=0.01)(render)
     with pytest.raises(ValueError, match="max_memory_mb"):
         Denoiser("atrous", max_memory_mb=100)
-    with pytest.raises(ValueError, match="max_memory_mb"):
-        Denoiser("guided", max_memory_mb=-1)
+    for bad_mb in (-1, 0, float("inf"), float("nan"), True, "10"):
+        with pytest.raises(ValueError, match="max_memory_mb"):
+            Denoiser("guided", max_memory_mb=bad_mb)
     bad = render.replace(color=render.color.clone())
     bad.color[0, 1, 5, 7] = float("nan")
     with pytest.warns(UserWarning, match="color: replaced 1 non-finite"):

@@ -22,7 +22,8 @@ from torchgi.render.engine import guide_rays_op
 from torchgi.render.film import Film
 from torchgi.render.materials import bsdf_eval, bsdf_sample
 from torchgi.render.sampler import sample_keys, uniform
-from torchgi.render.scene import MATERIALS, Camera, Mesh, PointLight, Scene, Sky, load_scene, scene_from_dict
+from torchgi.render.scene import MATERIALS, Camera, Mesh, PointLight, Scene, Sky
+from torchgi.render.scene_files import load_scene, scene_from_dict
 
 from .oracles import z_pass_rate
 
@@ -104,6 +105,7 @@ K_SEEDS, SPP = 16, 32
 def bunny_scene(meshes_dir):
     with open(os.path.join(CONFIGS, "bunny.yaml")) as fh:
         cfg = yaml.safe_load(fh)
+    cfg["meshes"][-1].pop("mesh")
     cfg["meshes"][-1]["file"] = os.path.join(meshes_dir, "stanford_bunny", "stanford-bunny.obj")
     return scene_from_dict(cfg, CONFIGS, "bunny")
 
@@ -538,3 +540,26 @@ def test_workers_start_safely_after_embree_was_used_in_process(tmp_path):
 
     out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300, check=True)
     assert out.stdout.split() == ["forkserver", "True", "True"], out.stdout + out.stderr
+
+
+def test_meshes_resolve_against_the_mesh_root(tmp_path, monkeypatch):
+    """``mesh:`` is relative to $TORCHGI_MESHES; a missing one says how to set it; ``file:`` stays
+    relative to the scene file; one of the two is required."""
+    import shutil
+
+    own = os.path.join(CONFIGS, "meshes", "sphere.obj")
+    (tmp_path / "things").mkdir()
+    shutil.copy(own, tmp_path / "things" / "ball.obj")
+    cfg = {"camera": {"position": [0, 0, 4], "look_at": [0, 0, 0], "resolution": [8, 8]},
+           "meshes": [{"mesh": "things/ball.obj", "material": {"type": "diffuse"}}]}
+    monkeypatch.setenv("TORCHGI_MESHES", str(tmp_path))
+    assert len(scene_from_dict(cfg).meshes[0].faces) == len(scene_from_dict(
+        {**cfg, "meshes": [{"file": own, "material": {"type": "diffuse"}}]}).meshes[0].faces)
+    monkeypatch.setenv("TORCHGI_MESHES", str(tmp_path / "elsewhere"))
+    with pytest.raises(FileNotFoundError, match=r"meshes\[0\]\.mesh: 'things/ball.obj'.*set TORCHGI_MESHES"):
+        scene_from_dict(cfg)
+    with pytest.raises(FileNotFoundError, match="set TORCHGI_MESHES"):
+        load_scene(os.path.join(CONFIGS, "cornell.yaml"))
+    for entry in ({"material": {"type": "diffuse"}}, {"mesh": "a.obj", "file": own, "material": {"type": "diffuse"}}):
+        with pytest.raises(ConfigError, match="exactly one of 'file'"):
+            scene_from_dict({**cfg, "meshes": [entry]})

@@ -53,7 +53,7 @@ def test_camera_path_interpolates_keyframes_and_holds_outside():
         CameraPath((0.0, 0.0), ((0, 0, 1),) * 2, ((0, 0, 0),) * 2, (40.0, 40.0))
 
 
-def test_yaml_camera_path(tmp_path):
+def test_yaml_camera_path(tmp_path, meshes_dir):
     scene = torchgi.load_scene(os.path.join(SEQUENCES, "cornell_slide.yaml"))
     assert scene.path is not None and scene.path.duration == (0.0, 1.0)
     assert scene.camera.position == scene.path.positions[0]  # the base pose defaults to the first keyframe
@@ -112,7 +112,7 @@ def test_motion_reprojects_first_hits_within_005_px(scene_fn):
 
 
 @pytest.mark.slow
-def test_sequence_frame_matches_mitsuba():
+def test_sequence_frame_matches_mitsuba(meshes_dir):
     pytest.importorskip("mitsuba")
     from tests.oracles import z_pass_rate
     from torchgi.render.mitsuba import render_mitsuba
@@ -123,7 +123,7 @@ def test_sequence_frame_matches_mitsuba():
     assert z_pass_rate(ours, ref) >= 0.975
 
 
-def test_cli_renders_frames_with_a_motion_layer(tmp_path, capsys):
+def test_cli_renders_frames_with_a_motion_layer(tmp_path, capsys, meshes_dir):
     pytest.importorskip("OpenEXR")
     from torchgi.cli import main
     from torchgi.io import read_aovs, read_exr, write_exr

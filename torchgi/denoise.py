@@ -120,8 +120,10 @@ class Denoiser(torch.nn.Module):
             check_option(key, f"filter parameter for method={method!r}", known)
         if input_scale is not None and not input_scale > 0:
             raise ValueError(f"input_scale: expected > 0 or None, got {input_scale!r}")
-        if max_memory_mb is not None and (isinstance(max_memory_mb, bool) or not max_memory_mb > 0):
-            raise ValueError(f"max_memory_mb: expected > 0 or None, got {max_memory_mb!r}")
+        if max_memory_mb is not None and (isinstance(max_memory_mb, bool) or not isinstance(max_memory_mb, (int, float))
+                                          or not 0 < max_memory_mb < math.inf):
+            raise ValueError(f"max_memory_mb: expected a finite number of MB > 0, or None for no limit; "
+                             f"got {max_memory_mb!r}")
         if max_memory_mb is not None and method != "guided":
             raise ValueError(f"max_memory_mb: tiles are implemented for method='guided' only, not {method!r}")
         eps = filter_params.get("eps", GUIDED.eps)

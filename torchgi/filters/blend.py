@@ -34,7 +34,7 @@ from typing import Any
 import torch
 from torch import nn
 
-from torchgi.core.check import check_floating, check_same_device, check_same_floating, check_shape
+from torchgi.core.check import check_floating, check_same_device, check_same_floating, check_shape, is_recording
 from torchgi.core.dtypes import compute_dtype
 from torchgi.core.errors import RangeError
 from torchgi.filters.box import box
@@ -232,6 +232,19 @@ def _weights(net: BlendNet, candidates: Sequence[torch.Tensor], guide: torch.Ten
     return torch.softmax(net(feats.to(p.dtype)), 1)
 
 
+_LARGEST = 2.0**60  # the features square box means of the light: keep them within float32
+
+
+def _exponent_shift(x: torch.Tensor) -> int:
+    """``k`` such that ``x * 2^-k`` peaks near 1 when ``x (B,C,H,W)`` holds values above
+    :data:`_LARGEST` (whose squares would overflow the features' float32), else 0 (traced or
+    exported graphs: 0)."""
+    if is_recording() or x.numel() == 0:
+        return 0
+    peak = float(x.abs().amax())
+    return math.frexp(peak)[1] if math.isfinite(peak) and peak > _LARGEST else 0
+
+
 def blend(
     x: torch.Tensor, guide: torch.Tensor, *, spp: float | torch.Tensor = 1.0, net: BlendNet | None = None,
     return_weights: bool = False,
@@ -267,12 +280,15 @@ def blend(
         raise ValueError(f"net: on {next(net.parameters()).device}, x on {x.device} (move one of them)")
     ct = compute_dtype(x.dtype)
     xs, gs = x.to(ct), guide.to(ct)
+    shift = _exponent_shift(xs)
+    if shift:  # a power of two: exact, and the blend is scale-equivariant (its features are scale-free)
+        xs = xs * 2.0**-shift
     cands = blend_candidates(xs, gs, radii=net.radii, eps=net.eps, colour_radii=net.colour_radii,
                              colour_scale=net.colour_scale, fine_radii=net.fine_radii,
                              fine_eps=net.fine_eps)
     w = _weights(net, cands, gs, spp).to(ct)
     out = sum(w[:, k : k + 1] * c for k, c in enumerate(cands))
-    out = out.to(x.dtype)
+    out = (out * 2.0**shift if shift else out).to(x.dtype)
     return (out, w.to(x.dtype)) if return_weights else out
 
 

@@ -3,7 +3,7 @@
 ``torchgi.render`` is both this package and the render function: ``torchgi.render(scene, spp,
 bounces, seed)`` calls :func:`torchgi.render.engine.render`.
 
-Modules: ``scene`` (YAML, materials, lights), ``scenes`` (built-ins), ``camera``, ``sampler``,
+Modules: ``scene`` (materials, lights, cameras), ``scene_files`` (YAML, the mesh root), ``scenes`` (built-ins), ``camera``, ``sampler``,
 ``accel`` (the embree adapter), ``materials``, ``lights``, ``film``, ``integrators/{basic,path}``,
 ``engine`` (chunks, workers), ``mitsuba`` (Mitsuba 3 export and reference renders).
 """
@@ -14,7 +14,8 @@ from typing import Any
 
 from torchgi.render import scenes
 from torchgi.render.engine import render, render_guide_rays, render_guides, render_sequence
-from torchgi.render.scene import Camera, CameraPath, Material, Mesh, PointLight, Scene, Sky, load_scene
+from torchgi.render.scene import Camera, CameraPath, Material, Mesh, PointLight, Scene, Sky
+from torchgi.render.scene_files import load_scene, mesh_root
 
 __all__ = [
     "Camera",
@@ -25,6 +26,7 @@ __all__ = [
     "Scene",
     "Sky",
     "load_scene",
+    "mesh_root",
     "render",
     "render_guide_rays",
     "render_guides",

@@ -38,7 +38,8 @@ from torchgi.render.integrators import basic, path
 from torchgi.render.integrators.common import CAMERA_DIMS, RR_START, SKIPS, Context, guides
 from torchgi.render.lights import Tables
 from torchgi.render.sampler import key_head, sample_keys, uniform
-from torchgi.render.scene import Camera, Scene, SceneArrays, load_scene
+from torchgi.render.scene import Camera, Scene, SceneArrays
+from torchgi.render.scene_files import load_scene
 from torchgi.supersample import EyeSamples
 
 __all__ = [

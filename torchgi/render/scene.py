@@ -14,7 +14,6 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
-import os
 import warnings
 from collections.abc import Mapping, Sequence
 from typing import Any
@@ -23,7 +22,6 @@ import numpy as np
 
 from torchgi.core.errors import ConfigError, NonFiniteError, RangeError
 from torchgi.core.registry import Registry
-from torchgi.io.mesh import read_mesh
 
 __all__ = [
     "LIGHTS",
@@ -36,7 +34,6 @@ __all__ = [
     "Scene",
     "SceneArrays",
     "Sky",
-    "load_scene",
     "transform_matrix",
 ]
 
@@ -443,119 +440,3 @@ def _flatten(scene: Scene) -> SceneArrays:
         skipped=skipped,
         key=f"{id(scene)}-{len(triangles)}-{float(triangles.sum()):.9g}",
     )
-
-
-# ----------------------------------------------------------------------------------- YAML
-_TOP_KEYS = ("camera", "meshes", "lights")
-_CAMERA_KEYS = ("position", "look_at", "up", "fov", "fov_axis", "resolution", "path")
-_KEYFRAME_KEYS = ("time", "position", "look_at", "fov")
-_MESH_KEYS = ("file", "material", "transform", "name")
-_TRANSFORM_KEYS = ("scale", "rotate", "translate")
-
-
-def _load_mesh_file(path: str, key: str) -> tuple[np.ndarray, np.ndarray]:
-    try:
-        return read_mesh(path)
-    except FileNotFoundError as exc:
-        raise FileNotFoundError(f"{key}: {exc}") from None
-    except ConfigError as exc:
-        raise ConfigError(f"{key}: {exc}") from exc
-
-
-def _build(registry: Registry[Any], cfg: Any, key: str) -> Any:
-    if not isinstance(cfg, Mapping) or "type" not in cfg:
-        raise ConfigError(f"{key}: expected a mapping with a 'type' ({', '.join(registry.names())})")
-    try:
-        return registry.build(dict(cfg))
-    except ConfigError as exc:
-        raise ConfigError(f"{key}: {exc}") from None
-    except TypeError as exc:  # unexpected / missing keyword
-        raise ConfigError(f"{key}: {exc}") from None
-
-
-def scene_from_dict(cfg: Mapping[str, Any], root: str = ".", name: str = "scene") -> Scene:
-    """Build a :class:`Scene` from a parsed YAML mapping; mesh paths are relative to ``root``."""
-    _no_unknown_keys(cfg, "scene", _TOP_KEYS)
-    if "camera" not in cfg or "meshes" not in cfg:
-        raise ConfigError("scene: 'camera' and 'meshes' are required")
-    cam = cfg["camera"]
-    _no_unknown_keys(cam, "camera", _CAMERA_KEYS)
-    cam = dict(cam)
-    path = _camera_path(cam.pop("path"), cam.get("fov", Camera.fov)) if "path" in cam else None
-    if path is not None:  # the base pose defaults to the first keyframe's
-        cam.setdefault("position", path.positions[0])
-        cam.setdefault("look_at", path.look_ats[0])
-    for required in ("position", "look_at"):
-        if required not in cam:
-            raise ConfigError(f"camera.{required}: required")
-    if "resolution" in cam:
-        cam["resolution"] = tuple(cam["resolution"]) if isinstance(cam["resolution"], list) else cam["resolution"]
-    camera = Camera(**cam)
-    if not isinstance(cfg["meshes"], list):
-        raise ConfigError("meshes: expected a list")
-    meshes = []
-    for i, m in enumerate(cfg["meshes"]):
-        key = f"meshes[{i}]"
-        _no_unknown_keys(m, key, _MESH_KEYS)
-        if "file" not in m or "material" not in m:
-            raise ConfigError(f"{key}: 'file' and 'material' are required")
-        material = _build(MATERIALS, m["material"], f"{key}.material")
-        v, f = _load_mesh_file(os.path.join(root, str(m["file"])), f"{key}.file")
-        mesh = Mesh(v, f, material, str(m.get("name", m["file"])))
-        if "transform" in m:
-            _no_unknown_keys(m["transform"], f"{key}.transform", _TRANSFORM_KEYS)
-            mesh = mesh.transformed(transform_matrix(**m["transform"]))
-        meshes.append(mesh)
-    lights_cfg = cfg.get("lights") or []
-    if not isinstance(lights_cfg, list):
-        raise ConfigError("lights: expected a list")
-    lights = [_build(LIGHTS, light, f"lights[{i}]") for i, light in enumerate(lights_cfg)]
-    return Scene(camera, meshes, lights, name, path)
-
-
-def _camera_path(cfg: Any, fov: float) -> CameraPath:
-    """``camera.path``: a list of ``{time, position, look_at, fov}`` keyframes (fov defaults to the camera's)."""
-    if not isinstance(cfg, list) or not cfg:
-        raise ConfigError(f"camera.path: expected a non-empty list of keyframes, got {cfg!r}")
-    for i, key in enumerate(cfg):
-        _no_unknown_keys(key, f"camera.path[{i}]", _KEYFRAME_KEYS)
-        for required in ("time", "position", "look_at"):
-            if required not in key:
-                raise ConfigError(f"camera.path[{i}].{required}: required")
-    return CameraPath(tuple(k["time"] for k in cfg), tuple(k["position"] for k in cfg),
-                      tuple(k["look_at"] for k in cfg), tuple(k.get("fov", fov) for k in cfg))
-
-
-def load_scene(path: str | os.PathLike[str]) -> Scene:
-    """Load a scene from a YAML file (DESIGN §2), or a built-in one by name.
-
-    Args:
-        path: a ``.yaml`` file, or one of ``torchgi.render.scenes.BUILTINS`` ("cornell", ...).
-
-    Raises:
-        ConfigError: malformed YAML or a bad value (the message names the key).
-        FileNotFoundError: the file or a mesh it names does not exist.
-
-    Example:
-        >>> load_scene("cornell").camera.resolution
-        (512, 512)
-    """
-    from torchgi.render import scenes
-
-    path = os.fspath(path)
-    if path in scenes.BUILTINS:
-        return scenes.BUILTINS[path]()
-    if not os.path.isfile(path):
-        raise FileNotFoundError(
-            f"scene {path!r} does not exist (built-in scenes: {', '.join(sorted(scenes.BUILTINS))})"
-        )
-    import yaml
-
-    with open(path, encoding="utf-8") as fh:
-        try:
-            cfg = yaml.safe_load(fh)
-        except yaml.YAMLError as exc:
-            raise ConfigError(f"{path}: malformed YAML: {exc}") from None
-    if not isinstance(cfg, Mapping):
-        raise ConfigError(f"{path}: expected a mapping with 'camera' and 'meshes' at the top")
-    return scene_from_dict(cfg, os.path.dirname(os.path.abspath(path)), os.path.splitext(os.path.basename(path))[0])

@@ -1,0 +1,177 @@
+"""Scene files (DESIGN §2): YAML with a camera (and its ``path`` of keyframes), meshes with their
+materials and transforms, and lights, built into a :class:`~torchgi.render.scene.Scene`. A mesh
+names its file relative to the scene file (``file:``, the project's own meshes) or relative to
+one mesh root (``mesh:``, the shared meshes made by others: ``$TORCHGI_MESHES``, by default
+``shared/data/meshes`` beside the checkout; :func:`mesh_root`).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from torchgi.core.errors import ConfigError
+from torchgi.core.registry import Registry
+from torchgi.io.mesh import read_mesh
+from torchgi.render import scenes
+from torchgi.render.scene import LIGHTS, MATERIALS, Camera, CameraPath, Mesh, Scene, _no_unknown_keys, transform_matrix
+
+__all__ = ["load_scene", "mesh_root", "scene_from_dict"]
+
+_TOP_KEYS = ("camera", "meshes", "lights")
+_CAMERA_KEYS = ("position", "look_at", "up", "fov", "fov_axis", "resolution", "path")
+_KEYFRAME_KEYS = ("time", "position", "look_at", "fov")
+_MESH_KEYS = ("file", "mesh", "material", "transform", "name")
+_TRANSFORM_KEYS = ("scale", "rotate", "translate")
+
+
+def mesh_root() -> Path:
+    """The folder that scene files' ``mesh:`` entries are relative to: ``$TORCHGI_MESHES`` when
+    set, else the shared mesh folder beside the checkout this package runs from
+    (``<checkout>/../shared/data/meshes``; real meshes made by others, never copied into the
+    project). It may not exist: a scene that names a mesh under it then says how to set it.
+
+    Example:
+        >>> mesh_root().name
+        'meshes'
+    """
+    env = os.environ.get("TORCHGI_MESHES")
+    if env:
+        return Path(env)
+    return Path(__file__).resolve().parents[3] / "shared" / "data" / "meshes"
+
+
+def _mesh_path(m: Mapping[str, Any], root: str, key: str) -> str:
+    """The file of mesh entry ``m``: ``file`` relative to the scene file's folder ``root``, or
+    ``mesh`` relative to :func:`mesh_root` (a missing one raises, saying how to set the root)."""
+    if ("file" in m) == ("mesh" in m):
+        raise ConfigError(f"{key}: exactly one of 'file' (relative to the scene file) or 'mesh' (relative to the "
+                          f"mesh root, $TORCHGI_MESHES) is required")
+    if "file" in m:
+        return os.path.join(root, str(m["file"]))
+    path = mesh_root() / str(m["mesh"])
+    if not path.is_file():
+        where = "$TORCHGI_MESHES" if os.environ.get("TORCHGI_MESHES") else "the default mesh root"
+        raise FileNotFoundError(
+            f"{key}.mesh: {m['mesh']!r} is not under {where} {str(mesh_root())!r}: set TORCHGI_MESHES to the folder "
+            f"that holds the shared meshes (shared/data/meshes)")
+    return str(path)
+
+
+def _load_mesh_file(path: str, key: str) -> tuple[np.ndarray, np.ndarray]:
+    try:
+        return read_mesh(path)
+    except FileNotFoundError as exc:
+        raise FileNotFoundError(f"{key}: {exc}") from None
+    except ConfigError as exc:
+        raise ConfigError(f"{key}: {exc}") from exc
+
+
+def _build(registry: Registry[Any], cfg: Any, key: str) -> Any:
+    if not isinstance(cfg, Mapping) or "type" not in cfg:
+        raise ConfigError(f"{key}: expected a mapping with a 'type' ({', '.join(registry.names())})")
+    try:
+        return registry.build(dict(cfg))
+    except ConfigError as exc:
+        raise ConfigError(f"{key}: {exc}") from None
+    except TypeError as exc:  # unexpected / missing keyword
+        raise ConfigError(f"{key}: {exc}") from None
+
+
+def scene_from_dict(cfg: Mapping[str, Any], root: str = ".", name: str = "scene") -> Scene:
+    """Build a :class:`Scene` from a parsed YAML mapping (DESIGN §2): a mesh's ``file`` is relative
+    to ``root``, its ``mesh`` to :func:`mesh_root`.
+
+    Example:
+        >>> cfg = {"camera": {"position": [0, 0, 3], "look_at": [0, 0, 0], "resolution": [8, 8]},
+        ...        "meshes": [{"file": "configs/scenes/meshes/sphere.obj", "material": {"type": "diffuse"}}]}
+        >>> len(scene_from_dict(cfg, str(Path(__file__).resolve().parents[2])).meshes)
+        1
+    """
+    _no_unknown_keys(cfg, "scene", _TOP_KEYS)
+    if "camera" not in cfg or "meshes" not in cfg:
+        raise ConfigError("scene: 'camera' and 'meshes' are required")
+    cam = cfg["camera"]
+    _no_unknown_keys(cam, "camera", _CAMERA_KEYS)
+    cam = dict(cam)
+    path = _camera_path(cam.pop("path"), cam.get("fov", Camera.fov)) if "path" in cam else None
+    if path is not None:  # the base pose defaults to the first keyframe's
+        cam.setdefault("position", path.positions[0])
+        cam.setdefault("look_at", path.look_ats[0])
+    for required in ("position", "look_at"):
+        if required not in cam:
+            raise ConfigError(f"camera.{required}: required")
+    if "resolution" in cam:
+        cam["resolution"] = tuple(cam["resolution"]) if isinstance(cam["resolution"], list) else cam["resolution"]
+    camera = Camera(**cam)
+    if not isinstance(cfg["meshes"], list):
+        raise ConfigError("meshes: expected a list")
+    meshes = []
+    for i, m in enumerate(cfg["meshes"]):
+        key = f"meshes[{i}]"
+        _no_unknown_keys(m, key, _MESH_KEYS)
+        if "material" not in m:
+            raise ConfigError(f"{key}: 'material' is required")
+        material = _build(MATERIALS, m["material"], f"{key}.material")
+        file_key = "file" if "file" in m else "mesh"
+        v, f = _load_mesh_file(_mesh_path(m, root, key), f"{key}.{file_key}")
+        mesh = Mesh(v, f, material, str(m.get("name", m.get("file", m.get("mesh")))))
+        if "transform" in m:
+            _no_unknown_keys(m["transform"], f"{key}.transform", _TRANSFORM_KEYS)
+            mesh = mesh.transformed(transform_matrix(**m["transform"]))
+        meshes.append(mesh)
+    lights_cfg = cfg.get("lights") or []
+    if not isinstance(lights_cfg, list):
+        raise ConfigError("lights: expected a list")
+    lights = [_build(LIGHTS, light, f"lights[{i}]") for i, light in enumerate(lights_cfg)]
+    return Scene(camera, meshes, lights, name, path)
+
+
+def _camera_path(cfg: Any, fov: float) -> CameraPath:
+    """``camera.path``: a list of ``{time, position, look_at, fov}`` keyframes (fov defaults to the camera's)."""
+    if not isinstance(cfg, list) or not cfg:
+        raise ConfigError(f"camera.path: expected a non-empty list of keyframes, got {cfg!r}")
+    for i, key in enumerate(cfg):
+        _no_unknown_keys(key, f"camera.path[{i}]", _KEYFRAME_KEYS)
+        for required in ("time", "position", "look_at"):
+            if required not in key:
+                raise ConfigError(f"camera.path[{i}].{required}: required")
+    return CameraPath(tuple(k["time"] for k in cfg), tuple(k["position"] for k in cfg),
+                      tuple(k["look_at"] for k in cfg), tuple(k.get("fov", fov) for k in cfg))
+
+
+def load_scene(path: str | os.PathLike[str]) -> Scene:
+    """Load a scene from a YAML file (DESIGN §2), or a built-in one by name.
+
+    Args:
+        path: a ``.yaml`` file, or one of ``torchgi.render.scenes.BUILTINS`` ("cornell", ...).
+
+    Raises:
+        ConfigError: malformed YAML or a bad value (the message names the key).
+        FileNotFoundError: the file or a mesh it names does not exist.
+
+    Example:
+        >>> load_scene("cornell").camera.resolution
+        (512, 512)
+    """
+    path = os.fspath(path)
+    if path in scenes.BUILTINS:
+        return scenes.BUILTINS[path]()
+    if not os.path.isfile(path):
+        raise FileNotFoundError(
+            f"scene {path!r} does not exist (built-in scenes: {', '.join(sorted(scenes.BUILTINS))})"
+        )
+    import yaml
+
+    with open(path, encoding="utf-8") as fh:
+        try:
+            cfg = yaml.safe_load(fh)
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"{path}: malformed YAML: {exc}") from None
+    if not isinstance(cfg, Mapping):
+        raise ConfigError(f"{path}: expected a mapping with 'camera' and 'meshes' at the top")
+    return scene_from_dict(cfg, os.path.dirname(os.path.abspath(path)), os.path.splitext(os.path.basename(path))[0])
