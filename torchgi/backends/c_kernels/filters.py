@@ -9,9 +9,6 @@ from torchgi.backends.base import (
     ATrousOp,
     BoxOp,
     GuidedOp,
-    colour_scale,
-    iterate_levels,
-    scaled_guides,
 )
 from torchgi.backends.c_kernels import build
 from torchgi.backends.c_kernels.runtime import (
@@ -25,6 +22,7 @@ from torchgi.backends.c_kernels.runtime import (
     empty_planes,
     padded,
 )
+from torchgi.backends.levels import colour_scale, iterate_levels, scaled_guides
 from torchgi.core.dtypes import variance_rounding
 
 

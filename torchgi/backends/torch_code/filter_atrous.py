@@ -9,10 +9,8 @@ import torch
 
 from torchgi.backends.base import (
     ATrousOp,
-    colour_scale,
-    iterate_levels,
-    scaled_guides,
 )
+from torchgi.backends.levels import colour_scale, iterate_levels, scaled_guides
 from torchgi.core.taps import Padded, kernel_5x5
 
 _TAPS = kernel_5x5()

@@ -6,7 +6,8 @@ from __future__ import annotations
 
 import torch
 
-from torchgi.backends.base import ATrousOp, colour_scale, iterate_levels
+from torchgi.backends.base import ATrousOp
+from torchgi.backends.levels import colour_scale, iterate_levels
 from torchgi.backends.triton_kernels.common import _cdiv, _taps, tl, triton
 
 # À-Trous tile (rows x columns, coalesced along the row), warps per program and taps per loop
