@@ -3,7 +3,7 @@
 #include "common.h"
 
 /* ------------------------------------------------------------------------------------------
- * One À-Trous level (torch_code._iteration) for rows [y0, y1) of one image.
+ * One À-Trous level (torch_code.filter_atrous._iteration) for rows [y0, y1) of one image.
  *
  * c: C planes; f: F = 3 G feature planes (G groups of 3: normal, position), each group's squared
  * distance times fs[g]; var: C planes or NULL; valid: one plane (0/1) or NULL; cs: colour scale,

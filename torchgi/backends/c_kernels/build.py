@@ -20,7 +20,7 @@ from pathlib import Path
 _SOURCE = Path(__file__).with_name("native.c")  # its family files and common.h are #included there
 _SOURCES = (_SOURCE, Path(__file__).with_name("tracer.c"))  # the library's two translation units
 _FLAGS = ["-O3", "-march=native", "-fno-math-errno", "-fPIC", "-shared"]
-# OpenMP first (threads shared with torch's libgomp, see _native.c), else the bands run serially
+# OpenMP first (threads shared with torch's libgomp, see native.c), else the bands run serially
 _THREADING = (["-fopenmp"], [])
 _lock = threading.Lock()
 _lib: ctypes.CDLL | None = None

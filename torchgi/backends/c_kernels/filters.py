@@ -30,7 +30,7 @@ def _atrous_level(
     c: torch.Tensor, feat: torch.Tensor | None, feat_scale: list[float], var: torch.Tensor | None,
     valid: torch.Tensor | None, step: int, colour_scale: torch.Tensor | None,
 ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
-    """One À-Trous level with the arguments of ``torch_code._iteration``, except that ``feat`` holds
+    """One À-Trous level with the arguments of ``torch_code.filter_atrous._iteration``, except that ``feat`` holds
     groups of 3 planes whose squared distances are multiplied by ``feat_scale`` (one per group;
     the level's ``1 / step²`` for normals). Returns the filtered colour ``(B,C,H,W)`` and the
     propagated variance, both in :func:`padded` layout (pass them on as they are), and the

@@ -3,7 +3,7 @@
 #include "common.h"
 
 /* ------------------------------------------------------------------------------------------
- * Guided filter (torch_code.solve / apply_coefficients) on centred planes, in two passes over bands of
+ * Guided filter (torch_code.filter_guided.solve / apply_coefficients) on centred planes, in two passes over bands of
  * rows: pass 1 box-means the products and solves for the coefficients of every pixel; pass 2
  * box-means the coefficients and applies them (or returns their box means). Box sums slide
  * down the rows (double accumulators, one row in and one out per output row) and are prefix-
@@ -145,7 +145,7 @@ static void column_counts(int W, int r, double *inv_cx) {
 
 /* Solve one row for source channels [c0, c0 + G): means in m (K x W, the order of
  * add_products), write a_0..a_{n-1}, b (each Cs planes) into coef at row y. LDLᵀ as in
- * torch_code.solve: eps_i raised to unit · E[I_i²] per pixel, variances clamped at 0, pivots at eps. */
+ * torch_code.filter_guided.solve: eps_i raised to unit · E[I_i²] per pixel, variances clamped at 0, pivots at eps. */
 INLINE void solve_row(const int n, const int G, int c0, int Cs, const float *m, int W, const float *eps, float unit,
                       float *coef, size_t HW, int y) {
     const int MW = MEAN_STRIDE(W);

@@ -3,7 +3,7 @@
 #include "common.h"
 
 /* ------------------------------------------------------------------------------------------
- * Sampling importance (torch_code._core) for rows [y0, y1) of one image:
+ * Sampling importance (torch_code.sampling._core) for rows [y0, y1) of one image:
  *
  *   out = clamp(1 - Σ_q v_q exp(-d(p,q)) / max(Σ_q v_q, 1), 0, 1) · v_p,
  *   d(p,q) = sn · |n_p - n_q|² + sx · |x_p - x_q|²

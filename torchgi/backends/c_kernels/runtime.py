@@ -85,14 +85,14 @@ def empty_planes(like: torch.Tensor, C: int) -> torch.Tensor:
 
 
 def _box_scratch(K: int, W: int) -> int:
-    """Floats of one band's scratch of the box passes in ``_native.c`` over ``K`` planes of width
+    """Floats of one band's scratch of the box passes in ``native.c`` over ``K`` planes of width
     ``W``: doubles for the column sums (rows ``W + 8``), 1 / window columns (``W``) and a row's
     prefix sums (``W + 8``), then floats for the box means (rows ``W + 16``)."""
     return 2 * (K * (W + 8) + 2 * W + 8) + K * (W + 16)
 
 
 
-_PART_BYTES = 64  # the partial results at the start of each band's scratch block (PART_BYTES in _native.c)
+_PART_BYTES = 64  # the partial results at the start of each band's scratch block (PART_BYTES in native.c)
 
 
 def _parts(fn, bands: int, pixels: int, *args, doubles: int, extra_bytes: int = 0) -> torch.Tensor:

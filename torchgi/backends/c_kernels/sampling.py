@@ -18,7 +18,7 @@ from torchgi.backends.c_kernels.runtime import (
 
 def _importance(normal: torch.Tensor, position: torch.Tensor, sigma_normal: float, sigma_position: float,
                hit: torch.Tensor | None, window: int) -> torch.Tensor:
-    """Sampling importance ``(B,1,H,W)`` (``torch_code._core``) from float32 ``normal``
+    """Sampling importance ``(B,1,H,W)`` (``torch_code.sampling._core``) from float32 ``normal``
     and ``position`` ``(B,3,H,W)`` with the weights ``exp(-|Δn|² / σ_n - |Δx|² / σ_x)``, the
     bool ``hit (B,1,H,W)`` or None, over a ``window x window`` neighbourhood (offsets
     ``-(w//2) .. (w-1)//2``). Reads the inputs as they are: nothing image-sized is allocated

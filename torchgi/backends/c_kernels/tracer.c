@@ -1,6 +1,6 @@
 /* The compiled path tracer: torchgi.render's "path" integrator, one sample at a time, on embree.
  *
- * Built into the same library as _native.c (c_kernels.py) and called through ctypes, which
+ * Built into the same library as native.c (c_kernels/build.py) and called through ctypes, which
  * releases the GIL: the pixels of a call run on OpenMP threads, each pixel's samples in order,
  * so neither the thread count nor how the pixels are cut into calls changes a bit. The maths is
  * that of torchgi/render/integrators/path.py with every skip of DESIGN §4 on (paths that miss
@@ -10,7 +10,7 @@
  * block mean in double, blocks merged in order by Chan's update.
  *
  * Embree 4 is the library embreex ships: its entry points come in as function pointers
- * (torchgi.render.accel.embree_functions), so nothing here links against it or needs its
+ * (c_kernels/embree.py), so nothing here links against it or needs its
  * headers; the few types below are embree 4's RTCRay / RTCRayHit layout (rtcore_ray.h).
  */
 #include <math.h>
@@ -461,7 +461,7 @@ static void film_pixels(const pt_render *R, void *scene, long long first, const 
 /* Pixels first .. first + P - 1 (global index b*H*W + y*W + x), counts[i] samples each:
  * mean (9, P) of emission, direct, indirect and var (3, P), the variance of the colour's mean.
  * nt > 1: OpenMP threads take runs of 16 pixels as they free up; nt = 1 never enters OpenMP (a
- * forked worker process stays safe, as in _native.c). */
+ * forked worker process stays safe, as in native.c). */
 void torchgi_render_pixels(void *handle, const pt_render *R, long long first, const long long *counts, long long P,
                            double *mean, double *var, int nt) {
     void *scene = ((pt_scene *)handle)->scene;

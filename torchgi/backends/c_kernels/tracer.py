@@ -20,7 +20,7 @@ from torchgi.backends.c_kernels.embree import embree_functions
 
 
 class _Render(ctypes.Structure):
-    """``pt_render`` of _pathtracer.c."""
+    """``pt_render`` of tracer.c."""
 
     _fields_ = [("tri", _P), ("light", _P), ("cdf", _P), ("points", _P), ("intensities", _P), ("sky", _P),
                 ("T", _L), ("L", _I), ("P", _I), ("any_glossy", _I), ("eps", _F), ("origin", _F * 3),
@@ -109,7 +109,7 @@ def _render_struct(desc: PathOp | GuideRaysOp, tables: tuple[torch.Tensor | None
 
 
 def path(desc: PathOp) -> tuple:
-    """:class:`~torchgi.backends.base.PathOp` by the compiled tracer (``_pathtracer.c``): each
+    """:class:`~torchgi.backends.base.PathOp` by the compiled tracer (``tracer.c``): each
     pixel's samples in order on one of ``desc.threads`` OpenMP threads, the film merged there.
 
     Example:

@@ -120,7 +120,7 @@ if triton is not None:
     @triton.jit
     def _solve(  # noqa: PLR0915 - the LDLᵀ of up to 4 guide channels unrolled in one launch
                m_ptr, eps_ptr, a_ptr, HW, Cs, n_blk, sm_b, sa_b, unit, tiny, N: tl.constexpr, BLOCK: tl.constexpr):
-        # a = (Σ + diag(ε))^-1 cov, b = mean(p) - aᵀ mean(I) for every source channel: torch_code.solve
+        # a = (Σ + diag(ε))^-1 cov, b = mean(p) - aᵀ mean(I) for every source channel: torch_code.filter_guided.solve
         # written out for four guide channels; channels past N are 0 with ε = 1, so they give a = 0.
         # Σ is loaded and factorised once per pixel, then each source channel is solved with it.
         blk, b = _split(tl.program_id(0), n_blk)
@@ -151,7 +151,7 @@ if triton is not None:
             a31 = _plane(base, N + Cs + 7, HW, m) - mi3 * mi1
             a32 = _plane(base, N + Cs + 8, HW, m) - mi3 * mi2
             e3, a33 = _pivot(_plane(base, N + Cs + 9, HW, m), mi3, eps_ptr + b * N + 3, unit, tiny)
-        # LDLᵀ with E = L·D (torch_code.solve's order of operations)
+        # LDLᵀ with E = L·D (torch_code.filter_guided.solve's order of operations)
         d0 = tl.maximum(a00, e0)
         l10 = a10 / d0
         l20 = a20 / d0
@@ -294,7 +294,7 @@ def _guided(
     I, p = I.contiguous(), p.contiguous()
     mean_I, mean_p = mean_I.reshape(B, n).to(torch.float32).contiguous(), mean_p.reshape(B, Cs).to(torch.float32).contiguous()
     pairs = [(i, -1) for i in range(n + Cs)] + [(i, j) for i in range(n) for j in range(i + 1)] + \
-        [(i, n + c) for i in range(n) for c in range(Cs)]  # the order of torch_code._product_specs
+        [(i, n + c) for i in range(n) for c in range(Cs)]  # the order of torch_code.filter_guided._product_specs
     means = _box_products(I, p, mean_I, mean_p, pairs, r)  # of the guide and source centred
     Q, HW = (n + 1) * Cs, H * W
     coef = torch.empty(B, Q, H, W, dtype=torch.float32, device=I.device)
