@@ -235,3 +235,13 @@ def z_pass_rate(a, b, threshold=3.0):
     exact = (ma - mb).abs() <= 1e-5 * torch.maximum(ma.abs(), mb.abs()) + 1e-7
     ok = torch.where(var > 0, z < threshold, exact)
     return ok.double().mean().item()
+
+
+def mean_z(a, b):
+    """The Welch z of the image means of two sets of independent renders ``(K, C, H, W)``: each
+    render's mean over its pixels and channels is one sample; a global bias (a 2 % scale) shows
+    here however well the per-pixel test passes. 0 when both sets are constant and equal."""
+    ma, mb = a.double().flatten(1).mean(1), b.double().flatten(1).mean(1)
+    se = (ma.var() / len(ma) + mb.var() / len(mb)).sqrt()
+    d = (ma.mean() - mb.mean()).abs()
+    return float(d / se) if se > 0 else (0.0 if d <= 1e-7 * ma.mean().abs() + 1e-12 else float("inf"))
