@@ -105,7 +105,7 @@ def test_denoise_command_on_a_mitsuba_render(tmp_path, capsys):
     den = read_aovs(out)["color"][None]
     noisy = read_aovs(tmp_path / "noisy.exr")["color"][None]
     gain = float(metrics.relmse(noisy, ref)) / float(metrics.relmse(den, ref))
-    assert gain > 6  # measured 8.9 here at 64², 1 spp (52.8 at 512²: README)
+    assert gain > 6  # measured 8.9 here at 64², 1 spp (55.6x at 512²: docs/benchmarks/quality.md)
     tiled = tmp_path / "tiled.exr"
     assert main(["denoise", str(tmp_path / "noisy.exr"), "--max-memory-mb", "1", "--out", str(tiled)]) == 0
     assert float((read_aovs(tiled)["color"][None] - den).abs().max()) <= 1e-5 * float(den.abs().max())

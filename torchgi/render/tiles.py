@@ -7,6 +7,7 @@ once per process), the :class:`~torchgi.backends.TraceSetup` the renderer hands 
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable, Collection
 from typing import Any
 
@@ -29,18 +30,21 @@ INTEGRATORS: dict[str, Callable[..., torch.Tensor]] = {"path": path.radiance, "b
 
 
 _CONTEXTS: dict[str, tuple[Tables, Accel | None]] = {}
+_CONTEXTS_LOCK = threading.Lock()  # renders on several Python threads at once share the cache
 
 
 def _tables(arrays: SceneArrays, bvh: bool = True) -> tuple[Tables, Accel | None]:
-    """The scene's tables and (``bvh``) its embreex BVH, each built once per process."""
-    if arrays.key not in _CONTEXTS:
-        _CONTEXTS.clear()
-        _CONTEXTS[arrays.key] = (Tables.from_arrays(arrays), None)
-    tables, accel = _CONTEXTS[arrays.key]
-    if bvh and accel is None:
-        accel = Accel(arrays.triangles)
-        _CONTEXTS[arrays.key] = (tables, accel)
-    return tables, accel
+    """The scene's tables and (``bvh``) its embreex BVH, each built once per process (the last
+    scene's kept); safe on several threads: a thread never reads another thread's entry."""
+    with _CONTEXTS_LOCK:
+        entry = _CONTEXTS.get(arrays.key)
+        if entry is None:
+            _CONTEXTS.clear()
+            entry = (Tables.from_arrays(arrays), None)
+        if bvh and entry[1] is None:
+            entry = (entry[0], Accel(arrays.triangles))
+        _CONTEXTS[arrays.key] = entry
+        return entry
 
 
 def _context(
