@@ -123,8 +123,8 @@ def profile(name: str, size: int, bounces: int, spp: int) -> dict:
     core): scene loading, the tables, the BVH build, the guide rays, and the samples split into
     embree's closest-hit and occlusion queries and the rest (sampling, BSDFs, lights, film)."""
     from torchgi.backends import c_kernels
-    from torchgi.render.engine import guide_rays_op, path_op
     from torchgi.render.lights import Tables
+    from torchgi.render.tiles import guide_rays_op, path_op
 
     t0 = time.perf_counter()
     scene = load_scene(name, size)  # a fresh scene: its files read, its arrays built

@@ -18,12 +18,12 @@ import torchgi
 from torchgi import backends
 from torchgi.core import ConfigError, DTypeError, NonFiniteError, RangeError, ShapeError
 from torchgi.render import accel, scenes
-from torchgi.render.engine import guide_rays_op
 from torchgi.render.film import Film
 from torchgi.render.materials import bsdf_eval, bsdf_sample
 from torchgi.render.sampler import sample_keys, uniform
 from torchgi.render.scene import MATERIALS, Camera, Mesh, PointLight, Scene, Sky
 from torchgi.render.scene_files import load_scene, scene_from_dict
+from torchgi.render.tiles import guide_rays_op
 
 from .oracles import mean_z, z_pass_rate
 

@@ -276,7 +276,7 @@ class AccumulateOp:
 class TraceSetup:
     """What a back end needs from the renderer to trace a pass, beyond the scene's tables (the
     back ends sit below :mod:`torchgi.render` and import nothing of it; the renderer builds this,
-    ``torchgi.render.engine.trace_setup``): the camera's ``origin`` (3 floats), its ``basis``
+    ``torchgi.render.tiles.trace_setup``): the camera's ``origin`` (3 floats), its ``basis``
     (right, up, forward: 9 floats), the tangents of its half field of view ``tan_x``, ``tan_y``;
     the pass's sampler ``key_head`` (an unsigned 32-bit int), ``roulette_from`` (bounces before
     Russian roulette may end a path), ``every_skip`` (every skip of DESIGN §4 is on), and
@@ -304,7 +304,7 @@ class PathOp:
     ``(threads, 4)`` tensor into which the compiled tracer adds, per thread, its seconds in
     embree's closest-hit and occlusion queries and their counts. Returns numpy float64
     ``mean (9, P)`` (emission, direct, indirect) and ``variance (3, P)`` of the colour's mean (0
-    below 2 samples). Built by ``torchgi.render.engine.path_op``."""
+    below 2 samples). Built by ``torchgi.render.tiles.path_op``."""
 
     arrays: Any
     tables: Any
@@ -332,7 +332,7 @@ class GuideRaysOp:
     ``arrays`` / ``tables`` (as :class:`PathOp`, with its :class:`TraceSetup`), on ``threads``
     threads. Returns ``albedo, normal, position (3, H*W)``, ``depth (1, H*W)`` float32 and
     ``hit (1, H*W)`` bool (the normal faces the camera; everything 0 on a miss). Built by
-    ``torchgi.render.engine.guide_rays_op``."""
+    ``torchgi.render.tiles.guide_rays_op``."""
 
     arrays: Any
     tables: Any

@@ -14,18 +14,7 @@ import torch
 from torchgi import backends
 from torchgi.core.check import require
 
-__all__ = ["Accel", "embree_started", "offset"]
-
-def embree_started() -> bool:
-    """True once this process has started embree (:func:`torchgi.backends.embree_started`): a
-    process forked from this one must not use it (see ``engine.process_context``).
-
-    Example:
-        >>> isinstance(embree_started(), bool)
-        True
-    """
-    return backends.embree_started()
-
+__all__ = ["Accel", "offset"]
 
 class Accel:
     """A BVH over ``triangles (T, 3, 3)`` float32.

@@ -31,19 +31,18 @@ from torchgi import backends
 from torchgi.buffers import GBuffer
 from torchgi.core.check import check_int, check_option
 from torchgi.core.errors import DeviceError, DTypeError, RangeError, ShapeError
-from torchgi.render.accel import embree_started
 from torchgi.render.camera import motion_vectors
 from torchgi.render.film import BLOCK
 from torchgi.render.integrators.common import CAMERA_DIMS, SKIPS, guides
 from torchgi.render.sampler import sample_keys, uniform
 from torchgi.render.scene import Camera, Scene, SceneArrays
 from torchgi.render.scene_files import load_scene
-from torchgi.render.tiles import INTEGRATORS, _context, film_tile, guide_rays_op, path_op, trace_setup
+from torchgi.render.tiles import INTEGRATORS, _context, film_tile, guide_rays_op, path_op
 from torchgi.supersample import EyeSamples
 
 __all__ = [
-    "INTEGRATORS", "SKIPS", "film_tile", "frame_seed", "guide_rays_op", "path_op", "process_context", "render",
-    "render_guide_rays", "render_guides", "render_sequence", "trace_setup", "worker_pool",
+    "INTEGRATORS", "SKIPS", "frame_seed", "process_context", "render", "render_guide_rays", "render_guides",
+    "render_sequence", "worker_pool",
 ]
 
 _PARALLEL_MIN_SAMPLES = 1 << 19  # below this a pool costs more than it saves (unless asked)
@@ -125,7 +124,7 @@ def process_context() -> multiprocessing.context.BaseContext:
     :func:`worker_pool` start those workers without running the user's ``__main__`` script again.
     """
     methods = multiprocessing.get_all_start_methods()
-    if "fork" in methods and not embree_started():
+    if "fork" in methods and not backends.embree_started():
         return multiprocessing.get_context("fork")
     if "forkserver" in methods:
         ctx = multiprocessing.get_context("forkserver")

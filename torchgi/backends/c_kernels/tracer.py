@@ -114,7 +114,7 @@ def path(desc: PathOp) -> tuple:
 
     Example:
         >>> from torchgi.render import scenes
-        >>> from torchgi.render.engine import path_op
+        >>> from torchgi.render.tiles import path_op
         >>> import numpy as np
         >>> s = scenes.cornell(4)
         >>> op = path_op(s.arrays(), s.camera, np.full(16, 2), bounces=1, seed=0)
@@ -149,7 +149,7 @@ def guide_rays(desc: GuideRaysOp) -> dict[str, torch.Tensor]:
 
     Example:
         >>> from torchgi.render import scenes
-        >>> from torchgi.render.engine import guide_rays_op
+        >>> from torchgi.render.tiles import guide_rays_op
         >>> s = scenes.cornell(4)
         >>> op = guide_rays_op(s.arrays(), s.camera)
         >>> _path_support(op) is not None or guide_rays(op)["hit"].dtype == torch.bool

@@ -19,7 +19,7 @@ def path(desc: PathOp) -> tuple:
 
     Example:
         >>> from torchgi.render import scenes
-        >>> from torchgi.render.engine import path_op
+        >>> from torchgi.render.tiles import path_op
         >>> import numpy as np
         >>> s = scenes.cornell(4)
         >>> mean, var = path(path_op(s.arrays(), s.camera, np.full(16, 2), bounces=1, seed=0))
@@ -35,7 +35,7 @@ def guide_rays(desc: GuideRaysOp) -> dict[str, torch.Tensor]:
 
     Example:
         >>> from torchgi.render import scenes
-        >>> from torchgi.render.engine import guide_rays_op
+        >>> from torchgi.render.tiles import guide_rays_op
         >>> s = scenes.cornell(4)
         >>> guide_rays(guide_rays_op(s.arrays(), s.camera))["normal"].shape
         torch.Size([3, 16])
