@@ -1,7 +1,11 @@
 """Run time against error — the central figure: scenes x spp x methods, torchgi and its peers.
 
-    python scripts/bench_quality.py --out out/bench                    # 5 scenes, 1 and 4 spp, 256²
+    python scripts/bench_quality.py --out out/bench                    # the judged set, 1 and 4 spp, 256²
+    python scripts/bench_quality.py --set tuning --out out/bench-tuning  # the scenes the defaults were chosen on
     python scripts/bench_quality.py --scenes cornell --spp 1 --size 64 --ref-spp 256 --out out/bench
+
+Scenes: the judged set of ``configs/scenes/sets.yaml`` by default (never used for a default, a
+design choice or training; docs/calibration.md), ``--set`` for another set.
 
 For each scene and spp: a noisy torchgi render, a ``--ref-spp`` reference, and every method →
 relMSE, PSNR (Reinhard-tone-mapped), SSIM, HDR-FLIP, wall ms of the denoiser (median of 3, this
@@ -9,9 +13,10 @@ process, 2 threads) and the seconds its input took to render. torchgi: ``Denoise
 atrous / bilateral, À-Trous with SVGF variance guidance, the adaptive variants (same budget
 through ``adaptive_render``, then guided / À-Trous) and, for spp > 1, supersampling with guide
 rays (``render_guide_rays`` with spp eye rays, one indirect path per pixel, then
-``Denoiser.supersample``). Peers on the full colour: kornia ``guided_blur`` (normal as guide), kornia
-``joint_bilateral_blur`` (normal as guide), scikit-image ``denoise_nl_means`` (on the
-tone-mapped image, mapped back), Intel Open Image Denoise through pyoidn (colour + albedo +
+``Denoiser.supersample``). Classical peers, each twice: on the full colour and inside torchgi's
+own light steps (light sources kept, demodulation, firefly clamp, remodulation; the better counts):
+kornia ``guided_blur`` (normal as guide), kornia ``joint_bilateral_blur`` (normal as guide),
+scikit-image ``denoise_nl_means`` (on the tone-mapped image, mapped back); Intel Open Image Denoise through pyoidn (colour + albedo +
 normal, HDR) when installed. Writes ``quality.csv/json/md`` and ``quality_<scene>.png`` (log-log
 Pareto plot: ms against relMSE), and checks two claims per scene and spp: the ordering of
 Bauszat et al.'s Fig. 8 (guided below À-Trous and cross-bilateral in error) and torchgi's best
@@ -30,13 +35,14 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from benchmark_utils import available_scenes, markdown_table, metadata, oidn, write_results
+from benchmark_utils import available_scenes, markdown_table, metadata, oidn, scene_sets, write_results
 
 import torchgi
-from torchgi import metrics
+from torchgi import light, metrics
 from torchgi.denoise import Denoiser
-from torchgi.filters import atrous
+from torchgi.filters import atrous, box
 from torchgi.sampling import adaptive_render, sigma_position_rule
+from torchgi.settings import BILATERAL, GUIDED
 
 
 def timed(fn):
@@ -60,32 +66,54 @@ def svgf_atrous(gb):
     return torch.where(surface, out * albedo, noisy) + gb.emission
 
 
-def peers() -> dict:
+def classical() -> dict:
+    """The classical peers as ``(image (1,3,H,W), GBuffer) -> image`` with the firefly factor of
+    torchgi's nearest method (used when they run inside torchgi's light steps)."""
     out = {}
     try:
         import kornia
 
-        out["kornia guided_blur"] = lambda gb: kornia.filters.guided_blur(gb.normal, gb.color, 9, 0.01)
-        out["kornia joint_bilateral"] = lambda gb: kornia.filters.joint_bilateral_blur(
-            gb.color, gb.normal, 9, 0.2, (3.0, 3.0))
+        out["kornia guided_blur"] = (lambda x, gb: kornia.filters.guided_blur(gb.normal, x, 9, 0.01), GUIDED.firefly)
+        out["kornia joint_bilateral"] = (lambda x, gb: kornia.filters.joint_bilateral_blur(
+            x, gb.normal, 9, 0.2, (3.0, 3.0)), BILATERAL.firefly)
     except ImportError:
         pass
     try:
         import numpy as np
         from skimage.restoration import denoise_nl_means
 
-        def nl_means(gb):
-            x = metrics.tonemap(gb.color)[0].permute(1, 2, 0).double().numpy()
+        def nl_means(x, gb):
+            t = metrics.tonemap(x)[0].permute(1, 2, 0).double().numpy()
             # noise σ from the median absolute horizontal difference (robust; no PyWavelets needed)
-            sigma = float(np.median(np.abs(np.diff(x, axis=1))) / (0.6745 * np.sqrt(2))) + 1e-6
-            y = denoise_nl_means(x, h=0.8 * sigma, sigma=sigma, patch_size=5, patch_distance=6, channel_axis=-1,
+            sigma = float(np.median(np.abs(np.diff(t, axis=1))) / (0.6745 * np.sqrt(2))) + 1e-6
+            y = denoise_nl_means(t, h=0.8 * sigma, sigma=sigma, patch_size=5, patch_distance=6, channel_axis=-1,
                                  fast_mode=True)
-            y = torch.from_numpy(y).permute(2, 0, 1)[None].float().clamp(0, 0.999)
+            y = torch.from_numpy(y).permute(2, 0, 1)[None].to(x.dtype).clamp(0, 0.999)
             return y / (1 - y)  # inverse Reinhard
 
-        out["skimage nl_means"] = nl_means
+        out["skimage nl_means"] = (nl_means, GUIDED.firefly)
     except ImportError:
         pass
+    return out
+
+
+def in_light_steps(fn, firefly: float):
+    """``fn`` run where torchgi's own filters run: inside the Denoiser's light steps (light sources
+    kept whole, the rest demodulated by the albedo, fireflies clamped, filtered, remodulated;
+    :func:`torchgi.light.restore`), so a peer is judged on the same input as torchgi's filters."""
+    def run(gb):
+        surface = light.surface_mask(gb.hit, gb.albedo)
+        return light.restore(gb.color, gb.emission, None, gb.albedo, surface, lambda x: fn(x, gb), firefly, box)
+    return run
+
+
+def peers() -> dict:
+    """Every peer: each classical filter on the full colour and inside torchgi's light steps (the
+    better of the two counts as that peer in the claims), and OIDN's two protocols."""
+    out = {}
+    for name, (fn, firefly) in classical().items():
+        out[f"{name} (full colour)"] = lambda gb, fn=fn: fn(gb.color, gb)
+        out[f"{name} (light steps)"] = in_light_steps(fn, firefly)
     try:
         import pyoidn  # noqa: F401
 
@@ -105,20 +133,40 @@ def rendered(fn):
 
 
 MITSUBA_CORNELL = "mitsuba_cornell"  # Mitsuba 3's own Cornell box, rendered by Mitsuba (box pixel filter)
+MITSUBA = "mitsuba:"  # "mitsuba:<scene>": that torchgi scene converted and rendered by Mitsuba 3
+
+
+def _mitsuba_case(name, scene_dict, args):
+    from torchgi.render import mitsuba
+
+    render = lambda spp, seed: mitsuba.render_gbuffer(scene_dict, spp=spp, bounces=args.bounces, seed=seed)
+    return name, render(args.ref_spp, 999).color, (lambda spp: render(spp, 1)), None
 
 
 def cases(args):
-    """``(name, reference colour, noisy(spp) -> GBuffer, torchgi scene or None)`` per scene."""
-    names = [n for n in args.scenes if n != MITSUBA_CORNELL]
-    for name, scene in available_scenes(names, args.size):
-        ref = torchgi.render(scene, spp=args.ref_spp, bounces=args.bounces, seed=999).color
-        yield name, ref, (lambda spp, s=scene: torchgi.render(s, spp=spp, bounces=args.bounces, seed=1)), scene
-    if MITSUBA_CORNELL in args.scenes:
-        from torchgi.render import mitsuba
+    """``(name, reference colour, noisy(spp) -> GBuffer, torchgi scene or None)`` per scene: a
+    torchgi scene rendered by torchgi, Mitsuba's Cornell box, or ``mitsuba:<scene>`` (a torchgi
+    scene rendered by Mitsuba; only the guided-by-GBuffer methods run on those)."""
+    import tempfile
 
-        box = mitsuba.cornell_box(args.size)
-        ref = mitsuba.render_gbuffer(box, spp=args.ref_spp, bounces=args.bounces, seed=999).color
-        yield MITSUBA_CORNELL, ref, (lambda spp: mitsuba.render_gbuffer(box, spp=spp, bounces=args.bounces, seed=1)), None
+    for entry in args.scenes:
+        if entry == MITSUBA_CORNELL:
+            from torchgi.render import mitsuba
+
+            yield _mitsuba_case(entry, mitsuba.cornell_box(args.size), args)
+        elif entry.startswith(MITSUBA):
+            from torchgi.render import mitsuba
+
+            for name, scene in available_scenes([entry.removeprefix(MITSUBA)], args.size):
+                with tempfile.TemporaryDirectory() as tmp:  # the PLY files live while Mitsuba renders
+                    case = _mitsuba_case(f"{Path(name).name} (Mitsuba)",
+                                         mitsuba.to_mitsuba(scene, tmp, bounces=args.bounces), args)
+                    yield case
+        else:
+            for name, scene in available_scenes([entry], args.size):
+                ref = torchgi.render(scene, spp=args.ref_spp, bounces=args.bounces, seed=999).color
+                yield (Path(name).name, ref,
+                       (lambda spp, s=scene: torchgi.render(s, spp=spp, bounces=args.bounces, seed=1)), scene)
 
 
 def methods_for(scene, noisy, t_noisy, spp, args, peer_fns) -> dict:
@@ -195,7 +243,8 @@ def choice_map(gb, path: Path) -> None:
     write_png(path, (row * 255).round().byte().permute(1, 2, 0).numpy(), overwrite=True)  # the run's own output
 
 
-CLASSICAL = ("kornia guided_blur", "kornia joint_bilateral", "skimage nl_means")
+CLASSICAL = tuple(f"{p} ({where})" for p in ("kornia guided_blur", "kornia joint_bilateral", "skimage nl_means")
+                  for where in ("full colour", "light steps"))
 OIDN_HIGH = ("OIDN high", "OIDN high, emission added back")
 
 
@@ -255,13 +304,15 @@ def plot(rows: list[dict], out: Path) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="out/bench")
-    ap.add_argument("--scenes", nargs="+",
-                    default=["cornell", "cornell_glossy", "sky", "grass", "bunny", MITSUBA_CORNELL])
+    ap.add_argument("--set", default="judged", choices=("judged", "tuning", "training"),
+                    help="the scene set of configs/scenes/sets.yaml to run (default: judged)")
+    ap.add_argument("--scenes", nargs="+", help="these entries instead of --set's (sets.yaml's syntax)")
     ap.add_argument("--spp", type=int, nargs="+", default=[1, 4])
     ap.add_argument("--size", type=int, default=256)
     ap.add_argument("--ref-spp", type=int, default=1024)
     ap.add_argument("--bounces", type=int, default=2)
     args = ap.parse_args()
+    args.scenes = args.scenes or scene_sets()[args.set]
     torch.set_num_threads(2)
     rows = run(args)
     meta = metadata(torch.get_num_threads())

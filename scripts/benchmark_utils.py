@@ -103,6 +103,17 @@ def load_scene(name: str, size: int):
     return torchgi.load_scene(CONFIG_SCENES / f"{name}.yaml").with_resolution(size, size)
 
 
+SCENE_SETS = CONFIG_SCENES / "sets.yaml"
+
+
+def scene_sets() -> dict[str, list[str]]:
+    """``{"tuning": [...], "training": [...], "judged": [...]}``: the entries of
+    ``configs/scenes/sets.yaml`` (its header says what each set may be used for)."""
+    import yaml
+
+    return yaml.safe_load(SCENE_SETS.read_text())
+
+
 def available_scenes(names: list[str], size: int):
     """``(name, scene)`` for each name that loads; a scene whose mesh files are absent (the
     shared meshes beside the checkout) is reported and skipped."""

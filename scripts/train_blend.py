@@ -12,7 +12,8 @@ once per shard, then the per-pixel MLP is trained on random crops with Adam, the
 benchmark's relMSE of the remodulated image against the reference. Fixed seeds throughout; with
 ``--holdout SCENE`` that scene's shards are left out of training and reported as validation
 (how the design was chosen without the benchmark scenes). Writes the weights with their config,
-the training config, the git commit and the SHA-256 of the data's ``index.json``.
+the training config, the git commit (and whether the tree had uncommitted changes) and the SHA-256
+of the data's content (:func:`data_sha256`).
 """
 
 from __future__ import annotations
@@ -117,6 +118,24 @@ def report(rows: list[dict], part: str) -> None:
               " ".join(f"{k} {sum(r[k] for r in sel) / len(sel):.5f}" for k in keys))
 
 
+def data_sha256(folder: Path) -> str:
+    """SHA-256 of the training data's content: the index's config, then each shard and reference
+    file the index names (sorted by name) with the SHA-256 of its bytes. Recomputed by
+    ``tests/test_blend.py`` from the files themselves when they are present."""
+    index = json.loads((folder / "index.json").read_text())
+    h = hashlib.sha256(json.dumps(index["config"], sort_keys=True).encode())
+    names = sorted({s["file"] for s in index["shards"]} | {s["reference_file"] for s in index["shards"]})
+    for name in names:
+        h.update(f"{name}:{hashlib.sha256((folder / name).read_bytes()).hexdigest()}\n".encode())
+    return h.hexdigest()
+
+
+def git_state() -> tuple[str, bool]:
+    """The commit the script runs from and whether tracked files differ from it (dirty)."""
+    run = lambda *a: subprocess.run(["git", *a], capture_output=True, text=True, check=False).stdout.strip()
+    return run("rev-parse", "HEAD"), bool(run("status", "--porcelain", "--untracked-files=no"))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", default="out/datagen-blend")
@@ -138,6 +157,7 @@ def main() -> None:
     torch.set_num_threads(2)
     torch.manual_seed(args.seed)
     t0 = time.perf_counter()
+    commit, dirty = git_state()  # before training: the code that trained
     net = BlendNet(hidden=args.hidden, context=args.context, radii=args.radii, colour_radii=args.colour_radii,
                    fine_radii=args.fine_radii, fine_eps=args.fine_eps, eps=args.eps)
     ds = ShardDataset(args.data, features=FEATURES)
@@ -162,10 +182,9 @@ def main() -> None:
     if val:
         report(evaluate(net, val, True), "held out")
     index = Path(args.data) / "index.json"
-    commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=False).stdout.strip()
     provenance = {
-        "script": "scripts/train_blend.py", "args": vars(args), "commit": commit,
-        "data_index_sha256": hashlib.sha256(index.read_bytes()).hexdigest(),
+        "script": "scripts/train_blend.py", "args": vars(args), "commit": commit, "dirty": dirty,
+        "data_sha256": data_sha256(Path(args.data)),
         "data_config": json.loads(index.read_text())["config"], "training_shards": [d["name"] for d in train],
         "held_out_scene": args.holdout,
         "seconds": round(time.perf_counter() - t0, 1),
