@@ -150,7 +150,7 @@ def test_the_shipped_weights_say_where_they_came_from():
     assert prov["script"] == "scripts/train_blend.py"
     assert BlendNet.load(WEIGHTS).config() == data["config"]
     data_gen = SCENES.parent / "data_gen"
-    trained_on = [str((data_gen / s).resolve().with_suffix("")) for s in prov["data_config"]["scenes"]]
+    trained_on = [str((data_gen / s).resolve()) for s in prov["data_config"]["scenes"]]
     sets = yaml.safe_load((SCENES / "sets.yaml").read_text())
     found, missing = clashes({**sets, "training": trained_on})
     assert not found, found

@@ -21,8 +21,8 @@ def load(entry: str):
     entry = entry.removeprefix("mitsuba:")
     if entry in torchgi.scenes.BUILTINS:
         return torchgi.scenes.BUILTINS[entry](16)
-    path = Path(entry)  # an absolute path: a scene file elsewhere (the test of the check itself)
-    return torchgi.load_scene(path if path.is_absolute() else SCENES / f"{entry}.yaml")
+    path = Path(entry if entry.endswith(".yaml") else f"{entry}.yaml")  # absolute: a scene file elsewhere
+    return torchgi.load_scene(path if path.is_absolute() else SCENES / path)
 
 
 def clashes(sets: dict[str, list[str]]) -> tuple[list[str], list[str]]:
