@@ -246,12 +246,15 @@ def test_eight_frames_of_a_still_camera_are_as_good_as_eight_samples():
     assert err < 1.1 * float(metrics.relmse(torchgi.Denoiser()(torchgi.render(scene, spp=8, seed=5)), ref))
 
 
-def test_disoccluded_pixels_are_no_worse_than_the_per_frame_denoiser():
+@pytest.mark.parametrize("size", [64, 256])
+def test_disoccluded_pixels_are_no_worse_than_the_per_frame_denoiser(size):
     # The camera slides: in the last frame, pixels none of whose four history taps (around
     # pixel + motion in the previous frame's G-buffer) saw a point of the pixel's own surface (the
     # same normal, within half a pixel footprint of its plane) were hidden before; they must start
-    # a new history.
-    size = 64
+    # a new history. At 64 px the per-frame Denoiser fills them (measured 0.0145 against its own
+    # 0.0153; without the fill 0.0190 fails); at 256 px fewer than TEMPORAL.fresh_share of the
+    # pixels are new, so the temporal filter itself serves them (0.00772 against 0.00776). With
+    # the history never rejected both sizes fail the length check.
     scene = sliding_cornell(size, shift=240.0)
     gbs = list(torchgi.render_sequence(scene, 3, spp=1, seed=2))
     den = TemporalDenoiser()
