@@ -207,20 +207,26 @@ def test_onnx_parity_at_two_resolutions(tmp_path):
         assert rel(ort(gb), ours) < 2e-3, size
 
 
-def test_the_shipped_weights_beat_an_untrained_network_and_the_guided_filter(monkeypatch):
+@pytest.mark.parametrize("name, bound, guided_bound", [("rough_spheres_small_light", 0.8, 0.6),
+                                                      ("fence_sky", 0.85, 0.7)])
+def test_the_shipped_weights_beat_an_untrained_network_and_the_guided_filter(monkeypatch, name, bound, guided_bound):
     """The trained network must be what makes the blend better: the same candidates with all-zero
     weights (a uniform blend) or a fresh random initialisation, and the guided Denoiser, have
-    more error on a render (measured 0.85x, 0.83x and 0.80x; the bounds leave room for noise).
-    A Cornell box: a tuning scene, not one the blend was trained on."""
+    more error on a render of a judged scene (torchgi's own meshes, 48², 1 spp). Measured:
+    rough_spheres_small_light 0.57x / 0.58x / 0.32x, fence_sky 0.69x / 0.70x / 0.55x; the bounds
+    leave room for noise. Not on every judged scene: on mirror_floor_cubes the trained and the
+    uniform blend are equal (0.993x)."""
     import copy
     import importlib
+    from pathlib import Path
 
     import torchgi
     from torchgi import metrics
 
     pytest.importorskip("embreex", reason="the render extra is not installed")
     module = importlib.import_module("torchgi.filters.blend")
-    scene = torchgi.scenes.cornell(48)
+    path = Path(__file__).resolve().parents[1] / "configs" / "scenes" / "judged" / f"{name}.yaml"
+    scene = torchgi.load_scene(path).with_resolution(48, 48)
     noisy, ref = torchgi.render(scene, spp=1, bounces=1, seed=1), torchgi.render(scene, spp=256, bounces=1, seed=2)
 
     def error(net: BlendNet | None = None) -> float:
@@ -238,4 +244,4 @@ def test_the_shipped_weights_beat_an_untrained_network_and_the_guided_filter(mon
         for m in fresh.modules():
             if hasattr(m, "reset_parameters"):
                 m.reset_parameters()
-    assert shipped < 0.92 * error(uniform) and shipped < 0.92 * error(fresh) and shipped < 0.9 * guided
+    assert shipped < bound * error(uniform) and shipped < bound * error(fresh) and shipped < guided_bound * guided
