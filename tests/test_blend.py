@@ -9,7 +9,6 @@ import re
 
 import pytest
 import torch
-import yaml
 
 from tests.helpers import rel_error as rel
 from tests.oracles import box_oracle, guided_oracle
@@ -140,7 +139,7 @@ def test_the_shipped_weights_say_where_they_came_from():
     """Small, loadable without a network, trained from a clean commit on scenes that are none of
     the tuning or judged scenes: compared by geometry and camera (tests/test_scene_sets.py), not
     by name."""
-    from tests.test_scene_sets import SCENES, clashes
+    from tests.test_scene_sets import SCENES, clashes, read_sets
 
     assert WEIGHTS.stat().st_size < 1_000_000
     data = json.loads(WEIGHTS.read_text())
@@ -151,8 +150,7 @@ def test_the_shipped_weights_say_where_they_came_from():
     assert BlendNet.load(WEIGHTS).config() == data["config"]
     data_gen = SCENES.parent / "data_gen"
     trained_on = [str((data_gen / s).resolve()) for s in prov["data_config"]["scenes"]]
-    sets = yaml.safe_load((SCENES / "sets.yaml").read_text())
-    found, missing = clashes({**sets, "training": trained_on})
+    found, missing = clashes({**read_sets(), "training": trained_on})
     assert not found, found
     if missing:
         pytest.skip(f"checked the training scenes without {missing}: they need the shared meshes (TORCHGI_MESHES)")
@@ -218,15 +216,14 @@ def test_the_shipped_weights_beat_an_untrained_network_and_the_guided_filter(mon
     uniform blend are equal (0.993x)."""
     import copy
     import importlib
-    from pathlib import Path
 
     import torchgi
+    from tests.test_scene_sets import load
     from torchgi import metrics
 
     pytest.importorskip("embreex", reason="the render extra is not installed")
     module = importlib.import_module("torchgi.filters.blend")
-    path = Path(__file__).resolve().parents[1] / "configs" / "scenes" / "judged" / f"{name}.yaml"
-    scene = torchgi.load_scene(path).with_resolution(48, 48)
+    scene = load(f"judged/{name}").with_resolution(48, 48)
     noisy, ref = torchgi.render(scene, spp=1, bounces=1, seed=1), torchgi.render(scene, spp=256, bounces=1, seed=2)
 
     def error(net: BlendNet | None = None) -> float:

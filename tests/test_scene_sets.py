@@ -16,6 +16,11 @@ SETS = ("tuning", "training", "judged")
 MITSUBA_CORNELL = "mitsuba_cornell"  # Mitsuba's own box: its geometry is no torchgi scene's
 
 
+def read_sets() -> dict[str, list[str]]:
+    """The entries of ``configs/scenes/sets.yaml``, per set."""
+    return yaml.safe_load((SCENES / "sets.yaml").read_text())
+
+
 def load(entry: str):
     """The torchgi scene of a sets.yaml entry ("mitsuba:<entry>" is that scene rendered by Mitsuba)."""
     entry = entry.removeprefix("mitsuba:")
@@ -52,7 +57,7 @@ def clashes(sets: dict[str, list[str]]) -> tuple[list[str], list[str]]:
 def test_the_three_sets_share_no_scene():
     """Disjoint by geometry and camera; the judged set has the variety the issue asks for (at
     least six scenes, one rendered by another renderer)."""
-    sets = yaml.safe_load((SCENES / "sets.yaml").read_text())
+    sets = read_sets()
     assert set(sets) == set(SETS)
     assert len(sets["judged"]) >= 6 and any(e.startswith("mitsuba:") for e in sets["judged"])
     assert MITSUBA_CORNELL not in sets["judged"] + sets["training"]
@@ -63,9 +68,9 @@ def test_the_three_sets_share_no_scene():
 
 
 def test_a_renamed_copy_is_caught(tmp_path):
-    """The check compares scenes, not names: a training scene copied under judged/ with another
-    name and material, or a tuning scene seen from another camera, is a clash."""
-    sets = yaml.safe_load((SCENES / "sets.yaml").read_text())
+    """The check compares scenes, not names: a judged scene copied into the training set under
+    another name, with another material and another camera, is a clash (same geometry)."""
+    sets = read_sets()
     copy = yaml.safe_load((SCENES / "judged" / "fence_sky.yaml").read_text())
     copy["meshes"][0]["material"]["albedo"] = [0.1, 0.2, 0.3]
     copy["camera"]["position"] = [9, 9, 9]  # same geometry, another view
