@@ -162,7 +162,8 @@ def render_gbuffer(scene: dict, *, spp: int, bounces: int = 1, seed: int = 0) ->
         seed: Mitsuba's sampler seed.
 
     Returns:
-        GBuffer with ``color (1,3,H,W)``, ``emission`` (light seen directly: a path tracer
+        GBuffer with ``color (1,3,H,W)``, its ``variance`` (of the mean, from Mitsuba's
+        ``moment`` integrator; 0 at 1 spp), ``emission`` (light seen directly: a path tracer
         with ``max_depth = 1`` on the same camera samples), ``albedo``, ``normal``,
         ``position``, ``depth (1,1,H,W)``, ``hit (1,1,H,W)`` and ``spp``. Guides are Mitsuba's AOVs, which average
         over the pixel's samples (not a single centre ray).
@@ -178,12 +179,14 @@ def render_gbuffer(scene: dict, *, spp: int, bounces: int = 1, seed: int = 0) ->
     # One pass, two nested integrators on the same camera samples: the colour and the light seen
     # directly (max_depth 1), so ``color - emission`` is exact per sample (a second render would
     # trace other camera rays and leave light-source edges in the difference).
-    scene["integrator"] = {
+    # Around them, the moment integrator: each layer's mean ("nested.*") and second moment
+    # ("m2_nested.*"), from which the colour's variance comes.
+    scene["integrator"] = {"type": "moment", "nested": {
         "type": "aov",
         "aovs": _AOVS,
         "color": {"type": "path", "max_depth": bounces + 2},
         "emission": {"type": "path", "max_depth": 1},
-    }
+    }}
     loaded = mi.load_dict(scene)
     mi.render(loaded, spp=spp, seed=seed)
     parts = {
@@ -192,8 +195,12 @@ def render_gbuffer(scene: dict, *, spp: int, bounces: int = 1, seed: int = 0) ->
         .contiguous()
         for name, bmp in loaded.sensors()[0].film().bitmap(raw=False).split()
     }
-    color, emission = parts["color"][:, :3].contiguous(), parts["emission"][:, :3].contiguous()
-    albedo, normal, position, depth = parts["albedo"], parts["nn"], parts["pp"], parts["dd"]
+    color, emission = parts["nested.color"][:, :3].contiguous(), parts["nested.emission"][:, :3].contiguous()
+    # the sample variance over n = spp samples, of their mean: (E[x²] - E[x]²) / (n - 1) (the
+    # difference clamped at 0: it rounds below where all samples agree); 0 below 2 samples
+    variance = ((parts["m2_nested.color"][:, :3] - color.square()).clamp_min(0) / (spp - 1) if spp > 1
+                else torch.zeros_like(color))
+    albedo, normal, position, depth = (parts[f"nested.{k}"] for k in ("albedo", "nn", "pp", "dd"))
     hit = depth > 0
     return GBuffer(
         color=color,
@@ -203,5 +210,6 @@ def render_gbuffer(scene: dict, *, spp: int, bounces: int = 1, seed: int = 0) ->
         position=position,
         depth=depth,
         hit=hit,
+        variance=variance.contiguous(),
         spp=torch.full_like(depth, spp, dtype=torch.int64),
     )
