@@ -217,8 +217,10 @@ class Denoiser(torch.nn.Module):
         if self.method == "guided":
             out = self._guided_pipeline(gb, kept, surface)
         else:
+            level = light.level(gb.color, gb.emission, kept, gb.albedo, surface)
             out = light.restore(gb.color, gb.emission, kept, gb.albedo, surface,
-                                lambda x: self._filter(x, gb, surface), _FIREFLY[self.method], box)
+                                lambda x: self._filter(x, gb, surface), _FIREFLY[self.method], box, level)
+            out = _back_off(out, gb, surface, level)
         return out if self.hdr else out.clamp(0, 1)
 
     def _guided_pipeline(self, gb: GBuffer, kept: torch.Tensor | None, surface: torch.Tensor) -> torch.Tensor:
@@ -227,17 +229,18 @@ class Denoiser(torch.nn.Module):
         spec, guide_means = self._guide_spec(gb)
         H, W = gb.color.shape[-2:]
         level = light.level(gb.color, gb.emission, kept, gb.albedo, surface)
-        radius, s = self._radius(self._spp(gb, surface), GUIDED.radius), self._subsample(spec, H, W)
+        radius, s = self._radius(self._spp(gb, surface), GUIDED.radius), self._subsample(spec, H, W, gb.spp)
 
         def op(rows: slice = slice(None), cols: slice = slice(None), workspace: dict | None = None) -> torch.Tensor:
             def cut(t: torch.Tensor | None) -> torch.Tensor | None:
                 return None if t is None else t[..., rows, cols]
 
             tile = backends.GuideSpec(cut(spec.normal), cut(spec.depth), spec.channels, spec.scale, spec.offset)
-            return backends.run(backends.RestoreOp(cut(gb.color), cut(gb.emission), cut(kept), cut(gb.albedo),
-                                                   cut(gb.hit), tile, level, radius,
-                                                   self.filter_params.get("eps", GUIDED.eps), s, GUIDED.firefly,
-                                                   workspace, centres[0], centres[1]))
+            out = backends.run(backends.RestoreOp(cut(gb.color), cut(gb.emission), cut(kept), cut(gb.albedo),
+                                                  cut(gb.hit), tile, level, radius,
+                                                  self.filter_params.get("eps", GUIDED.eps), s, GUIDED.firefly,
+                                                  workspace, centres[0], centres[1]))
+            return _back_off(out, gb, surface, level, rows, cols)
 
         # light and guide centred by constants of each image, so that tiles compute the untiled sums
         centres = (light.centre(gb.color, gb.emission, kept, gb.albedo, surface, GUIDED.firefly * level), guide_means)
@@ -365,15 +368,17 @@ class Denoiser(torch.nn.Module):
         rel = float(torch.where(surface, gb.variance / (gb.color.square() + 1e-4), 0.0).sum()) / count
         return max(PIPELINE.rel_var_1spp / max(rel, 1e-12), 0.25)
 
-    def _subsample(self, spec: backends.GuideSpec, H: int, W: int) -> int:
-        """Guided filter's subsampling: given, or 2 where half resolution loses nothing
-        measurable, else 1. Half resolution needs >= 256 px on the short side, quality
-        "fast"/"balanced", and a guide that is smooth at the pixel scale: fewer than 10 % of
-        (every other row's) horizontal neighbours differing by more than 0.1 in the guide
-        (``settings.GUIDED``; the measurements behind it in docs/calibration.md)."""
+    def _subsample(self, spec: backends.GuideSpec, H: int, W: int, spp: torch.Tensor | None) -> int:
+        """Guided filter's subsampling: given, or 2 where half resolution is worth its bias, else 1.
+        Half resolution needs >= 256 px on the short side, fewer than ``GUIDED.full_from_spp``
+        samples per pixel on average (``spp``; None: 1), quality "fast"/"balanced", and a guide
+        that is smooth at the pixel scale: fewer than 10 % of (every other row's) horizontal
+        neighbours differing by more than 0.1 in the guide (``settings.GUIDED``; the measurements
+        behind it in docs/calibration.md)."""
         if "subsample" in self.filter_params:
             return self.filter_params["subsample"]
-        if min(H, W) < GUIDED.subsample_from or self.quality == "high":
+        mean_spp = 1.0 if spp is None else float(spp.sum()) / max(spp.numel(), 1)
+        if min(H, W) < GUIDED.subsample_from or self.quality == "high" or mean_spp >= GUIDED.full_from_spp:
             return 1
         return 2 if backends.run(backends.EdgeShareOp(spec, GUIDED.edge)) < GUIDED.edge_share else 1
 
@@ -389,7 +394,7 @@ class Denoiser(torch.nn.Module):
         if self.method == "guided":  # the workspace of the CPU path is kept between calls
             spec = self._guide_spec(gb)[0]
             return guided(x, spec.build(), radius=self._radius(spp, GUIDED.radius), eps=p.get("eps", GUIDED.eps),
-                          subsample=self._subsample(spec, *x.shape[-2:]), workspace=self._workspace)
+                          subsample=self._subsample(spec, *x.shape[-2:], gb.spp), workspace=self._workspace)
         scale = self.input_scale
         if scale is None:
             mean = float(x[surface.expand_as(x)].mean()) if bool(surface.any()) else 0.0
@@ -409,6 +414,17 @@ class Denoiser(torch.nn.Module):
                               sigma_color=p.get("sigma_color", BILATERAL.sigma_color),
                               sigma_guides=[BILATERAL.sigma_guide] * len(guides))
         return out / scale
+
+
+def _back_off(out: torch.Tensor, gb: GBuffer, surface: torch.Tensor, level: torch.Tensor, rows: slice = slice(None),
+              cols: slice = slice(None)) -> torch.Tensor:
+    """:func:`torchgi.light.back_off` of ``out`` (the pipeline's output for ``gb[..., rows, cols]``)
+    toward that crop of ``gb.color``, where ``gb`` has a variance (else ``out``)."""
+    if gb.variance is None:
+        return out
+    c, e, a, on, v, n = (None if t is None else t[..., rows, cols]
+                         for t in (gb.color, gb.emission, gb.albedo, surface, gb.variance, gb.spp))
+    return light.back_off(out, c, v, n, light.emitting(c, e, a, on, level), box)
 
 
 def _fill_holes(tensors: list[torch.Tensor]) -> list[torch.Tensor]:
@@ -431,9 +447,11 @@ def _fill_holes(tensors: list[torch.Tensor]) -> list[torch.Tensor]:
 def _footprint(radius: int, s: int) -> int:
     """How far (px) the guided pipeline's output reaches into its input: the firefly window, the
     light-source opening, the guided filter's two box passes at radius r (r / s at 1 / s
-    resolution, plus the s x s blocks and the bilinear taps), rounded up to a multiple of s."""
+    resolution, plus the s x s blocks and the bilinear taps) and the back-off's window, rounded up
+    to a multiple of s."""
     r_low = radius if s == 1 else round(radius / s)
     reach = PIPELINE.firefly_radius + 2 * (PIPELINE.light_square // 2) + s * (2 * r_low + 2) + s
+    reach += PIPELINE.backoff_radius + 1  # the back-off's window over the residual's high-pass
     return -(-reach // s) * s
 
 

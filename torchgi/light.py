@@ -1,6 +1,7 @@
 """The Denoiser's light maths (DESIGN §4): which pixels are surfaces, what light is divided by,
 which pixels are light sources, the firefly bound, the scene's light level and the whole
-demodulate / filter / remodulate step around a filter.
+demodulate / filter / remodulate step around a filter, and the step after it that backs off toward
+the input where the filter's residual exceeds the noise (:func:`back_off`).
 
 It sits below the back ends: :mod:`torchgi.denoise`, :mod:`torchgi.temporal` and the torch
 back end's reference pipeline (``backends.torch_code``) all take it from here, and it imports
@@ -15,6 +16,7 @@ All tensors are ``(B, C, H, W)``; light is linear radiance (the renderer's units
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import torch
@@ -23,8 +25,8 @@ from torchgi.core.check import is_recording
 from torchgi.settings import PIPELINE
 
 __all__ = [
-    "BoxFn", "centre", "clamp_fireflies", "demodulator", "every4", "filter_light", "firefly_bound", "level",
-    "light_sources", "median_level", "restore", "surface_mask",
+    "BoxFn", "back_off", "centre", "clamp_fireflies", "demodulator", "emitting", "every4", "filter_light",
+    "firefly_bound", "level", "light_sources", "median_level", "restore", "surface_mask",
 ]
 
 BoxFn = Callable[[torch.Tensor, int], torch.Tensor]  # box(x (B,C,H,W), r) -> the (2r+1)² mean, same shape
@@ -219,3 +221,94 @@ def restore(
     out = filter_light(x, scene_level, filter_fn, firefly, box) * albedo
     out = out + kept if kept is not None else out
     return out if emission is not None else torch.where(lights, color, out)
+
+
+
+
+def emitting(color: torch.Tensor, emission: torch.Tensor | None, albedo: torch.Tensor, surface: torch.Tensor,
+             scene_level: torch.Tensor) -> torch.Tensor:
+    """``(B,1,H,W)`` bool: pixels that emit - any ``emission`` (the sky and missed rays included)
+    where it is given, else pixels whose demodulated ``color`` exceeds ``PIPELINE.light`` x
+    ``scene_level`` (:func:`level`), the test :func:`restore` opens into light sources.
+
+    Example:
+        >>> c = torch.ones(1, 3, 1, 2); c[..., 1] = 100.0
+        >>> emitting(c, None, torch.ones_like(c), torch.ones(1, 1, 1, 2, dtype=torch.bool), torch.ones(1, 1, 1, 1)).tolist()
+        [[[[False, True]]]]
+    """
+    if emission is not None:
+        return emission.amax(1, keepdim=True) > 0
+    return (color / demodulator(albedo, surface)).amax(1, keepdim=True) > PIPELINE.light * scene_level
+
+
+def back_off(out: torch.Tensor, color: torch.Tensor, variance: torch.Tensor | None, spp: torch.Tensor | None,
+             emitting: torch.Tensor, box: BoxFn) -> torch.Tensor:
+    """``out`` moved toward ``color`` where the filter's residual is larger than the noise it
+    removed (James-Stein shrinkage): ``out + w (color - out)``, all ``(B, 3, H, W)``.
+
+    With ``e`` the mean of ``|color - out|²`` and ``v`` that of the noise variance over
+    ``PIPELINE.backoff_radius`` (channels summed), ``w = clamp(1 - k v / e, 0, 1)``: for a filter
+    of error ``b²`` (its bias and its own variance) on an input of noise ``σ²``, ``e ≈ b² + σ²``
+    and ``1 - σ² / e`` is the blend that minimises the local error, so the filter is kept where
+    noise dominates and backs off where its bias does: the error falls with the sample count
+    instead of stopping at the filter's bias. The window pools only pixels that do not emit
+    (``emitting (B,1,H,W)`` bool: a light's residual, many times the scene's, would make its
+    neighbours back off); an emitting pixel decides alone, ``w = clamp(1 - k (σ² / |res|² +
+    1 / n), 0, 1)`` (``n`` samples that agree do not prove a pixel noise-free: a horizon pixel
+    whose 2 samples both hit the sky).
+
+    The noise: ``variance`` (of the mean, ``(B,1|3,H,W)``) with ``k = 1 + PIPELINE.backoff_margin /
+    sqrt(spp - 1)`` (a variance from few samples is itself noisy; a pixel of fewer than 2 samples
+    keeps ``out``; no ``spp``: taken as 2). Without a ``variance`` nothing is done: a noise
+    estimate from the image alone cannot tell fine detail from noise, nor noise that a renderer's
+    pixel filter made smooth from signal.
+
+    Example:
+        >>> from torchgi.filters import box
+        >>> truth = torch.linspace(0, 4, 16).view(1, 1, 1, 16).expand(1, 3, 16, 16)
+        >>> color = truth + 0.01 * torch.randn(1, 3, 16, 16)   # nearly noise-free input
+        >>> blurred = truth.mean().expand_as(truth)             # a filter far off the signal
+        >>> none = torch.zeros(1, 1, 16, 16, dtype=torch.bool)
+        >>> fixed = back_off(blurred, color, torch.full((1, 1, 16, 16), 1e-4), torch.full((1, 1, 16, 16), 64), none, box)
+        >>> bool((fixed - truth).abs().mean() < 0.1 * (blurred - truth).abs().mean())
+        True
+    """
+    n = _samples(spp)
+    if variance is None or n is not None and (n < 2 if isinstance(n, float)
+                                              else not is_recording() and float(n.max()) < 2):
+        return out  # no variance measured (or no pixel of 2 samples): nothing to compare with
+    if out.dtype in (torch.float16, torch.bfloat16):  # squares of radiance overflow float16: work in float32
+        return back_off(out.float(), color.float(), variance.float(), spp, emitting, box).to(out.dtype)
+    B, C, H, W = out.shape
+    res = color - out
+    channels = range(C)  # (channel by channel: broadcasts over channels run slowly)
+    r2 = sum(res[:, c : c + 1].square() for c in channels)
+    noise = sum(variance[:, c : c + 1] for c in channels) if variance.shape[1] > 1 else variance * C
+    n = 2.0 if n is None else n
+    # every division guarded by a where whose other branch stays finite, so gradients do too
+    measured = n >= 2 if torch.is_tensor(n) else None  # (fewer than 2 samples: no variance, the filter kept)
+    n = torch.where(measured, n, 2.0) if measured is not None else n
+    k = 1 + PIPELINE.backoff_margin / ((n - 1).sqrt() if torch.is_tensor(n) else math.sqrt(n - 1))
+    any_lit = is_recording() or bool(emitting.any())
+    planes = torch.cat([r2, noise], 1)
+    sums = box(planes.masked_fill(emitting, 0.0) if any_lit else planes, PIPELINE.backoff_radius)
+    floor = torch.finfo(out.dtype).eps ** 2  # (its square is still a normal number)
+    e, v = sums[:, :1], sums[:, 1:]
+    w = torch.where(e > floor, 1 - k * v / torch.where(e > floor, e, 1.0), 0.0)
+    if any_lit:
+        own = 1 - k * (noise / torch.where(r2 > floor, r2, 1.0) + 1 / n)
+        w = torch.where(emitting, torch.where(r2 > floor, own, 0.0), w)
+    if measured is not None:
+        w = torch.where(measured, w, 0.0)
+    w = w.clamp(0, 1)
+    return torch.addcmul(out.reshape(B, C, -1), w.reshape(B, 1, -1), res.view(B, C, -1)).view(B, C, H, W)
+
+
+def _samples(spp: torch.Tensor | None) -> float | torch.Tensor | None:
+    """The sample count as a float when every pixel has the same (the usual render), else the
+    ``(B,1,H,W)`` plane as floats; None for None."""
+    if spp is None:
+        return None
+    if not is_recording() and spp.numel() and bool((spp == spp.reshape(-1)[0]).all()):
+        return float(spp.reshape(-1)[0])
+    return spp.to(torch.float32)
