@@ -387,7 +387,9 @@ class Denoiser(torch.nn.Module):
         spp = self._spp(gb, surface)
         if self.method == "blend":
             # depth over each image's largest, as in training and in the exported form
-            out, w = blend(x, guide_from(gb.normal, gb.depth, depth_scale="image"), spp=spp, return_weights=True)
+            # (its network knows 1 spp and more: noisier renders than 1 spp are fed to it as 1 spp)
+            out, w = blend(x, guide_from(gb.normal, gb.depth, depth_scale="image"), spp=max(spp, 1.0),
+                           return_weights=True)
             if self._capture is not None:
                 self._capture["weights"] = w
             return out
