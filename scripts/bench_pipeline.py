@@ -1,7 +1,8 @@
 """The Denoiser end to end against its kernel and OIDN: median ms and peak memory, 256² to 4K.
 
-Per size one 1 spp render of a scene (Cornell box by default) and, timed side by side in
-alternating rounds on the same inputs (``color, albedo, normal, depth, emission``):
+Per size one 1 spp render of a scene (Cornell box by default; ``--spp N`` for N, with its
+``variance`` and ``spp`` as inputs too) and, timed side by side in alternating rounds on the same
+inputs (``color, albedo, normal, depth, emission``):
 ``Denoiser("guided")`` end to end (and forced to full resolution), its guided kernel alone (same radius, eps and guide, full
 resolution, on the colour), the default ``Denoiser()`` when it is another method, the guided
 Denoiser tiled with ``max_memory_mb=256``, and Intel Open Image Denoise "fast" and "high"
@@ -37,14 +38,15 @@ INPUTS = ("color", "albedo", "normal", "depth", "emission")
 TILED_MB = 256
 
 
-def render_inputs(scene: str, H: int, W: int, cache: Path) -> dict[str, torch.Tensor]:
-    """The named inputs of a 1 spp render (seed 1), cached under ``cache``."""
-    path = cache / f"{scene}_{W}x{H}.pt"
+def render_inputs(scene: str, H: int, W: int, cache: Path, spp: int = 1) -> dict[str, torch.Tensor]:
+    """The named inputs of an ``spp`` render (seed 1), cached under ``cache``; from 2 spp with the
+    measured ``variance`` and ``spp`` (the Denoiser then backs off toward its input)."""
+    path = cache / (f"{scene}_{W}x{H}" + ("" if spp == 1 else f"_{spp}spp") + ".pt")
     if path.exists():
         return torch.load(path)
     base = torchgi.scenes.BUILTINS[scene](max(H, W)).with_resolution(W, H)
-    gb = torchgi.render(base, spp=1, bounces=1, seed=1)
-    inputs = {k: getattr(gb, k).contiguous() for k in INPUTS}
+    gb = torchgi.render(base, spp=spp, bounces=1, seed=1)
+    inputs = {k: getattr(gb, k).contiguous() for k in INPUTS + (("variance", "spp") if spp > 1 else ())}
     cache.mkdir(parents=True, exist_ok=True)
     torch.save(inputs, path)
     return inputs
@@ -58,7 +60,7 @@ def methods(inputs: dict[str, torch.Tensor], device: str) -> dict:
 
     guided = Denoiser("guided")
     gb = torchgi.GBuffer(**inputs)
-    radius = guided._radius(1.0, GUIDED.radius)
+    radius = guided._radius(float(inputs["spp"].double().mean()) if "spp" in inputs else 1.0, GUIDED.radius)
     guide, x, ws = guide_from_gbuffer(gb), inputs["color"].clone(), {}
     full = Denoiser("guided", subsample=1)
     fns = {
@@ -112,7 +114,7 @@ def probe(args) -> None:
     """In a fresh process: the peak extra memory (MB) of one call of ``args.probe_method``."""
     torch.set_num_threads(args.threads)
     H, W = SIZES[args.probe_size]
-    inputs = render_inputs(args.scene, H, W, Path(args.out) / "inputs")
+    inputs = render_inputs(args.scene, H, W, Path(args.out) / "inputs", args.spp)
     fns = methods({k: v[..., :64, :64].contiguous() for k, v in inputs.items()}, "cpu")
     fns[args.probe_method]()  # libraries loaded, kernels built
     fn = methods(inputs, "cpu")[args.probe_method]
@@ -129,7 +131,7 @@ def probe(args) -> None:
 
 def memory(args, size: str, name: str) -> dict:
     cmd = [sys.executable, __file__, "--probe-size", size, "--probe-method", name, "--scene", args.scene,
-           "--out", args.out, "--threads", str(args.threads)]
+           "--out", args.out, "--threads", str(args.threads), "--spp", str(args.spp)]
     proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
     if proc.returncode:
         print(proc.stderr[-2000:], file=sys.stderr)
@@ -142,7 +144,7 @@ def run(args) -> list[dict]:
     devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
     for size in args.sizes:
         H, W = SIZES[size]
-        inputs = render_inputs(args.scene, H, W, Path(args.out) / "inputs")
+        inputs = render_inputs(args.scene, H, W, Path(args.out) / "inputs", args.spp)
         in_mb = sum(t.numel() * t.element_size() for t in inputs.values()) / 2**20
         for device in devices:
             on = {k: v.to(device) for k, v in inputs.items()}
@@ -209,6 +211,7 @@ def main() -> None:
     ap.add_argument("--out", default="out/bench-pipeline")
     ap.add_argument("--scene", default="cornell")
     ap.add_argument("--sizes", nargs="+", default=["256²", "512²", "1080p", "4K"], choices=list(SIZES) + ["256²"])
+    ap.add_argument("--spp", type=int, default=1, help="samples per pixel of the inputs (from 2: with variance)")
     ap.add_argument("--rounds", type=int, default=9)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--no-memory", dest="memory", action="store_false")

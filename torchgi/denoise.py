@@ -15,6 +15,10 @@ remodulated. Around the filter:
 * The filtered light is clamped at 0 (the guided filter's local linear models can undershoot).
 * With the renderer's direct/indirect split and ``filter_direct=False``, direct light is kept as
   sampled and only indirect light is filtered (the papers' setting).
+* With a measured ``variance`` (>= 2 samples), the result backs off toward the input where the
+  filter's residual exceeds that noise (:func:`torchgi.light.back_off`): the filter's bias is not
+  left in where more samples made the input better than it, so the error falls as samples rise.
+  Without a variance (1 spp, or none given) the filter's output is returned as it is.
 
 Parameters that depend on the noise level are chosen from the measured variance when every
 surface pixel has one (>= 2 samples), else from ``spp``: the guided filter's and the bilateral's
@@ -247,7 +251,8 @@ class Denoiser(torch.nn.Module):
 
         if self.max_memory_mb is None:
             return op(workspace=self._workspace)
-        return _tiled(op, gb.color, self.max_memory_mb, _footprint(radius, s), s, kept is not None)
+        return _tiled(op, gb.color, self.max_memory_mb, _footprint(radius, s), s, kept is not None,
+                      gb.variance is not None)
 
     def _guide_spec(self, gb: GBuffer) -> tuple[backends.GuideSpec, torch.Tensor]:
         """:func:`~torchgi.filters.guide_from_gbuffer`'s guide (normal to [0, 1], depth over the
@@ -453,20 +458,21 @@ def _footprint(radius: int, s: int) -> int:
     to a multiple of s."""
     r_low = radius if s == 1 else round(radius / s)
     reach = PIPELINE.firefly_radius + 2 * (PIPELINE.light_square // 2) + s * (2 * r_low + 2) + s
-    reach += PIPELINE.backoff_radius + 1  # the back-off's window over the residual's high-pass
+    reach += PIPELINE.backoff_radius  # the back-off's window
     return -(-reach // s) * s
 
 
 def _tiled(op: Callable[..., torch.Tensor], color: torch.Tensor, max_memory_mb: float, halo: int, s: int,
-           kept: bool) -> torch.Tensor:
+           kept: bool, back_off: bool) -> torch.Tensor:
     """``op(rows, cols)`` over square tiles (side a multiple of ``s``, so that the s x s blocks
     are the untiled ones) with ``halo`` px of overlap, the memory a tile needs within
     ``max_memory_mb`` beyond the inputs with the ``(B, 3, H, W)`` output; stitched. A tile
     holds copies of its inputs and the pipeline's planes: about ``4 (B (19 + 3 kept) + 22)``
-    bytes per pixel (the C back end's; docs/pipeline.md)."""
+    bytes per pixel (the C back end's; docs/pipeline.md), and with a variance (``back_off``) the
+    back-off's residual, sums and weights: ``4 x 16 B`` more."""
     B, _, H, W = color.shape
     out = torch.empty_like(color)
-    per_pixel = 4 * (B * (19 + 3 * kept) + 22)
+    per_pixel = 4 * (B * (19 + 3 * kept + 16 * back_off) + 22)
     budget = 0.9 * max_memory_mb * 2**20 - out.numel() * out.element_size()  # 10 % for what the estimate misses
     side = (math.isqrt(int(max(budget, 0) / per_pixel)) - 2 * halo) // s * s
     if side < max(s, 16):
@@ -490,7 +496,8 @@ class DeployedDenoiser(torch.nn.Module):
     ``forward(color, emission, albedo, normal, depth)`` for "blend" and "guided" and
     ``forward(color, emission, albedo, normal, position)`` for "atrous", all ``(B, C, H, W)``:
     the Denoiser's pipeline (module docstring) with the fixed parameters; surfaces are the pixels
-    of non-zero albedo. ``emission`` is required (zeros when no light source is in view). A pixel
+    of non-zero albedo; it takes no variance, so it does not back off toward the input
+    (:func:`torchgi.light.back_off`). ``emission`` is required (zeros when no light source is in view). A pixel
     that is NaN/Inf in any input is a hole (:func:`_fill_holes`): the output is finite
     everywhere and, outside the hole's filter footprint, that of the clean input (an exported
     graph cannot raise). Built by :meth:`Denoiser.deploy`.
