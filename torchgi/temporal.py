@@ -130,8 +130,7 @@ def temporal_step(
         emission: ``(B,3,H,W)`` emitted radiance (light sources pass untouched), or None.
         hit: ``(B,1,H,W)`` bool surface mask; None = non-zero albedo.
         spatial: the filter of the accumulated radiance, called with ``color, emission, albedo,
-            normal, depth, hit`` and ``variance`` (``(B,3,H,W)``: the accumulated radiance's
-            variance of its mean) and ``spp`` (``(B,1,H,W)`` int64: the whole frames it averages); None = ``Denoiser("guided", radius=TEMPORAL.radius, eps=TEMPORAL.eps,
+            normal, depth, hit``; None = ``Denoiser("guided", radius=TEMPORAL.radius, eps=TEMPORAL.eps,
             subsample=1)``.
         fresh: the filter where the history is short (called the same way), or None: none.
         fresh_share: use ``fresh`` only when at least this share of the pixels is new (0: always).
@@ -169,9 +168,7 @@ def temporal_step(
     var = torch.where(length >= t.variance_history, temporal_var, (m[:, 1:2] - m[:, :1].square()).clamp_min(0))
     inputs = {"color": acc * demod + emission, "emission": emission, "albedo": albedo, "normal": normal,
               "depth": depth, "hit": hit}
-    # the accumulated light's noise (variance of its mean, from the frames it averages), so that the
-    # spatial filter backs off toward it where its bias exceeds that noise (light.back_off)
-    out = spatial(**inputs, variance=var / frames * demod.square(), spp=frames.floor().long())
+    out = spatial(**inputs)
     if fresh is not None:
         out = _blend_fresh(out, length, inputs, fresh, fresh_share)
     # the output history (demodulated), within sqrt(clamp x the accumulated light's noise variance) of this frame's
