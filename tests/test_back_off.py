@@ -72,3 +72,22 @@ def test_the_denoised_error_at_16_spp_is_below_the_input(glossy_sky, method):
     noisy = float(metrics.relmse(gb.color, ref))
     assert float(metrics.relmse(Denoiser(method)(gb), ref)) < 0.9 * noisy
 
+
+
+@pytest.mark.parametrize("variance_planes", [1, 3])
+@pytest.mark.parametrize("spp", [2.0, 9.0, None])
+def test_the_compiled_back_off_matches_the_float64_torch_code(variance_planes, spp):
+    from torchgi import backends
+
+    g = torch.Generator().manual_seed(0)
+    color = 3 * torch.rand(2, 3, 37, 45, generator=g)
+    out = color + 0.3 * torch.randn(2, 3, 37, 45, generator=g)
+    variance = 0.05 * torch.rand(2, variance_planes, 37, 45, generator=g)
+    lit = torch.rand(2, 1, 37, 45, generator=g) > 0.9
+    got = backends.run(backends.BackOffOp(out, color, variance, spp, lit))
+    if backends.status()["last"]["back_off"]["ran"] != "c":
+        pytest.skip("the C back end is not built here")
+    with backends.use("torch"):
+        ref = backends.run(backends.BackOffOp(out.double(), color.double(), variance.double(), spp, lit))
+    assert float((ref - out.double()).abs().amax((1, 2, 3)).min()) > 0.01  # it moves pixels of both images
+    assert float((got.double() - ref).abs().max()) < 1e-5

@@ -426,12 +426,14 @@ class Denoiser(torch.nn.Module):
 def _back_off(out: torch.Tensor, gb: GBuffer, surface: torch.Tensor, level: torch.Tensor, rows: slice = slice(None),
               cols: slice = slice(None)) -> torch.Tensor:
     """:func:`torchgi.light.back_off` of ``out`` (the pipeline's output for ``gb[..., rows, cols]``)
-    toward that crop of ``gb.color``, where ``gb`` has a variance (else ``out``)."""
-    if gb.variance is None:
-        return out
+    toward that crop of ``gb.color`` (:class:`~torchgi.backends.BackOffOp`, compiled in the C back
+    end), where ``gb`` has a variance from 2 samples or more (else ``out``)."""
     c, e, a, on, v, n = (None if t is None else t[..., rows, cols]
                          for t in (gb.color, gb.emission, gb.albedo, surface, gb.variance, gb.spp))
-    return light.back_off(out, c, v, n, light.emitting(c, e, a, on, level), box)
+    n = light.samples(n)
+    if v is None or (isinstance(n, float) and n < 2):
+        return out
+    return backends.run(backends.BackOffOp(out, c, v, n, light.emitting(c, e, a, on, level)))
 
 
 def _fill_holes(tensors: list[torch.Tensor]) -> list[torch.Tensor]:

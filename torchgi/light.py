@@ -26,7 +26,7 @@ from torchgi.settings import PIPELINE
 
 __all__ = [
     "BoxFn", "back_off", "centre", "clamp_fireflies", "demodulator", "emitting", "every4", "filter_light",
-    "firefly_bound", "level", "light_sources", "median_level", "restore", "surface_mask",
+    "firefly_bound", "level", "light_sources", "median_level", "restore", "samples", "surface_mask",
 ]
 
 BoxFn = Callable[[torch.Tensor, int], torch.Tensor]  # box(x (B,C,H,W), r) -> the (2r+1)² mean, same shape
@@ -239,8 +239,8 @@ def emitting(color: torch.Tensor, emission: torch.Tensor | None, albedo: torch.T
     return (color / demodulator(albedo, surface)).amax(1, keepdim=True) > PIPELINE.light * scene_level
 
 
-def back_off(out: torch.Tensor, color: torch.Tensor, variance: torch.Tensor | None, spp: torch.Tensor | None,
-             emitting: torch.Tensor, box: BoxFn) -> torch.Tensor:
+def back_off(out: torch.Tensor, color: torch.Tensor, variance: torch.Tensor | None,
+             spp: float | torch.Tensor | None, emitting: torch.Tensor, box: BoxFn) -> torch.Tensor:
     """``out`` moved toward ``color`` where the filter's residual is larger than the noise it
     removed (James-Stein shrinkage): ``out + w (color - out)``, all ``(B, 3, H, W)``.
 
@@ -257,7 +257,7 @@ def back_off(out: torch.Tensor, color: torch.Tensor, variance: torch.Tensor | No
 
     The noise: ``variance`` (of the mean, ``(B,1|3,H,W)``) with ``k = 1 + PIPELINE.backoff_margin /
     sqrt(spp - 1)`` (a variance from few samples is itself noisy; a pixel of fewer than 2 samples
-    keeps ``out``; no ``spp``: taken as 2). Without a ``variance`` nothing is done: a noise
+    keeps ``out``; ``spp`` a float, a ``(B,1,H,W)`` plane or None: taken as 2). Without a ``variance`` nothing is done: a noise
     estimate from the image alone cannot tell fine detail from noise, nor noise that a renderer's
     pixel filter made smooth from signal.
 
@@ -271,7 +271,7 @@ def back_off(out: torch.Tensor, color: torch.Tensor, variance: torch.Tensor | No
         >>> bool((fixed - truth).abs().mean() < 0.1 * (blurred - truth).abs().mean())
         True
     """
-    n = _samples(spp)
+    n = samples(spp) if torch.is_tensor(spp) else spp
     if variance is None or n is not None and (n < 2 if isinstance(n, float)
                                               else not is_recording() and float(n.max()) < 2):
         return out  # no variance measured (or no pixel of 2 samples): nothing to compare with
@@ -302,9 +302,14 @@ def back_off(out: torch.Tensor, color: torch.Tensor, variance: torch.Tensor | No
     return torch.addcmul(out.reshape(B, C, -1), w.reshape(B, 1, -1), res.view(B, C, -1)).view(B, C, H, W)
 
 
-def _samples(spp: torch.Tensor | None) -> float | torch.Tensor | None:
-    """The sample count as a float when every pixel has the same (the usual render), else the
-    ``(B,1,H,W)`` plane as floats; None for None."""
+def samples(spp: torch.Tensor | None) -> float | torch.Tensor | None:
+    """The sample count of ``spp (B,1,H,W)`` as a float when every pixel has the same (the usual
+    render), else the plane as float32; None for None.
+
+    Example:
+        >>> samples(torch.full((1, 1, 2, 2), 4)), samples(None)
+        (4.0, None)
+    """
     if spp is None:
         return None
     if not is_recording() and spp.numel() and bool((spp == spp.reshape(-1)[0]).all()):

@@ -29,7 +29,7 @@ from torchgi.core.dtypes import compute_dtype
 from torchgi.core.errors import OptionError
 
 __all__ = [
-    "NAMES", "ORDER", "ATrousOp", "AccumulateOp", "AllocateOp", "BoxOp", "EdgeShareOp", "GuideRaysOp", "GuideSpec",
+    "NAMES", "ORDER", "ATrousOp", "AccumulateOp", "AllocateOp", "BackOffOp", "BoxOp", "EdgeShareOp", "GuideRaysOp", "GuideSpec",
     "GuideStatsOp", "GuidedOp", "ImportanceOp", "PathOp", "RestoreOp", "TraceSetup", "box_mean", "chunks",
     "eager", "embree_started", "enabled", "float32_eager", "mark_embree_started", "run",
     "select", "status", "use",
@@ -237,6 +237,24 @@ class RestoreOp:
 
 
 @dataclass(eq=False, slots=True)
+class BackOffOp:
+    """:func:`torchgi.light.back_off`: ``out (B,3,H,W)`` (a filter's output) moved toward ``color
+    (B,3,H,W)`` where the residual exceeds the noise ``variance (B,1|3,H,W)`` (of the mean, not
+    None), ``spp`` the sample count (a float when every pixel has the same, else a ``(B,1,H,W)``
+    float plane; None: 2), ``emitting (B,1,H,W)`` bool; constants ``settings.PIPELINE``'s. All
+    float tensors of one dtype and device. Returns the ``(B,3,H,W)`` result."""
+
+    out: torch.Tensor
+    color: torch.Tensor
+    variance: torch.Tensor
+    spp: float | torch.Tensor | None
+    emitting: torch.Tensor
+
+    def tensors(self) -> tuple[torch.Tensor | None, ...]:
+        return (self.out, self.color, self.variance)
+
+
+@dataclass(eq=False, slots=True)
 class AccumulateOp:
     """One frame of :mod:`torchgi.temporal`'s reprojection and accumulation for the light
     ``x (B,3,H,W)`` (scaled down to ``bound (B,1,H,W)`` where its channel maximum exceeds it),
@@ -345,10 +363,11 @@ class GuideRaysOp:
         return ()
 
 
-Op = BoxOp | GuidedOp | ATrousOp | ImportanceOp | AllocateOp | GuideStatsOp | EdgeShareOp | RestoreOp | AccumulateOp | \
-    PathOp | GuideRaysOp
+Op = BoxOp | GuidedOp | ATrousOp | ImportanceOp | AllocateOp | GuideStatsOp | EdgeShareOp | RestoreOp | BackOffOp | \
+    AccumulateOp | PathOp | GuideRaysOp
 _OPS = {BoxOp: "box", GuidedOp: "guided", ATrousOp: "atrous", ImportanceOp: "importance", AllocateOp: "allocate",
-        GuideStatsOp: "guide_stats", EdgeShareOp: "edge_share", RestoreOp: "restore", AccumulateOp: "accumulate",
+        GuideStatsOp: "guide_stats", EdgeShareOp: "edge_share", RestoreOp: "restore", BackOffOp: "back_off",
+        AccumulateOp: "accumulate",
         PathOp: "path", GuideRaysOp: "guide_rays"}
 
 

@@ -36,6 +36,7 @@ import torch
 from torchgi.backends.base import (
     AllocateOp,
     ATrousOp,
+    BackOffOp,
     BoxOp,
     EdgeShareOp,
     GuidedOp,
@@ -48,13 +49,13 @@ from torchgi.backends.c_kernels import build
 from torchgi.backends.c_kernels.accumulation import accumulate
 from torchgi.backends.c_kernels.build import describe, library
 from torchgi.backends.c_kernels.filters import atrous, box, guided
-from torchgi.backends.c_kernels.pipeline import edge_share, guide_stats, restore
+from torchgi.backends.c_kernels.pipeline import back_off, edge_share, guide_stats, restore
 from torchgi.backends.c_kernels.runtime import empty_planes, padded
 from torchgi.backends.c_kernels.sampling import allocate, importance
 from torchgi.backends.c_kernels.tracer import _path_support, guide_rays, path
 
 __all__ = [
-    "NAME", "accumulate", "allocate", "atrous", "box", "describe", "edge_share", "empty_planes", "guide_rays",
+    "NAME", "accumulate", "allocate", "atrous", "back_off", "box", "describe", "edge_share", "empty_planes", "guide_rays",
     "guide_stats", "guided", "importance", "library", "padded", "path", "restore", "supports",
 ]
 
@@ -62,7 +63,7 @@ NAME = "c"
 
 
 def supports(op: str, desc: BoxOp | GuidedOp | ATrousOp | ImportanceOp | AllocateOp | GuideStatsOp | EdgeShareOp |
-             RestoreOp) -> str | None:
+             RestoreOp | BackOffOp) -> str | None:
     """None when the kernels take ``desc``: eager float32 CPU tensors (float32/float64
     importance for the allocation, fewer than 2^31 pixels per image), a built library; else why not.
 
@@ -86,4 +87,9 @@ def supports(op: str, desc: BoxOp | GuidedOp | ATrousOp | ImportanceOp | Allocat
         return "the C accumulation takes non-empty images of fewer than 2^31 pixels"
     if op == "restore" and (desc.color.numel() == 0 or desc.color.shape[-2] * desc.color.shape[-1] >= 2**31):
         return "the C pipeline takes non-empty images of fewer than 2^31 pixels"
+    if op == "back_off":
+        if torch.is_tensor(desc.spp):
+            return "per-pixel sample counts: the torch code"
+        if desc.out.numel() == 0 or desc.out.shape[1] != 3 or desc.variance.shape[1] not in (1, 3):
+            return "the C back-off takes non-empty 3-channel images with 1 or 3 variance planes"
     return None if build.library() is not None else build._status

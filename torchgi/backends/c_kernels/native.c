@@ -10,7 +10,7 @@
  */
 #include "common.h"
 
-int torchgi_native_version(void) { return 8; }
+int torchgi_native_version(void) { return 9; }
 
 float torchgi_exp_neg(float d) { return exp_neg(d); }
 

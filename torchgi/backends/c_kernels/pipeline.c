@@ -458,3 +458,58 @@ void torchgi_guided_finish(const float *coef, int n, int Cs, const float *g0, co
         OVER_BANDS(H, upsample_apply_rows(coef, n, Cs, s, h, w, &G, meanI, offset, H, W, out, &L, mask, scr, y0, y1));
     }
 }
+
+/* ---------------------------------------------------------------- back-off (backends.base.BackOffOp)
+ * torchgi.light.back_off in two walks around the box pass: planes = (|color - out|², the summed
+ * noise variance), 0 on emitting pixels; then, from their box means (sums), each pixel's weight
+ * w = clamp(1 - k v / e) (an emitting pixel: 1 - k (noise / |res|² + inv_n)), 0 where the
+ * denominator is at most `floor`; dst = out + w (color - out). var_c: 1 or 3 variance planes. */
+static inline void backoff_pixel(const float *color, const float *out, const float *var, int var_c, size_t i,
+                                 size_t HW, float res[3], float *r2, float *noise) {
+    *r2 = 0.0f;
+    for (int c = 0; c < 3; ++c) {
+        res[c] = color[c * HW + i] - out[c * HW + i];
+        *r2 += res[c] * res[c];
+    }
+    *noise = var_c == 3 ? var[i] + var[HW + i] + var[2 * HW + i] : 3.0f * var[i];
+}
+
+static void backoff_planes_rows(const float *color, const float *out, const float *var, int var_c,
+                                const uint8_t *emit, int W, size_t HW, float *planes, int y0, int y1) {
+    for (size_t i = (size_t)y0 * W; i < (size_t)y1 * W; ++i) {
+        float res[3], r2, noise;
+        backoff_pixel(color, out, var, var_c, i, HW, res, &r2, &noise);
+        planes[i] = emit[i] ? 0.0f : r2;
+        planes[HW + i] = emit[i] ? 0.0f : noise;
+    }
+}
+
+static void backoff_apply_rows(const float *color, const float *out, const float *var, int var_c,
+                               const uint8_t *emit, const float *sums, int W, size_t HW, float k, float inv_n,
+                               float floor, float *dst, int y0, int y1) {
+    for (size_t i = (size_t)y0 * W; i < (size_t)y1 * W; ++i) {
+        float res[3], r2, noise, w;
+        backoff_pixel(color, out, var, var_c, i, HW, res, &r2, &noise);
+        if (emit[i]) {
+            w = r2 > floor ? 1.0f - k * (noise / r2 + inv_n) : 0.0f;
+        } else {
+            const float e = sums[i], v = sums[HW + i];
+            w = e > floor ? 1.0f - k * v / e : 0.0f;
+        }
+        w = fminf(fmaxf(w, 0.0f), 1.0f);
+        for (int c = 0; c < 3; ++c) dst[c * HW + i] = out[c * HW + i] + w * res[c];
+    }
+}
+
+void torchgi_backoff_planes(const float *color, const float *out, const float *var, int var_c, const uint8_t *emit,
+                            int H, int W, float *planes, int nt, void *scratch, long long stride) {
+    const size_t HW = (size_t)H * W;
+    OVER_BANDS(H, backoff_planes_rows(color, out, var, var_c, emit, W, HW, planes, y0, y1));
+}
+
+void torchgi_backoff_apply(const float *color, const float *out, const float *var, int var_c, const uint8_t *emit,
+                           const float *sums, int H, int W, float k, float inv_n, float floor, float *dst, int nt,
+                           void *scratch, long long stride) {
+    const size_t HW = (size_t)H * W;
+    OVER_BANDS(H, backoff_apply_rows(color, out, var, var_c, emit, sums, W, HW, k, inv_n, floor, dst, y0, y1));
+}

@@ -1,11 +1,15 @@
-"""The C back end's Denoiser pipeline: the guide statistics, the edge share and the fused guided
-pipeline (:class:`~torchgi.backends.base.RestoreOp`)."""
+"""The C back end's Denoiser pipeline: the guide statistics, the edge share, the fused guided
+pipeline (:class:`~torchgi.backends.base.RestoreOp`) and the back-off toward the input after it
+(:class:`~torchgi.backends.base.BackOffOp`)."""
 
 from __future__ import annotations
+
+import math
 
 import torch
 
 from torchgi.backends.base import (
+    BackOffOp,
     EdgeShareOp,
     GuideStatsOp,
     RestoreOp,
@@ -160,3 +164,35 @@ def restore(desc: RestoreOp) -> torch.Tensor:
     return out
 
 
+
+
+def back_off(desc: BackOffOp) -> torch.Tensor:
+    """:class:`~torchgi.backends.base.BackOffOp` for one sample count (``desc.spp`` a float or
+    None) in two walks per image around the box pass.
+
+    Example:
+        >>> c = torch.ones(1, 3, 4, 4); lit = torch.zeros(1, 1, 4, 4, dtype=torch.bool)
+        >>> build.library() is None or round(back_off(BackOffOp(c + 1, c, torch.full_like(c, 1e-6), 64.0, lit)).mean().item(), 4)
+        1.0
+    """
+    from torchgi.settings import PIPELINE
+
+    lib = build.library()
+    n = 2.0 if desc.spp is None else float(desc.spp)
+    if n < 2:
+        return desc.out
+    out, color, var = (t.contiguous() for t in (desc.out, desc.color, desc.variance))
+    emit = desc.emitting.contiguous()
+    B, _, H, W = out.shape
+    k = 1 + PIPELINE.backoff_margin / math.sqrt(n - 1)
+    floor = torch.finfo(torch.float32).eps ** 2
+    planes = torch.empty(B, 2, H, W, dtype=torch.float32)
+    for b in range(B):
+        _run(lib.torchgi_backoff_planes, H, W, color[b].data_ptr(), out[b].data_ptr(), var[b].data_ptr(),
+             var.shape[1], emit[b].data_ptr(), H, W, planes[b].data_ptr(), 0)
+    sums = _box(planes, PIPELINE.backoff_radius)
+    dst = torch.empty_like(out)
+    for b in range(B):
+        _run(lib.torchgi_backoff_apply, H, W, color[b].data_ptr(), out[b].data_ptr(), var[b].data_ptr(),
+             var.shape[1], emit[b].data_ptr(), sums[b].data_ptr(), H, W, k, 1 / n, floor, dst[b].data_ptr(), 0)
+    return dst

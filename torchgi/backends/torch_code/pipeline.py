@@ -10,6 +10,7 @@ import torch
 
 from torchgi import light
 from torchgi.backends.base import (
+    BackOffOp,
     EdgeShareOp,
     GuideStatsOp,
     RestoreOp,
@@ -79,3 +80,17 @@ def restore(desc: RestoreOp) -> torch.Tensor:
     return light.restore(desc.color, desc.emission, desc.kept, desc.albedo, light.surface_mask(desc.hit, desc.albedo),
                          lambda x: guided_filter(x, guide, desc.radius, eps, desc.workspace, desc.subsample),
                          desc.firefly, box_mean, desc.level)
+
+
+def back_off(desc: BackOffOp) -> torch.Tensor:
+    """:class:`~torchgi.backends.base.BackOffOp` by :func:`torchgi.light.back_off` in tensor ops
+    (the reference: autograd, tracing, any dtype and device; its box through the seam, as the
+    pipeline's).
+
+    Example:
+        >>> c = torch.ones(1, 3, 4, 4); lit = torch.zeros(1, 1, 4, 4, dtype=torch.bool)
+        >>> round(back_off(BackOffOp(c + 1, c, torch.full_like(c, 1e-6), 64.0, lit)).mean().item(), 4)   # noise-free: the input
+        1.0
+    """
+    d = desc
+    return light.back_off(d.out, d.color, d.variance, d.spp, d.emitting, box_mean)
