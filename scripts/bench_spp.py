@@ -7,7 +7,7 @@
 For each scene of ``configs/scenes/sets.yaml``'s ``--set`` (judged by default: never used for a
 default) and each spp: one noisy render (seed 1) against a ``--ref-spp`` reference (seed 999),
 denoised by the default ``Denoiser()``, the same without its back-off toward the input
-(:func:`torchgi.light.back_off` replaced by the identity: the filter as it was before issue 33), ``Denoiser("atrous")``, ``Denoiser("blend")`` and Intel Open Image Denoise high
+(``denoise._back_off`` replaced by the identity: the filter as it was before issue 33), ``Denoiser("atrous")``, ``Denoiser("blend")`` and Intel Open Image Denoise high
 (pyoidn, both protocols of ``bench_quality.py``; the better counts) → relMSE, PSNR, SSIM, FLIP.
 Writes ``spp.csv/json/md`` and ``spp_<scene>.png`` (relMSE against spp, log-log, per method beside
 the noisy input), and checks issue 33's lines for the default Denoiser: below the noisy input's
@@ -28,7 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_quality import MITSUBA, cases, rendered, scores
 from benchmark_utils import available_scenes, markdown_table, metadata, oidn, scene_sets, write_results
 
-from torchgi import light
+from torchgi import denoise
 from torchgi.denoise import Denoiser
 
 DEFAULT = "torchgi default"
@@ -36,14 +36,14 @@ OIDN = ("OIDN high", "OIDN high, emission added back")
 
 
 def without_back_off(gb):
-    """``Denoiser()(gb)`` with :func:`torchgi.light.back_off` replaced by the identity (the filter's
-    output as it was before issue 33)."""
-    saved = light.back_off
-    light.back_off = lambda out, *_: out
+    """``Denoiser()(gb)`` with its back-off toward the input (``denoise._back_off``, which runs
+    :func:`torchgi.light.back_off`) replaced by the identity: the filter's output."""
+    saved = denoise._back_off
+    denoise._back_off = lambda out, *_: out
     try:
         return Denoiser()(gb)
     finally:
-        light.back_off = saved
+        denoise._back_off = saved
 
 
 def methods() -> dict:

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 import torchgi
-from torchgi import light, metrics
+from torchgi import denoise, metrics
 from torchgi.core.errors import ConfigError, NonFiniteError, ShapeError
 from torchgi.render import CameraPath, scenes
 from torchgi.temporal import DeployedTemporal, TemporalDenoiser, TemporalState, temporal_step
@@ -247,7 +247,7 @@ def test_eight_frames_of_a_still_camera_are_as_good_as_eight_samples(monkeypatch
     assert float(den.state.length.min()) == 8
     assert err < 0.85 * float(metrics.relmse(torchgi.Denoiser()(gbs[-1]), ref))  # one frame's samples
     eight = torchgi.render(scene, spp=8, seed=5)
-    monkeypatch.setattr(light, "back_off", lambda out, *_: out)
+    monkeypatch.setattr(denoise, "_back_off", lambda out, *_: out)
     assert err < 1.1 * float(metrics.relmse(torchgi.Denoiser()(eight), ref))
 
 

@@ -50,7 +50,7 @@ from torchgi.backends.base import (
 )
 
 __all__ = [
-    "NAMES", "ORDER", "ATrousOp", "AccumulateOp", "AllocateOp", "BackOffOp", "BoxOp", "EdgeShareOp", "GuideRaysOp", "GuideSpec",
-    "GuideStatsOp", "GuidedOp", "ImportanceOp", "PathOp", "RestoreOp", "TraceSetup", "box_mean", "chunks",
+    "NAMES", "ORDER", "ATrousOp", "AccumulateOp", "AllocateOp", "BackOffOp", "BoxOp", "EdgeShareOp", "GuideRaysOp",
+    "GuideSpec", "GuideStatsOp", "GuidedOp", "ImportanceOp", "PathOp", "RestoreOp", "TraceSetup", "box_mean", "chunks",
     "embree_started", "enabled", "mark_embree_started", "run", "select", "status", "use",
 ]

@@ -29,8 +29,8 @@ from torchgi.core.dtypes import compute_dtype
 from torchgi.core.errors import OptionError
 
 __all__ = [
-    "NAMES", "ORDER", "ATrousOp", "AccumulateOp", "AllocateOp", "BackOffOp", "BoxOp", "EdgeShareOp", "GuideRaysOp", "GuideSpec",
-    "GuideStatsOp", "GuidedOp", "ImportanceOp", "PathOp", "RestoreOp", "TraceSetup", "box_mean", "chunks",
+    "NAMES", "ORDER", "ATrousOp", "AccumulateOp", "AllocateOp", "BackOffOp", "BoxOp", "EdgeShareOp", "GuideRaysOp",
+    "GuideSpec", "GuideStatsOp", "GuidedOp", "ImportanceOp", "PathOp", "RestoreOp", "TraceSetup", "box_mean", "chunks",
     "eager", "embree_started", "enabled", "float32_eager", "mark_embree_started", "run",
     "select", "status", "use",
 ]
@@ -367,8 +367,7 @@ Op = BoxOp | GuidedOp | ATrousOp | ImportanceOp | AllocateOp | GuideStatsOp | Ed
     AccumulateOp | PathOp | GuideRaysOp
 _OPS = {BoxOp: "box", GuidedOp: "guided", ATrousOp: "atrous", ImportanceOp: "importance", AllocateOp: "allocate",
         GuideStatsOp: "guide_stats", EdgeShareOp: "edge_share", RestoreOp: "restore", BackOffOp: "back_off",
-        AccumulateOp: "accumulate",
-        PathOp: "path", GuideRaysOp: "guide_rays"}
+        AccumulateOp: "accumulate", PathOp: "path", GuideRaysOp: "guide_rays"}
 
 
 def eager(desc: Op) -> str | None:

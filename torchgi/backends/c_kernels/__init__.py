@@ -55,8 +55,8 @@ from torchgi.backends.c_kernels.sampling import allocate, importance
 from torchgi.backends.c_kernels.tracer import _path_support, guide_rays, path
 
 __all__ = [
-    "NAME", "accumulate", "allocate", "atrous", "back_off", "box", "describe", "edge_share", "empty_planes", "guide_rays",
-    "guide_stats", "guided", "importance", "library", "padded", "path", "restore", "supports",
+    "NAME", "accumulate", "allocate", "atrous", "back_off", "box", "describe", "edge_share", "empty_planes",
+    "guide_rays", "guide_stats", "guided", "importance", "library", "padded", "path", "restore", "supports",
 ]
 
 NAME = "c"

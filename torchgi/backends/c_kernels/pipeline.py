@@ -25,6 +25,7 @@ from torchgi.backends.c_kernels.runtime import (
     _threads,
 )
 from torchgi.core.dtypes import variance_rounding
+from torchgi.settings import PIPELINE
 
 
 def guide_stats(desc: GuideStatsOp) -> torch.Tensor:
@@ -101,7 +102,6 @@ def restore(desc: RestoreOp) -> torch.Tensor:
         True
     """
     from torchgi.core.check import check_finite
-    from torchgi.settings import PIPELINE
 
     lib = build.library()
     color, albedo = desc.color.contiguous(), desc.albedo.contiguous()
@@ -164,8 +164,6 @@ def restore(desc: RestoreOp) -> torch.Tensor:
     return out
 
 
-
-
 def back_off(desc: BackOffOp) -> torch.Tensor:
     """:class:`~torchgi.backends.base.BackOffOp` for one sample count (``desc.spp`` a float or
     None) in two walks per image around the box pass.
@@ -175,8 +173,6 @@ def back_off(desc: BackOffOp) -> torch.Tensor:
         >>> build.library() is None or round(back_off(BackOffOp(c + 1, c, torch.full_like(c, 1e-6), 64.0, lit)).mean().item(), 4)
         1.0
     """
-    from torchgi.settings import PIPELINE
-
     lib = build.library()
     n = 2.0 if desc.spp is None else float(desc.spp)
     if n < 2:
