@@ -30,21 +30,31 @@ def test_metrics_command(tmp_path, capsys):
     pytest.importorskip("OpenEXR")
     g = torch.Generator().manual_seed(0)
     ref = torch.rand(3, 16, 16, generator=g)
-    img = ref + 0.1 * torch.rand(3, 16, 16, generator=g)
+    imgs = [ref + 0.1 * torch.rand(3, 16, 16, generator=g), ref * 1.5]
     write_exr(tmp_path / "ref.exr", {"": ref})
-    write_exr(tmp_path / "img.exr", {"color": img})
-    assert main(["metrics", str(tmp_path / "ref.exr"), str(tmp_path / "img.exr"), "--json"]) == 0
-    table = json.loads(capsys.readouterr().out)
-    d = (img.double() - ref.double()).numpy()
-    np.testing.assert_allclose(table["mse"], (d**2).mean(), rtol=1e-5)
-    assert set(table) == {"mse", "relmse", "psnr_db", "ssim", "flip"}
+    paths = [str(tmp_path / f"img{k}.exr") for k in range(2)]
+    for path, img in zip(paths, imgs, strict=True):
+        write_exr(path, {"color": img})
+    assert main(["metrics", *paths, "--ref", str(tmp_path / "ref.exr"), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["reference"] == str(tmp_path / "ref.exr") and list(out["images"]) == paths
+    for path, img in zip(paths, imgs, strict=True):
+        table, d = out["images"][path], (img.double() - ref.double()).numpy()
+        assert set(table) == {"mse", "relmse", "psnr_db", "ssim", "flip"}
+        np.testing.assert_allclose(table["mse"], (d**2).mean(), rtol=1e-5)
+        np.testing.assert_allclose(table["relmse"], (d**2 / (ref.double().numpy() ** 2 + 1e-2)).mean(), rtol=1e-5)
+    assert main(["metrics", paths[1], "--ref", str(tmp_path / "ref.exr")]) == 0
+    assert capsys.readouterr().out.startswith(f"reference (--ref): {tmp_path / 'ref.exr'}")
 
 
 def test_metrics_command_errors(tmp_path, capsys):
     pytest.importorskip("OpenEXR")
     write_exr(tmp_path / "ref.exr", {"albedo": torch.rand(3, 4, 4)})
-    assert main(["metrics", str(tmp_path / "ref.exr"), str(tmp_path / "ref.exr")]) == 2
+    assert main(["metrics", str(tmp_path / "ref.exr"), "--ref", str(tmp_path / "ref.exr")]) == 2
     assert "missing required layer(s) color" in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # the old positional order REF IMG: the reference must be named
+        main(["metrics", str(tmp_path / "ref.exr"), str(tmp_path / "ref.exr")])
+    assert "--ref" in capsys.readouterr().err
 
 
 def test_demo_runs_end_to_end(tmp_path):

@@ -79,19 +79,25 @@ def image_metrics(x: torch.Tensor, ref: torch.Tensor) -> dict[str, float]:
 
 
 def cmd_metrics(args: argparse.Namespace) -> int:
-    """Compare the colour layers of two EXR files."""
+    """Compare the colour layer of each IMG with that of ``--ref``. relMSE (and FLIP, SSIM) are not
+    symmetric, so the reference is a flag and the output names it."""
     from torchgi.io import read_aovs
 
     ref = read_aovs(args.ref)["color"].float()[None]
-    img = read_aovs(args.img)["color"].float()[None]
-    if ref.shape != img.shape:
-        raise TorchGIError(f"IMG: size {tuple(img.shape[-2:])} differs from REF's {tuple(ref.shape[-2:])}")
-    table = image_metrics(img, ref)
+    rows = {}
+    for path in args.img:
+        img = read_aovs(path)["color"].float()[None]
+        if img.shape != ref.shape:
+            raise TorchGIError(f"{path}: size {tuple(img.shape[-2:])} differs from --ref's {tuple(ref.shape[-2:])}")
+        rows[path] = image_metrics(img, ref)
     if args.json:
-        print(json.dumps(table))
-    else:
+        print(json.dumps({"reference": args.ref, "images": rows}))
+        return 0
+    print(f"reference (--ref): {args.ref}")
+    for path, table in rows.items():
+        print(path)
         for key, value in table.items():
-            print(f"{key:8s} {value:.6g}")
+            print(f"  {key:8s} {value:.6g}")
     return 0
 
 
@@ -220,10 +226,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_info)
 
-    p = sub.add_parser("metrics", help="MSE, relMSE, PSNR, SSIM, FLIP of IMG against REF (EXR colour layers)")
-    p.add_argument("ref", help="reference EXR")
-    p.add_argument("img", help="EXR to evaluate")
-    p.add_argument("--json", action="store_true")
+    p = sub.add_parser("metrics", help="MSE, relMSE, PSNR, SSIM, FLIP of each IMG against --ref (EXR colour layers)")
+    p.add_argument("img", nargs="+", help="EXR file(s) to evaluate")
+    p.add_argument("--ref", required=True, help="the reference EXR (relMSE is not symmetric: it is named, not guessed)")
+    p.add_argument("--json", action="store_true", help='one JSON object: {"reference": REF, "images": {IMG: {...}}}')
     p.set_defaults(func=cmd_metrics)
 
     p = sub.add_parser("render", help="path-trace a scene into a multi-layer EXR (needs the render and exr extras)")
