@@ -119,5 +119,7 @@ def test_denoise_command_on_a_mitsuba_render(tmp_path, capsys):
     tiled = tmp_path / "tiled.exr"
     assert main(["denoise", str(tmp_path / "noisy.exr"), "--max-memory-mb", "1", "--out", str(tiled)]) == 0
     assert float((read_aovs(tiled)["color"][None] - den).abs().max()) <= 1e-5 * float(den.abs().max())
+    capsys.readouterr()
     assert main(["denoise", str(tmp_path / "noisy.exr"), "--out", str(out)]) == 2  # never overwrites
-    assert "exists" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert f"--out: {out} exists; pass --overwrite" in err and "overwrite=True" not in err  # the flag, not Python

@@ -291,7 +291,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except (TorchGIError, FileNotFoundError, FileExistsError, PermissionError, ValueError) as exc:
+    except FileExistsError as exc:  # the library speaks Python (path, overwrite=True); the shell has flags
+        message = str(exc).replace("path: ", "--out: ", 1).replace("overwrite=True", "--overwrite")
+        print(f"torchgi {args.command}: error: {message}", file=sys.stderr)
+        return 2
+    except (TorchGIError, FileNotFoundError, PermissionError, ValueError) as exc:
         print(f"torchgi {args.command}: error: {exc}", file=sys.stderr)
         return 2
 
