@@ -301,18 +301,25 @@ def plot(rows: list[dict], out: Path) -> None:
         plt.close(fig)
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", default="out/bench")
+def case_args(doc: str, out: str, spp: list[int]) -> argparse.Namespace:
+    """The command line of a benchmark over :func:`cases` (``--out``, ``--set`` / ``--scenes``,
+    ``--spp``, ``--size``, ``--ref-spp``, ``--bounces``) parsed, ``scenes`` resolved from the set."""
+    ap = argparse.ArgumentParser(description=doc.splitlines()[0])
+    ap.add_argument("--out", default=out)
     ap.add_argument("--set", default="judged", choices=("judged", "tuning", "training"),
                     help="the scene set of configs/scenes/sets.yaml to run (default: judged)")
     ap.add_argument("--scenes", nargs="+", help="these entries instead of --set's (sets.yaml's syntax)")
-    ap.add_argument("--spp", type=int, nargs="+", default=[1, 4])
+    ap.add_argument("--spp", type=int, nargs="+", default=spp)
     ap.add_argument("--size", type=int, default=256)
     ap.add_argument("--ref-spp", type=int, default=1024)
     ap.add_argument("--bounces", type=int, default=2)
     args = ap.parse_args()
     args.scenes = args.scenes or scene_sets()[args.set]
+    return args
+
+
+def main() -> None:
+    args = case_args(__doc__, "out/bench", [1, 4])
     torch.set_num_threads(2)
     rows = run(args)
     meta = metadata(torch.get_num_threads())

@@ -17,7 +17,6 @@ material, within 2x OIDN high's at 8 spp.
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
@@ -25,8 +24,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_quality import MITSUBA, cases, rendered, scores
-from benchmark_utils import available_scenes, markdown_table, metadata, oidn, scene_sets, write_results
+from bench_quality import MITSUBA, case_args, cases, rendered, scores
+from benchmark_utils import available_scenes, markdown_table, metadata, oidn, write_results
 
 from torchgi import denoise
 from torchgi.denoise import Denoiser
@@ -133,16 +132,7 @@ def plot(rows: list[dict], out: Path) -> None:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", default="out/bench-spp")
-    ap.add_argument("--set", default="judged", choices=("judged", "tuning", "training"))
-    ap.add_argument("--scenes", nargs="+", help="these entries instead of --set's (sets.yaml's syntax)")
-    ap.add_argument("--spp", type=int, nargs="+", default=[1, 2, 4, 8, 16, 32, 64])
-    ap.add_argument("--size", type=int, default=256)
-    ap.add_argument("--ref-spp", type=int, default=1024)
-    ap.add_argument("--bounces", type=int, default=2)
-    args = ap.parse_args()
-    args.scenes = args.scenes or scene_sets()[args.set]
+    args = case_args(__doc__, "out/bench-spp", [1, 2, 4, 8, 16, 32, 64])
     torch.set_num_threads(2)
     rows = run(args)
     out = Path(args.out)

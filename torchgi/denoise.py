@@ -361,7 +361,7 @@ class Denoiser(torch.nn.Module):
         surfaces (>= 1/4), so noisier images get wider filters; otherwise the mean ``spp`` (>= 1)."""
         if gb.spp is None:
             return 1.0
-        spp = max(float(gb.spp.sum()) / max(gb.spp.numel(), 1), 1.0)
+        spp = max(_mean_spp(gb.spp), 1.0)
         if gb.variance is None or gb.color is None:
             return spp
         if int(gb.spp.min()) < 2 and bool(((gb.spp < 2) & surface).any()):
@@ -382,7 +382,7 @@ class Denoiser(torch.nn.Module):
         behind it in docs/calibration.md)."""
         if "subsample" in self.filter_params:
             return self.filter_params["subsample"]
-        mean_spp = 1.0 if spp is None else float(spp.sum()) / max(spp.numel(), 1)
+        mean_spp = 1.0 if spp is None else _mean_spp(spp)
         if min(H, W) < GUIDED.subsample_from or self.quality == "high" or mean_spp >= GUIDED.full_from_spp:
             return 1
         return 2 if backends.run(backends.EdgeShareOp(spec, GUIDED.edge)) < GUIDED.edge_share else 1
@@ -421,6 +421,11 @@ class Denoiser(torch.nn.Module):
                               sigma_color=p.get("sigma_color", BILATERAL.sigma_color),
                               sigma_guides=[BILATERAL.sigma_guide] * len(guides))
         return out / scale
+
+
+def _mean_spp(spp: torch.Tensor) -> float:
+    """The mean of a ``(B,1,H,W)`` sample-count plane (0 for an empty one)."""
+    return float(spp.sum()) / max(spp.numel(), 1)
 
 
 def _back_off(out: torch.Tensor, gb: GBuffer, surface: torch.Tensor, level: torch.Tensor, rows: slice = slice(None),
