@@ -39,3 +39,53 @@ def scene_fingerprint(scene) -> tuple[tuple, frozenset]:
                        + np.asarray(m.faces, np.int64).tobytes()).hexdigest()
         for m in scene.meshes)
     return camera, geometry
+
+
+def check_weights_provenance(weights, script: str, load) -> None:
+    """A shipped weights file (:meth:`save` JSON of a learned filter) is small, loads to its own
+    config with ``load``, comes from a clean commit by ``script``, names its data by a SHA-256,
+    and was trained on scenes that are none of the tuning or judged scenes, compared by geometry
+    and camera (tests/test_scene_sets.py), not by name; skips (after the other checks) when
+    some training scenes need the shared meshes."""
+    import json
+    import re
+
+    import pytest
+
+    from tests.test_scene_sets import SCENES, clashes, read_sets
+
+    assert weights.stat().st_size < 2_000_000
+    data = json.loads(weights.read_text())
+    prov = data["provenance"]
+    assert re.fullmatch(r"[0-9a-f]{40}", prov["commit"]) and prov["dirty"] is False
+    assert re.fullmatch(r"[0-9a-f]{64}", prov["data_sha256"])
+    assert prov["script"] == script
+    assert load(weights).config() == data["config"]
+    data_gen = SCENES.parent / "data_gen"
+    trained_on = [str((data_gen / s).resolve()) for s in prov["data_config"]["scenes"]]
+    found, missing = clashes({**read_sets(), "training": trained_on})
+    assert not found, found
+    if missing:
+        pytest.skip(f"checked the training scenes without {missing}: they need the shared meshes (TORCHGI_MESHES)")
+
+
+def check_data_hash(weights, folder, config: str) -> None:
+    """The data hash of a weights file recomputed from the shards' bytes (the training scripts'
+    definition, ``train_blend.data_sha256``: the index's config, then each file's name and
+    SHA-256, sorted by name) when the data are in ``folder``; skips naming the datagen command
+    (``torchgi datagen <config>``) otherwise."""
+    import hashlib
+    import json
+
+    import pytest
+
+    if not (folder / "index.json").is_file():
+        pytest.skip(f"no training data at {folder}: render it with torchgi datagen {config} --out {folder} "
+                    f"to check the hash")
+    index = json.loads((folder / "index.json").read_text())
+    h = hashlib.sha256(json.dumps(index["config"], sort_keys=True).encode())
+    for name in sorted({s["file"] for s in index["shards"]} | {s["reference_file"] for s in index["shards"]}):
+        h.update(f"{name}:{hashlib.sha256((folder / name).read_bytes()).hexdigest()}\n".encode())
+    prov = json.loads(weights.read_text())["provenance"]
+    assert h.hexdigest() == prov["data_sha256"]
+    assert prov["data_config"] == index["config"]

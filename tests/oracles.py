@@ -38,36 +38,46 @@ def guided_oracle(p: torch.Tensor, I: torch.Tensor, r: int, eps, coefficients: b
     return (ma * I[:, :, None]).sum(1) + box_oracle(b, r)
 
 
+def block_means(x: torch.Tensor, s: int) -> torch.Tensor:
+    """``s x s`` means of ``x (B, C, H, W)`` in float64 loops (partial blocks at the far edges
+    average what exists)."""
+    h, w = -(-x.shape[-2] // s), -(-x.shape[-1] // s)
+    out = torch.zeros(x.shape[0], x.shape[1], h, w, dtype=torch.float64)
+    for i in range(h):
+        for j in range(w):
+            out[:, :, i, j] = x[:, :, i * s : (i + 1) * s, j * s : (j + 1) * s].double().mean((2, 3))
+    return out
+
+
+def bilinear_rows(n_out: int, n_in: int, s: int) -> torch.Tensor:
+    """``(n_out, n_in)`` float64 weights of bilinear upsampling by the factor ``s`` with pixel
+    centres aligned (u = (i + 0.5) / s - 0.5, clamped to the image)."""
+    rows = []
+    for i in range(n_out):
+        u = max((i + 0.5) / s - 0.5, 0.0)
+        i0 = min(math.floor(u), n_in - 1)
+        i1 = min(i0 + 1, n_in - 1)
+        row = torch.zeros(n_in, dtype=torch.float64)
+        row[i0] += 1 - (u - i0)
+        row[i1] += u - i0
+        rows.append(row)
+    return torch.stack(rows)
+
+
+def upsample(x: torch.Tensor, s: int, size: tuple[int, int]) -> torch.Tensor:
+    """:func:`bilinear_rows` upsampling of ``x (..., h, w)`` to ``size`` by the factor ``s``."""
+    return torch.einsum("Hh,...hw,Ww->...HW", bilinear_rows(size[0], x.shape[-2], s), x.double(),
+                        bilinear_rows(size[1], x.shape[-1], s))
+
+
 def fast_guided_oracle(p: torch.Tensor, I: torch.Tensor, r: int, eps, s: int) -> torch.Tensor:
     """He & Sun 2015 in float64 loops: s x s means (partial blocks at the far edges average what
     exists), coefficients at radius round(r / s), bilinear upsampling by the factor s with pixel
     centres aligned (u = (i + 0.5) / s - 0.5, clamped to the image; the same grid whatever the
     size, so tiles agree), applied to the full-resolution guide."""
     p, I = p.double(), I.double()
-    _B, _C, H, W = p.shape
-    h, w = -(-H // s), -(-W // s)
-
-    def down(x):
-        out = torch.zeros(x.shape[0], x.shape[1], h, w, dtype=torch.float64)
-        for i in range(h):
-            for j in range(w):
-                out[:, :, i, j] = x[:, :, i * s : (i + 1) * s, j * s : (j + 1) * s].mean((2, 3))
-        return out
-
-    def weights(n_out, n_in):
-        rows = []
-        for i in range(n_out):
-            u = max((i + 0.5) / s - 0.5, 0.0)
-            i0 = min(math.floor(u), n_in - 1)
-            i1 = min(i0 + 1, n_in - 1)
-            row = torch.zeros(n_in, dtype=torch.float64)
-            row[i0] += 1 - (u - i0)
-            row[i1] += u - i0
-            rows.append(row)
-        return torch.stack(rows)
-
-    co = guided_oracle(down(p), down(I), round(r / s), eps, coefficients=True)  # (B, n+1, C, h, w)
-    up = torch.einsum("Hh,bnchw,Ww->bncHW", weights(H, h), co, weights(W, w))
+    co = guided_oracle(block_means(p, s), block_means(I, s), round(r / s), eps, coefficients=True)  # (B, n+1, C, h, w)
+    up = upsample(co, s, p.shape[-2:])
     n = I.shape[1]
     return (up[:, :n] * I[:, :, None]).sum(1) + up[:, n]
 

@@ -4,12 +4,10 @@ ONNX parity, bad input, and the shipped weights' provenance (nothing from a benc
 
 from __future__ import annotations
 
-import json
-import re
-
 import pytest
 import torch
 
+from tests.helpers import check_data_hash, check_weights_provenance
 from tests.helpers import rel_error as rel
 from tests.oracles import box_oracle, guided_oracle
 from torchgi.core import NonFiniteError, RangeError
@@ -136,45 +134,16 @@ def test_bad_input():
 
 
 def test_the_shipped_weights_say_where_they_came_from():
-    """Small, loadable without a network, trained from a clean commit on scenes that are none of
-    the tuning or judged scenes: compared by geometry and camera (tests/test_scene_sets.py), not
-    by name."""
-    from tests.test_scene_sets import SCENES, clashes, read_sets
-
-    assert WEIGHTS.stat().st_size < 1_000_000
-    data = json.loads(WEIGHTS.read_text())
-    prov = data["provenance"]
-    assert re.fullmatch(r"[0-9a-f]{40}", prov["commit"]) and prov["dirty"] is False
-    assert re.fullmatch(r"[0-9a-f]{64}", prov["data_sha256"])
-    assert prov["script"] == "scripts/train_blend.py"
-    assert BlendNet.load(WEIGHTS).config() == data["config"]
-    data_gen = SCENES.parent / "data_gen"
-    trained_on = [str((data_gen / s).resolve()) for s in prov["data_config"]["scenes"]]
-    found, missing = clashes({**read_sets(), "training": trained_on})
-    assert not found, found
-    if missing:
-        pytest.skip(f"checked the training scenes without {missing}: they need the shared meshes (TORCHGI_MESHES)")
+    check_weights_provenance(WEIGHTS, "scripts/train_blend.py", BlendNet.load)
 
 
 def test_the_shipped_weights_name_the_data_they_were_trained_on():
-    """The data hash recomputed from the shards' bytes (scripts/train_blend.py's definition: the
-    index's config, then each file's name and SHA-256, sorted by name), when the data are here:
-    ``$TORCHGI_BLEND_DATA`` or out/datagen-blend (``torchgi datagen configs/data_gen/blend.yaml``)."""
-    import hashlib
+    """When the data are here: ``$TORCHGI_BLEND_DATA`` or out/datagen-blend."""
     import os
     from pathlib import Path
 
     folder = Path(os.environ.get("TORCHGI_BLEND_DATA", Path(__file__).resolve().parents[1] / "out" / "datagen-blend"))
-    if not (folder / "index.json").is_file():
-        pytest.skip(f"no training data at {folder}: render it with torchgi datagen configs/data_gen/blend.yaml "
-                    f"--out {folder} to check the hash")
-    index = json.loads((folder / "index.json").read_text())
-    h = hashlib.sha256(json.dumps(index["config"], sort_keys=True).encode())
-    for name in sorted({s["file"] for s in index["shards"]} | {s["reference_file"] for s in index["shards"]}):
-        h.update(f"{name}:{hashlib.sha256((folder / name).read_bytes()).hexdigest()}\n".encode())
-    prov = json.loads(WEIGHTS.read_text())["provenance"]
-    assert h.hexdigest() == prov["data_sha256"]
-    assert prov["data_config"] == index["config"]
+    check_data_hash(WEIGHTS, folder, "configs/data_gen/blend.yaml")
 
 
 @pytest.mark.slow
