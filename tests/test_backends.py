@@ -15,7 +15,16 @@ import pytest
 import torch
 
 from tests.helpers import last_backend, rel_error, rel_range
-from tests.oracles import ATROUS_CASES, atrous_case, atrous_error, box_oracle, fast_guided_oracle, guided_oracle, scene
+from tests.oracles import (
+    ATROUS_CASES,
+    atrous_case,
+    atrous_error,
+    box_oracle,
+    fast_guided_oracle,
+    guided_oracle,
+    scene,
+    upsample,
+)
 from tests.test_sampling import geometry, hamilton_oracle, importance_oracle
 from torchgi import backends
 from torchgi.core import OptionError
@@ -87,6 +96,22 @@ def test_guided_subsampled_grid(backend, device, dt):
     got = guided(p.to(device, dt), I.to(device, dt), radius=6, eps=0.01, subsample=2)
     assert last_backend("guided") == _expected(backend, dt, "guided", device)
     assert rel_range(got, fast_guided_oracle(p, I, 6, 0.01, 2)) < 10 * TOL[dt]
+
+
+@pytest.mark.parametrize("dt", [torch.float32, torch.float64])
+@pytest.mark.parametrize("n", [1, 4])
+def test_upsample_apply_grid(backend, device, dt, n):
+    """Coefficients at half resolution upsampled and applied: the oracle's bilinear weights
+    (pixel centres aligned, clamped) in float64, odd and even sizes, one pixel."""
+    g = torch.Generator().manual_seed(n)
+    for H, W in ((1, 1), (9, 14), (37, 53)):
+        c = torch.randn(2, n + 1, 3, (H + 1) // 2, (W + 1) // 2, generator=g)
+        I = torch.randn(2, n, H, W, generator=g)
+        got = backends.run(backends.UpsampleApplyOp(c.to(device, dt), I.to(device, dt)))
+        assert last_backend("upsample_apply") == _expected(backend, dt, "upsample_apply", device)
+        up = upsample(c, 2, (H, W))
+        ref = up[:, n] + (up[:, :n] * I.double()[:, :, None]).sum(1)
+        assert got.dtype == dt and rel_error(got, ref) < 10 * TOL[dt], (H, W)
 
 
 @pytest.mark.parametrize("dt", [torch.float32, torch.float64])

@@ -1,6 +1,6 @@
 """Back ends: every kernel of torchgi chosen in one place.
 
-An op (box, guided, atrous, importance, allocate, the Denoiser's guide statistics, edge share
+An op (box, guided, the upsampling and application of linear-model coefficients, atrous, importance, allocate, the Denoiser's guide statistics, edge share
 and restore pipeline, the temporal accumulation, and a tile of the renderer's path tracer) is described by a small dataclass in one
 convention (:class:`BoxOp`, :class:`GuidedOp`, :class:`ATrousOp`, :class:`ImportanceOp`,
 :class:`AllocateOp`); :func:`run` hands it to the first back end that supports it, in the
@@ -38,6 +38,7 @@ from torchgi.backends.base import (
     PathOp,
     RestoreOp,
     TraceSetup,
+    UpsampleApplyOp,
     box_mean,
     chunks,
     embree_started,
@@ -51,6 +52,7 @@ from torchgi.backends.base import (
 
 __all__ = [
     "NAMES", "ORDER", "ATrousOp", "AccumulateOp", "AllocateOp", "BackOffOp", "BoxOp", "EdgeShareOp", "GuideRaysOp",
-    "GuideSpec", "GuideStatsOp", "GuidedOp", "ImportanceOp", "PathOp", "RestoreOp", "TraceSetup", "box_mean", "chunks",
+    "GuideSpec", "GuideStatsOp", "GuidedOp", "ImportanceOp", "PathOp", "RestoreOp", "TraceSetup", "UpsampleApplyOp",
+    "box_mean", "chunks",
     "embree_started", "enabled", "mark_embree_started", "run", "select", "status", "use",
 ]

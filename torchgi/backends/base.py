@@ -30,7 +30,7 @@ from torchgi.core.errors import OptionError
 
 __all__ = [
     "NAMES", "ORDER", "ATrousOp", "AccumulateOp", "AllocateOp", "BackOffOp", "BoxOp", "EdgeShareOp", "GuideRaysOp",
-    "GuideSpec", "GuideStatsOp", "GuidedOp", "ImportanceOp", "PathOp", "RestoreOp", "TraceSetup", "box_mean", "chunks",
+    "GuideSpec", "GuideStatsOp", "GuidedOp", "ImportanceOp", "PathOp", "RestoreOp", "TraceSetup", "UpsampleApplyOp", "box_mean", "chunks",
     "eager", "embree_started", "enabled", "float32_eager", "mark_embree_started", "run",
     "select", "status", "use",
 ]
@@ -77,6 +77,20 @@ class GuidedOp:
 
     def tensors(self) -> tuple[torch.Tensor | None, ...]:
         return (self.guide, self.src, self.eps)
+
+
+@dataclass(eq=False, slots=True)
+class UpsampleApplyOp:
+    """Linear-model coefficients ``coeffs (B,n+1,Cs,h,w)`` (``a_0..a_{n-1}, b``) at half
+    resolution, ``h, w = ⌈H/2⌉, ⌈W/2⌉``, upsampled bilinearly x2 (torch's ``interpolate``,
+    ``align_corners=False``, cropped to ``H x W``) and applied to the centred ``guide (B,n,H,W)``
+    (n <= 4): returns ``b + Σ_i a_i guide_i``, ``(B,Cs,H,W)``."""
+
+    coeffs: torch.Tensor
+    guide: torch.Tensor
+
+    def tensors(self) -> tuple[torch.Tensor | None, ...]:
+        return (self.coeffs, self.guide)
 
 
 @dataclass(eq=False, slots=True)
@@ -365,7 +379,7 @@ class GuideRaysOp:
 
 Op = BoxOp | GuidedOp | ATrousOp | ImportanceOp | AllocateOp | GuideStatsOp | EdgeShareOp | RestoreOp | BackOffOp | \
     AccumulateOp | PathOp | GuideRaysOp
-_OPS = {BoxOp: "box", GuidedOp: "guided", ATrousOp: "atrous", ImportanceOp: "importance", AllocateOp: "allocate",
+_OPS = {BoxOp: "box", GuidedOp: "guided", UpsampleApplyOp: "upsample_apply", ATrousOp: "atrous", ImportanceOp: "importance", AllocateOp: "allocate",
         GuideStatsOp: "guide_stats", EdgeShareOp: "edge_share", RestoreOp: "restore", BackOffOp: "back_off",
         AccumulateOp: "accumulate", PathOp: "path", GuideRaysOp: "guide_rays"}
 

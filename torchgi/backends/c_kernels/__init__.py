@@ -43,12 +43,13 @@ from torchgi.backends.base import (
     GuideStatsOp,
     ImportanceOp,
     RestoreOp,
+    UpsampleApplyOp,
     float32_eager,
 )
 from torchgi.backends.c_kernels import build
 from torchgi.backends.c_kernels.accumulation import accumulate
 from torchgi.backends.c_kernels.build import describe, library
-from torchgi.backends.c_kernels.filters import atrous, box, guided
+from torchgi.backends.c_kernels.filters import atrous, box, guided, upsample_apply
 from torchgi.backends.c_kernels.pipeline import back_off, edge_share, guide_stats, restore
 from torchgi.backends.c_kernels.runtime import empty_planes, padded
 from torchgi.backends.c_kernels.sampling import allocate, importance
@@ -57,13 +58,14 @@ from torchgi.backends.c_kernels.tracer import _path_support, guide_rays, path
 __all__ = [
     "NAME", "accumulate", "allocate", "atrous", "back_off", "box", "describe", "edge_share", "empty_planes",
     "guide_rays", "guide_stats", "guided", "importance", "library", "padded", "path", "restore", "supports",
+    "upsample_apply",
 ]
 
 NAME = "c"
 
 
 def supports(op: str, desc: BoxOp | GuidedOp | ATrousOp | ImportanceOp | AllocateOp | GuideStatsOp | EdgeShareOp |
-             RestoreOp | BackOffOp) -> str | None:
+             RestoreOp | BackOffOp | UpsampleApplyOp) -> str | None:
     """None when the kernels take ``desc``: eager float32 CPU tensors (float32/float64
     importance for the allocation, fewer than 2^31 pixels per image), a built library; else why not.
 
@@ -87,6 +89,10 @@ def supports(op: str, desc: BoxOp | GuidedOp | ATrousOp | ImportanceOp | Allocat
         return "the C accumulation takes non-empty images of fewer than 2^31 pixels"
     if op == "restore" and (desc.color.numel() == 0 or desc.color.shape[-2] * desc.color.shape[-1] >= 2**31):
         return "the C pipeline takes non-empty images of fewer than 2^31 pixels"
+    if op == "upsample_apply":
+        C, (n, H, W) = desc.coeffs.shape[2], desc.guide.shape[1:]
+        if n > 4 or C > 64 or H * W == 0 or H * W >= 2**31:
+            return "the C upsampling takes at most 4 guide planes, 64 channels, 1 to 2^31 pixels"
     if op == "back_off":
         if torch.is_tensor(desc.spp):
             return "per-pixel sample counts: the torch code"

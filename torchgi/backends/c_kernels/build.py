@@ -59,6 +59,7 @@ _SIGNATURES = {
     "torchgi_scene_free": ([_P], None),
     "torchgi_render_pixels": ([_P, _P, _L, _P, _L, _P, _P, _I], None),
     "torchgi_render_guides": ([_P, _P, _L, _P, _I], None),
+    "torchgi_upsample_apply": ([_P, _I, _I, _P, _P, _P, _P, _I, _I, _P, *_BANDS], None),
     "torchgi_guided_finish": ([_P, _I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _I, _I, _I, _I, _P, _P, _P, _P, _P, _P, _F,
                                _P, *_BANDS], None),
 }

@@ -9,6 +9,7 @@ from torchgi.backends.base import (
     ATrousOp,
     BoxOp,
     GuidedOp,
+    UpsampleApplyOp,
 )
 from torchgi.backends.c_kernels import build
 from torchgi.backends.c_kernels.runtime import (
@@ -116,6 +117,29 @@ def _guided(
 
 
 # ---------------------------------------------------------------------------------------- ops
+def upsample_apply(desc: UpsampleApplyOp) -> torch.Tensor:
+    """:class:`~torchgi.backends.base.UpsampleApplyOp` in one walk per image (the fast guided
+    filter's last pass of the Denoiser's pipeline, without its remodulation).
+
+    Example:
+        >>> c = torch.zeros(1, 2, 1, 2, 2); c[:, 1] = 3.0   # a = 0, b = 3
+        >>> out = build.library() is None or upsample_apply(UpsampleApplyOp(c, torch.rand(1, 1, 4, 3)))
+        >>> out is True or bool((out == 3).all())
+        True
+    """
+    lib = build.library()
+    coeffs, guide = desc.coeffs.contiguous(), desc.guide.contiguous()
+    B, n, H, W = guide.shape
+    Cs, w = coeffs.shape[2], coeffs.shape[-1]
+    out = torch.empty(B, Cs, H, W, dtype=torch.float32)
+    for b in range(B):
+        planes = [guide[b, i].data_ptr() for i in range(n)] + [None] * (4 - n)
+        _run(lib.torchgi_upsample_apply, H, W, coeffs[b].data_ptr(), n, Cs, *planes, H, W, out[b].data_ptr(),
+             7 * W + w)
+    return out
+
+
+
 def box(desc: BoxOp) -> torch.Tensor:
     """:class:`~torchgi.backends.base.BoxOp` by the guided kernel's box passes.
 

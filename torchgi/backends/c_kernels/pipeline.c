@@ -459,6 +459,16 @@ void torchgi_guided_finish(const float *coef, int n, int Cs, const float *g0, co
     }
 }
 
+/* backends.base.UpsampleApplyOp: coefficient planes at half resolution upsampled x2 and applied
+ * to n <= 4 centred guide planes, no remodulation. */
+void torchgi_upsample_apply(const float *coef, int n, int Cs, const float *g0, const float *g1, const float *g2,
+                            const float *g3, int H, int W, float *out, int nt, void *scratch, long long stride) {
+    static const float ones[4] = {1, 1, 1, 1}, zeros[4] = {0, 0, 0, 0}, offset[64] = {0}; /* Cs <= 64: the caller */
+    const guide_t G = make_guide(n, g0, g1, g2, g3, ones, zeros);
+    const int h = (H + 1) / 2, w = (W + 1) / 2;
+    OVER_BANDS(H, upsample_apply_rows(coef, n, Cs, 2, h, w, &G, zeros, offset, H, W, out, NULL, NULL, scr, y0, y1));
+}
+
 /* ---------------------------------------------------------------- back-off (backends.base.BackOffOp)
  * torchgi.light.back_off in two walks around the box pass: planes = (|color - out|², the summed
  * noise variance), 0 on emitting pixels; then, from their box means (sums), each pixel's weight

@@ -12,6 +12,7 @@ import torch.nn.functional as F
 
 from torchgi.backends.base import (
     GuidedOp,
+    UpsampleApplyOp,
     run,
 )
 from torchgi.backends.torch_code.filter_box import PlaneBoxer, box_cumsum, in_place
@@ -133,6 +134,21 @@ def _guided_reference(
     if coefficients_only:
         return coeffs.unflatten(1, (n + 1, Cs))
     return apply_coefficients(coeffs.unflatten(1, (n + 1, Cs)), I)
+
+
+def upsample_apply(desc: UpsampleApplyOp) -> torch.Tensor:
+    """:class:`~torchgi.backends.base.UpsampleApplyOp`: ``F.interpolate`` x2, cropped, then
+    :func:`apply_coefficients`.
+
+    Example:
+        >>> c = torch.zeros(1, 2, 1, 2, 2); c[:, 1] = 3.0   # a = 0, b = 3
+        >>> upsample_apply(UpsampleApplyOp(c, torch.rand(1, 1, 4, 3))).unique().tolist()
+        [3.0]
+    """
+    c, guide = desc.coeffs, desc.guide
+    H, W = guide.shape[-2:]
+    up = F.interpolate(c.flatten(1, 2), scale_factor=2, mode="bilinear", align_corners=False)[..., :H, :W]
+    return apply_coefficients(up.unflatten(1, c.shape[1:3]), guide)
 
 
 def apply_coefficients(coeffs: torch.Tensor, I: torch.Tensor) -> torch.Tensor:
