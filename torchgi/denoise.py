@@ -40,16 +40,18 @@ from torchgi.core.errors import ShapeError
 from torchgi.core.registry import Registry
 from torchgi.filters import atrous, box, cross_bilateral, guide_from, guided
 from torchgi.filters.blend import blend, default_net
+from torchgi.filters.pyramid import default_net as pyramid_net
+from torchgi.filters.pyramid import pyramid
 from torchgi.geometry import sigma_position_rule
 from torchgi.settings import ATROUS, BILATERAL, GUIDED, PIPELINE
 from torchgi.supersample import EyeSamples
 
 __all__ = ["DENOISERS", "METHODS", "QUALITIES", "Denoiser", "DeployedDenoiser"]
 
-METHODS = ("blend", "guided", "atrous", "bilateral", "none")
+METHODS = ("pyramid", "blend", "guided", "atrous", "bilateral", "none")
 QUALITIES = ("fast", "balanced", "high")
 # fireflies are clamped at this many times their local level before each method's filter
-_FIREFLY = {"blend": GUIDED.firefly, "guided": GUIDED.firefly, "atrous": ATROUS.firefly, "bilateral": BILATERAL.firefly, "none": GUIDED.firefly}
+_FIREFLY = {"pyramid": GUIDED.firefly, "blend": GUIDED.firefly, "guided": GUIDED.firefly, "atrous": ATROUS.firefly, "bilateral": BILATERAL.firefly, "none": GUIDED.firefly}
 _INPUTS = ("color", "albedo", "normal", "position", "depth", "emission", "direct", "indirect", "variance", "spp",
            "hit")
 
@@ -66,9 +68,11 @@ class Denoiser(torch.nn.Module):
     """Denoise a path-traced image from its noise-free guides.
 
     Args:
-        method: "guided" (Bauszat et al. 2011), "blend" (a learned per-pixel blend of guided
-            filters, :mod:`torchgi.filters.blend`: more accurate, about 7x slower; expects
-            ``depth`` for the guide it was trained with), "atrous" (Dammertz et al. 2010),
+        method: "guided" (Bauszat et al. 2011), "pyramid" (a small network at 1/4 resolution
+            mixes guided-filter models from a pyramid of scales per pixel,
+            :mod:`torchgi.filters.pyramid`), "blend" (a learned per-pixel blend of guided
+            filters, :mod:`torchgi.filters.blend`: more accurate, about 7x slower; both learned
+            methods expect ``depth`` for the guide they were trained with), "atrous" (Dammertz et al. 2010),
             "bilateral" (brute-force cross-bilateral) or "none" (the noisy image, assembled).
         quality: "fast", "balanced" or "high" (radius / iterations / window scale).
         hdr: the colour is HDR (True) or in [0, 1] (False: the output is clamped to [0, 1]).
@@ -114,6 +118,7 @@ class Denoiser(torch.nn.Module):
         check_option(method, "method", METHODS)
         check_option(quality, "quality", QUALITIES)
         known = {
+            "pyramid": (),
             "blend": (),
             "guided": ("radius", "eps", "subsample"),
             "atrous": ("iterations", "sigma_normal", "sigma_position", "sigma_color"),
@@ -161,6 +166,8 @@ class Denoiser(torch.nn.Module):
         p = self.filter_params
         if self.method == "blend":
             return DeployedDenoiser("blend", {"spp": float(spp)}, net=default_net())
+        if self.method == "pyramid":
+            return DeployedDenoiser("pyramid", {"spp": float(spp)}, net=pyramid_net())
         if self.method == "guided":
             params = {"radius": self._radius(spp, GUIDED.radius), "eps": p.get("eps", GUIDED.eps)}
             if p.get("subsample", 1) > 1:
@@ -175,7 +182,8 @@ class Denoiser(torch.nn.Module):
                 "sigma_color": p.get("sigma_color", ATROUS.deployed_sigma_color),
             }
         else:
-            raise ValueError(f"method: only 'blend', 'guided' and 'atrous' deploy to ONNX, not {self.method!r}")
+            raise ValueError(f"method: only 'pyramid', 'blend', 'guided' and 'atrous' deploy to ONNX, not "
+                             f"{self.method!r}")
         return DeployedDenoiser(self.method, params)
 
     def extra_repr(self) -> str:
@@ -323,17 +331,19 @@ class Denoiser(torch.nn.Module):
         return out if self.hdr else out.clamp(0, 1)
 
     def weights(self, gb: GBuffer) -> torch.Tensor:
-        """Method "blend": the ``(B, K, H, W)`` per-pixel weights it gives its ``K`` candidates
-        for ``gb`` (what it chose, summing to 1 per pixel; the candidates' radii in px are
-        ``BlendNet.candidate_radii()`` of :func:`torchgi.filters.blend.default_net`).
+        """Methods "blend" and "pyramid": the ``(B, K, H, W)`` per-pixel weights it gives its ``K``
+        candidates for ``gb`` (what it chose, summing to 1 per pixel; the blend's candidates' radii
+        in px are ``BlendNet.candidate_radii()`` of :func:`torchgi.filters.blend.default_net`; the
+        pyramid's are at 1/4 resolution, ``PyramidNet.candidates`` then the
+        residual's four band gains, of :func:`torchgi.filters.pyramid.default_net`).
 
         Example:
             >>> from torchgi.render import render, scenes
             >>> Denoiser("blend").weights(render(scenes.cornell(16), spp=1)).shape
             torch.Size([1, 9, 16, 16])
         """
-        if self.method != "blend":
-            raise ValueError(f"weights: only method='blend' blends candidates, not {self.method!r}")
+        if self.method not in ("blend", "pyramid"):
+            raise ValueError(f"weights: only methods 'blend' and 'pyramid' mix candidates, not {self.method!r}")
         self._capture = {}
         try:
             self._denoise(gb)
@@ -390,6 +400,12 @@ class Denoiser(torch.nn.Module):
     def _filter(self, x: torch.Tensor, gb: GBuffer, surface: torch.Tensor) -> torch.Tensor:
         p = self.filter_params
         spp = self._spp(gb, surface)
+        if self.method == "pyramid":  # its guide as in training; noisier renders than 1 spp fed as 1 spp
+            out, w = pyramid(x, guide_from(gb.normal, gb.depth, depth_scale="image"), spp=max(spp, 1.0),
+                             return_weights=True)
+            if self._capture is not None:
+                self._capture["weights"] = w
+            return out
         if self.method == "blend":
             # depth over each image's largest, as in training and in the exported form
             # (its network knows 1 spp and more: noisier renders than 1 spp are fed to it as 1 spp)
@@ -500,7 +516,7 @@ def _tiled(op: Callable[..., torch.Tensor], color: torch.Tensor, max_memory_mb: 
 class DeployedDenoiser(torch.nn.Module):
     """A :class:`Denoiser` with every choice fixed, as plain tensor code for ONNX export.
 
-    ``forward(color, emission, albedo, normal, depth)`` for "blend" and "guided" and
+    ``forward(color, emission, albedo, normal, depth)`` for "pyramid", "blend" and "guided" and
     ``forward(color, emission, albedo, normal, position)`` for "atrous", all ``(B, C, H, W)``:
     the Denoiser's pipeline (module docstring) with the fixed parameters; surfaces are the pixels
     of non-zero albedo; it takes no variance, so it does not back off toward the input
@@ -512,9 +528,9 @@ class DeployedDenoiser(torch.nn.Module):
 
     def __init__(self, method: str, params: dict[str, Any], net: torch.nn.Module | None = None) -> None:
         super().__init__()
-        check_option(method, "method", ("blend", "guided", "atrous"))
-        if (net is None) != (method != "blend"):
-            raise ValueError("net: the blend's network is required for method='blend' and only for it")
+        check_option(method, "method", ("pyramid", "blend", "guided", "atrous"))
+        if (net is None) != (method in ("guided", "atrous")):
+            raise ValueError("net: the learned methods ('pyramid', 'blend') need their network, the others none")
         self.method, self.params, self.net = method, dict(params), net
 
     @property
@@ -528,6 +544,9 @@ class DeployedDenoiser(torch.nn.Module):
         surface = light.surface_mask(None, albedo)
 
         def filter_fn(x: torch.Tensor) -> torch.Tensor:
+            if self.method == "pyramid":
+                return pyramid(x, guide_from(normal, geometry, depth_scale="image"), spp=self.params["spp"],
+                               net=self.net)
             if self.method == "blend":
                 return blend(x, guide_from(normal, geometry, depth_scale="image"), spp=self.params["spp"], net=self.net)
             if self.method == "guided":

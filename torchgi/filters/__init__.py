@@ -5,6 +5,7 @@ from torchgi.filters.bilateral import CrossBilateral, cross_bilateral
 from torchgi.filters.blend import Blend, blend
 from torchgi.filters.box import Box, box
 from torchgi.filters.guided import Guided, guide_from, guide_from_gbuffer, guided
+from torchgi.filters.pyramid import Pyramid, pyramid
 
-__all__ = ["ATrous", "Blend", "Box", "CrossBilateral", "Guided", "atrous", "blend", "box", "cross_bilateral", "guide_from",
-           "guide_from_gbuffer", "guided"]
+__all__ = ["ATrous", "Blend", "Box", "CrossBilateral", "Guided", "Pyramid", "atrous", "blend", "box", "cross_bilateral",
+           "guide_from", "guide_from_gbuffer", "guided", "pyramid"]

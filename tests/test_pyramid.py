@@ -1,0 +1,192 @@
+"""The learned guided pyramid (torchgi.filters.pyramid): against a float64 oracle written from its
+documented formula on the brute-force guided filter and loop block means; a single chosen
+candidate is He & Sun's fast guided filter; dtypes, devices, gradients, bad input, and the shipped
+weights' provenance and worth (nothing from a benchmark scene)."""
+
+from __future__ import annotations
+
+import copy
+
+import pytest
+import torch
+
+from tests.helpers import rel_error as rel
+from tests.oracles import block_means, fast_guided_oracle, guided_oracle, upsample
+from torchgi.core import NonFiniteError, RangeError
+from torchgi.filters.pyramid import Pyramid, PyramidNet, pyramid
+
+
+def _inputs(B=1, H=32, W=48, seed=0, dtype=torch.float32):
+    g = torch.Generator().manual_seed(seed)
+    normal = torch.nn.functional.normalize(torch.randn(B, 3, H, W, generator=g), dim=1)
+    normal[..., :, W // 2 :] = torch.tensor([0.0, 1.0, 0.0])[:, None, None]  # a flat half
+    depth = torch.linspace(1, 2, W).expand(B, 1, H, W).clone()
+    guide = torch.cat([(normal + 1) / 2, depth / 2], 1)
+    x = torch.rand(B, 3, H, W, generator=g) ** 3 * 4  # heavy-tailed light, >= 0
+    return x.to(dtype), guide.to(dtype)
+
+
+def pyramid_oracle(x, guide, spp, net):
+    """The module docstring's pyramid in float64: block means straight from the full image (sizes
+    divisible by the top scale, so equal to means of means), brute-force coefficients, bilinear
+    x2 steps, the network in float64."""
+    x, guide = x.double(), guide.double()
+    lum = lambda c: c.mean(1, keepdim=True)
+    mp, mg = x.mean((2, 3), keepdim=True), guide.mean((2, 3), keepdim=True)
+    xc, gc = x - mp, guide - mg
+    size = lambda s: (x.shape[-2] // s, x.shape[-1] // s)
+
+    def finer(c, s, target):
+        while s > target:
+            s //= 2
+            c = upsample(c, 2, size(s))
+        return c
+
+    apply = lambda c, g: (c[:, :-1] * g[:, :, None]).sum(1) + c[:, -1]
+    views = []
+
+    def fit(g, s, r, e):
+        if s == 1:  # mixed as its output at full resolution
+            out = guided_oracle(xc, g, r, e)
+            views.append(block_means(out, 4))
+            return out
+        c = guided_oracle(block_means(xc, s), block_means(g, s), r, e, coefficients=True)
+        views.append(block_means(apply(c, block_means(g, s)), 4 // s) if s < 4 else apply(finer(c, s, 4),
+                                                                                           block_means(g, 4)))
+        return finer(c, s, 4) if s >= 4 else c  # where it is mixed: 1/4, or 1/2 for scale 2
+
+    m = lum(mp)
+    geometric = [fit(gc, *t) for t in net.geometric]
+    first = (geometric[0] if net.geometric[0][0] == 1 else apply(finer(geometric[0], min(net.geometric[0][0], 4), 1),
+                                                                  gc)) + mp
+    colour = 0.1 * torch.log(lum(first).clamp_min(0) / m + 0.01)
+    colour = colour - colour.mean((2, 3), keepdim=True)
+    coloured = [fit(torch.cat([gc[:, :3], colour], 1), *t) for t in net.colour]
+    # one linear model over (guide, colour channel): zero coefficients for what a candidate skips
+    z = lambda c: torch.zeros_like(c[:, :1])
+    coeffs = [c if c.dim() == 4 else torch.cat([c[:, :4], z(c), c[:, 4:]], 1) for c in geometric]
+    coeffs += [c if c.dim() == 4 else torch.cat([c[:, :3], z(c), c[:, 3:]], 1) for c in coloured]
+    gc = torch.cat([gc, colour], 1)
+    x4, g4 = block_means(x, 4), block_means(gc[:, :4], 4)
+    var = block_means(lum(x) ** 2, 4) - lum(x4) ** 2
+    edge = block_means((gc[:, :4] ** 2).sum(1, keepdim=True), 4) - (g4**2).sum(1, keepdim=True)
+    base = torch.log1p(lum(x4) / m)
+    feats = [torch.log1p(x4 / m), torch.log(var / (lum(x4) ** 2 + 0.01 * m**2) + 1e-4), g4,
+             torch.log(edge + 1e-6), torch.full_like(base, torch.log2(torch.tensor(float(spp))).item())]
+    feats += [torch.log1p(lum(v + mp) / m) - base for v in views]
+    head = copy.deepcopy(net).double()(torch.cat(feats, 1))
+    K = len(coeffs)
+    w = torch.softmax(head[:, :K], 1)
+    at4 = [k for k, (s, _, _) in enumerate(net.candidates) if s >= 4]
+    mixed = upsample(sum(w[:, k, None, None] * coeffs[k] for k in at4), 2, size(2))
+    at2 = [k for k, (s, _, _) in enumerate(net.candidates) if s == 2]
+    mixed = mixed + sum(upsample(w[:, k : k + 1], 2, size(2))[:, :, None] * coeffs[k] for k in at2)
+    full = upsample(mixed, 2, size(1))
+    model = (full[:, :-1] * gc[:, :, None]).sum(1) + full[:, -1] + mp
+    model = model + sum(upsample(upsample(w[:, k : k + 1], 2, size(2)), 2, size(1)) * coeffs[k]
+                        for k, (s, _, _) in enumerate(net.candidates) if s == 1)
+    # the residual's Laplacian bands at scales 1, 2, 4 and its low-pass at 8, each with its gain
+    g = torch.sigmoid(head[:, K:])
+    gains = {1: upsample(upsample(g[:, :1], 2, size(2)), 2, size(1)), 2: upsample(g[:, 1:2], 2, size(2)),
+             4: g[:, 2:3], 8: block_means(g[:, 3:], 2)}
+    res = {s: block_means(x - model, s) for s in (1, 2, 4, 8)}
+    out = gains[8] * res[8]
+    for s in (4, 2, 1):
+        out = upsample(out, 2, size(s)) + gains[s] * (res[s] - upsample(res[2 * s], 2, size(s)))
+    return model + out
+
+
+def _choosing(k: int, gain: float) -> PyramidNet:
+    """A network whose logits pick candidate ``k`` everywhere and give every band ``gain``."""
+    net = PyramidNet()
+    with torch.no_grad():
+        net.head.weight.zero_()
+        net.head.bias.fill_(-30.0)
+        net.head.bias[k] = 30.0
+        net.head.bias[len(net.candidates) :] = torch.logit(torch.tensor(gain))
+    return net
+
+
+@pytest.mark.parametrize("spp, scales", [(1.0, "default"), (4.0, "default"), (2.0, "with full resolution")])
+def test_matches_the_float64_oracle(spp, scales):
+    torch.manual_seed(1)
+    kw = {} if scales == "default" else {"candidates": [(2, 1, 1e-5), (1, 2, 1e-6), (8, 2, 1e-5)],
+                                         "colour": [(1, 1, 1e-5), (4, 2, 1e-5)]}
+    net = PyramidNet(**kw)  # a random network: every feature and candidate counts
+    with torch.no_grad():
+        net.head.weight.mul_(20)  # sharp, spatially varying weights
+    x, guide = _inputs(seed=3)
+    assert rel(pyramid(x, guide, spp=spp, net=net), pyramid_oracle(x, guide, spp, net)) < 1e-4
+
+
+def test_one_chosen_candidate_is_the_fast_guided_filter():
+    """All weight on a scale-2 candidate and no residual given back: He & Sun's fast guided
+    filter at radius 2r (the loop oracle; to 1e-3: in float32 the solve at ε 1e-5 on a random
+    guide loses 1.6e-4 of the range); all of the residual given back: the light."""
+    x, guide = _inputs(seed=5, H=20, W=26)  # odd block counts: partial blocks at the edges
+    net = PyramidNet()
+    for k, (s, r, e) in enumerate(net.geometric):
+        if s == 2:
+            out = pyramid(x, guide, net=_choosing(k, 1e-30))
+            assert rel(out, fast_guided_oracle(x, guide, 2 * r, e, 2)) < 1e-3, (s, r, e)
+    assert rel(pyramid(x, guide, net=_choosing(0, 1.0)), x) < 1e-6
+
+
+def test_gradients_in_float64():
+    x, guide = _inputs(H=16, W=16, dtype=torch.float64)
+    net = PyramidNet().double()
+    x.requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda t: pyramid(t, guide, net=net), (x,), eps=1e-6, atol=1e-5, fast_mode=True)
+    pyramid(x.detach(), guide, net=net).sum().backward()
+    assert all(p.grad is not None and bool(p.grad.abs().sum() > 0) for p in net.parameters())
+
+
+@pytest.mark.parametrize("dt", [torch.float16, torch.float64])
+def test_keeps_the_dtype(dt):
+    x, guide = _inputs(seed=2)
+    net = PyramidNet()
+    out = pyramid(x.to(dt), guide.to(dt), spp=1.0, net=net)
+    assert out.dtype == dt
+    assert rel(out, pyramid(x, guide, spp=1.0, net=net)) < (1e-2 if dt == torch.float16 else 1e-4)
+
+
+def test_same_result_on_every_device(device):
+    torch.manual_seed(2)
+    net = PyramidNet()
+    x, guide = _inputs(seed=4)
+    out = pyramid(x.to(device), guide.to(device), spp=2.0, net=copy.deepcopy(net).to(device))
+    assert out.device.type == device.type
+    assert rel(out, pyramid_oracle(x, guide, 2.0, net)) < 1e-4  # float64, not the CPU run itself
+
+
+def test_module_form_and_scale():
+    """The Module gives the function's result; the filter is scale-equivariant (its features are
+    relative to each image's mean light)."""
+    torch.manual_seed(3)
+    net = PyramidNet()
+    x, guide = _inputs(seed=6)
+    out = pyramid(x, guide, net=net)
+    assert torch.equal(Pyramid(net)(x, guide), out)
+    assert rel(pyramid(x * 1024, guide, net=net), out * 1024) < 1e-5
+
+
+def test_bad_input():
+    x, guide = _inputs()
+    net = PyramidNet()
+    with pytest.raises(RangeError, match="spp"):
+        pyramid(x, guide, spp=0.5, net=net)
+    with pytest.raises(ValueError, match="net"):
+        pyramid(x, guide, net=PyramidNet().to("meta"))
+    with pytest.raises(ValueError, match="guide"):
+        pyramid(x, guide[..., :10], net=net)
+    with pytest.raises(ValueError, match="guide"):
+        pyramid(x, torch.cat([guide, guide], 1), net=net)
+    with pytest.raises(TypeError):
+        pyramid(x, guide.double(), net=net)
+    bad = x.clone()
+    bad[0, 0, 3, 3] = float("inf")
+    with pytest.raises(NonFiniteError):
+        pyramid(bad, guide, net=net)
+    with pytest.raises(RangeError, match="candidates"):
+        PyramidNet(candidates=[(3, 1, 1e-5)])
+

@@ -1,0 +1,461 @@
+"""A learned guided pyramid: a small network at a quarter of the resolution chooses, per pixel,
+how the guided filter's linear models from a pyramid of scales are mixed, and how much of what
+they leave out is given back, band by band (issue 28).
+
+Each *candidate* is the guided filter (normal + depth guide) fitted at one scale ``s`` of the
+image pyramid (``s x s`` means of the light and the guide, He & Sun 2015) with one radius and
+one ε: its coefficients ``(a, b)`` say how the light follows the guide around each pixel at that
+scale. The *colour* candidates are fitted the same way on another guide: the normal (the guide's
+first three channels) and a colour channel ``λ · log(lum(y) / m + 0.01)``, ``y`` the first
+candidate's output at full resolution, ``m`` the image's mean luminance, ``λ`` the colour scale
+(0.1): they follow the shadow and shading edges, reflections and highlights that normal and depth
+do not show (as the blend's colour-guided passes do). Every candidate is a linear model over the
+same guide ``I`` (the guide and the colour channel, each centred by its image mean; a channel a
+candidate does not use has coefficient 0). A U-Net at 1/4 resolution (three levels, a few tens
+of thousands of weights) reads scale-free statistics of the light, its local noise, the guide,
+the sample count and what each candidate makes of the light, and gives per-pixel logits. Their
+softmax ``w_k`` mixes the candidates' *coefficients*: those of scale >= 4 at 1/4 resolution,
+where the weights are, those of scale 2 at 1/2 with the weights upsampled; the mixed
+coefficients are upsampled and applied to the full-resolution guide once; candidates of scale
+1 (the guided filter at full resolution) are mixed as outputs, their weights upsampled to full
+resolution. That gives the model ``M``; what the guide cannot explain
+(shadow edges, reflections, glossy highlights) stays in the residual ``x - M``, and the
+remaining outputs, through a sigmoid, are per-pixel gains ``g_1, g_2, g_4 ∈ [0, 1]`` of its
+Laplacian bands and ``g_8`` of its low-pass at 1/8::
+
+    M = μ + (Σ_k w_k a_k) · I + Σ_k w_k b_k
+    P_8 = g_8 · R_8,   P_s = up(P_2s) + g_s · (R_s - up(R_2s))  for s = 4, 2, 1
+    out = M + P_1
+
+where ``μ`` is the light's image mean (the ``b`` are
+fitted to the light centred the same way), ``R_s`` the ``s x s`` means of ``x - M`` and ``up``
+the bilinear x2 (so gains of 1 everywhere give back ``x``, gains of 0 the model: a coarse gain
+corrects the model's low-frequency bias, whose noise the means have removed). The gains are
+evaluated at 1/4 resolution and resampled to their band (bilinear x2 steps up, 2 x 2 means down
+to 1/8). The network's features at 1/4 resolution, with ``m`` each image's mean luminance
+(channel mean) of ``x`` and ``·₄`` a 4 x 4 mean:
+
+- ``log(1 + x₄ / m)`` per channel; ``log(var₄ / (lum₄² + 0.01 m²) + 1e-4)`` with ``var₄ =
+  (lum²)₄ - lum₄²`` (the local noise and texture); the centred guide ``I₄``; ``log(e + 1e-6)``
+  with ``e = (|I|²)₄ - |I₄|²`` (the guide's edges); ``log2(spp)``;
+- per candidate ``log(1 + lum(v) / m) - log(1 + lum₄ / m)``, ``v`` the candidate's output at
+  1/4 resolution (coefficients upsampled to it, or for finer candidates applied at their scale
+  and averaged down).
+
+Each level of the pyramid is the 2 x 2 means of the one below; coefficients go up one level at
+a time by bilinear x2 (pixel centres aligned). So the full-resolution work is a pyramid of
+means, the product of the upsampled coefficients with the guide and the residual's pyramid,
+whatever the number of candidates (a mix of linear models is a linear model). Coarse scales
+remove the low-frequency noise a 1-spp image keeps; the residual's bands keep what the guide
+does not explain where the noise allows. Trained end to end by ``scripts/train_pyramid.py`` on
+project-rendered scenes that are never benchmark scenes; the weights ship beside this module
+(``pyramid_weights.json``) with their training config, commit and data hash.
+:func:`pyramid_inputs` and :func:`pyramid_mix` are the two halves training uses.
+
+Everything is tensor code around the seam's :class:`~torchgi.backends.GuidedOp` (compiled
+back ends solve the candidates eagerly; the torch code under autograd, tracing and export):
+differentiable with respect to the light, the guide and the network's weights, float16 in and
+out (computed in float32).
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from torchgi import backends
+from torchgi.backends.torch_code.filter_guided import apply_coefficients
+from torchgi.core.check import (
+    check_finite,
+    check_floating,
+    check_same_device,
+    check_same_floating,
+    check_shape,
+    is_recording,
+)
+from torchgi.core.dtypes import compute_dtype
+from torchgi.core.errors import RangeError, ShapeError
+
+__all__ = ["Pyramid", "PyramidNet", "default_net", "pyramid", "pyramid_inputs", "pyramid_mix"]
+
+WEIGHTS = Path(__file__).with_name("pyramid_weights.json")
+FEATURE_SCALE = 4  # the network's resolution: 1/4
+MIX_SCALE = 2  # where the coefficients are mixed: 1/2
+BANDS = (1, 2, 4, 8)  # the residual's bands (the last one its low-pass), one gain each
+
+
+def _down(t: torch.Tensor) -> torch.Tensor:
+    """2 x 2 means (a last odd row / column averaged over what it has)."""
+    return F.avg_pool2d(t, 2, ceil_mode=True)
+
+
+def _up(t: torch.Tensor, size: Sequence[int]) -> torch.Tensor:
+    """Bilinear x2 of ``(B, C, h, w)`` cropped to ``size`` (the pyramid's next finer level)."""
+    return F.interpolate(t, scale_factor=2, mode="bilinear", align_corners=False)[..., : size[0], : size[1]]
+
+
+def _up5(c: torch.Tensor, size: Sequence[int]) -> torch.Tensor:
+    """:func:`_up` of coefficients ``(B, n + 1, C, h, w)``."""
+    return _up(c.flatten(1, 2), size).unflatten(1, c.shape[1:3])
+
+
+def _finer(c: torch.Tensor, s: int, target: int, levels: dict[int, torch.Tensor]) -> torch.Tensor:
+    """Coefficients ``c`` of pyramid scale ``s`` upsampled level by level to scale ``target``."""
+    while s > target:
+        s //= 2
+        c = _up5(c, levels[s].shape[-2:])
+    return c
+
+
+def _levels(t: torch.Tensor, top: int) -> dict[int, torch.Tensor]:
+    """``{1: t, 2: means 2x2, 4: ..., top: ...}``, each level from the one below."""
+    out = {1: t}
+    s = 1
+    while s < top:
+        out[2 * s] = _down(out[s])
+        s *= 2
+    return out
+
+
+def _luminance(x: torch.Tensor) -> torch.Tensor:
+    return x.mean(1, keepdim=True)
+
+
+def _triples(values: Sequence[Sequence[float]], name: str) -> tuple[tuple[int, int, float], ...]:
+    """Checked ``(scale, radius, eps)`` triples: scale a power of two in [1, 64], radius an int
+    >= 1, eps > 0."""
+    out = []
+    for c in values:
+        s, r, e = int(c[0]), int(c[1]), float(c[2])
+        if not 1 <= s <= 64 or s & (s - 1) or r < 1 or c[1] != r or not 0 < e < math.inf:
+            raise RangeError(f"{name}: expected (scale: a power of two in [1, 64], radius: int >= 1, "
+                             f"eps > 0), got {tuple(c)}")
+        out.append((s, r, e))
+    return tuple(out)
+
+
+class PyramidNet(nn.Module):
+    """The network of :func:`pyramid`: features ``(B, F, h, w)`` at 1/4 resolution → ``(B, K +
+    4, h, w)``: logits over the ``K`` candidates (``candidates`` then ``colour``), then the gain
+    logits of the residual's bands (:data:`BANDS`); and the candidate set it was trained for.
+
+    Args:
+        candidates: ``(scale, radius, eps)`` per candidate on the guide: the pyramid scale (2, 4,
+            8, ...: a power of two >= 2), the window radius in pixels of that scale and ε (guide
+            units²).
+        colour: the same for the colour candidates (module docstring).
+        colour_scale: λ, the colour channel's guide units per e-fold of luminance.
+        widths: channels of the U-Net's three levels (1/4, 1/8, 1/16 resolution).
+
+    Example:
+        >>> net = PyramidNet()
+        >>> net(torch.rand(1, net.features, 16, 16)).shape
+        torch.Size([1, 16, 16, 16])
+    """
+
+    def __init__(self, *, candidates: Sequence[Sequence[float]] = ((2, 1, 1e-5), (2, 2, 1e-5), (2, 2, 1e-6),
+                                                                    (4, 2, 1e-5), (4, 4, 1e-5), (8, 2, 1e-5),
+                                                                    (8, 4, 1e-5), (1, 1, 1e-5), (1, 2, 1e-6)),
+                 colour: Sequence[Sequence[float]] = ((2, 2, 1e-5), (4, 2, 1e-5), (8, 2, 1e-5)),
+                 colour_scale: float = 0.1, widths: Sequence[int] = (16, 24, 32)) -> None:
+        super().__init__()
+        self.geometric = _triples(candidates, "candidates")
+        self.colour = _triples(colour, "colour")
+        self.candidates = self.geometric + self.colour
+        if not self.geometric or len(widths) != 3 or not 0 < colour_scale < math.inf:
+            raise RangeError(f"candidates, widths, colour_scale: expected at least one candidate, three widths and "
+                             f"a scale > 0, got {len(self.geometric)}, {list(widths)} and {colour_scale!r}")
+        self.colour_scale = float(colour_scale)
+        self.widths = tuple(int(w) for w in widths)
+        self.top = max(s for s, _, _ in self.candidates)
+        self.features = 10 + len(self.candidates)
+        w1, w2, w3 = self.widths
+        conv = lambda i, o, k=3: nn.Conv2d(i, o, k, padding=k // 2)
+        self.enc1 = nn.Sequential(conv(self.features, w1), nn.ReLU(), conv(w1, w1), nn.ReLU())
+        self.enc2 = nn.Sequential(conv(w1, w2), nn.ReLU(), conv(w2, w2), nn.ReLU())
+        self.enc3 = nn.Sequential(conv(w2, w3), nn.ReLU(), conv(w3, w3), nn.ReLU())
+        self.dec2 = nn.Sequential(conv(w3 + w2, w2), nn.ReLU())
+        self.dec1 = nn.Sequential(conv(w2 + w1, w1), nn.ReLU())
+        self.head = conv(w1, len(self.candidates) + len(BANDS), 1)  # candidate logits, then gain logits
+        # the features' standardisation, set from the training data (scripts/train_pyramid.py)
+        self.register_buffer("shift", torch.zeros(self.features))
+        self.register_buffer("scale", torch.ones(self.features))
+
+    def forward(self, features: torch.Tensor) -> torch.Tensor:
+        e1 = self.enc1((features - self.shift[:, None, None]) * self.scale[:, None, None])
+        e2 = self.enc2(_down(e1))
+        e3 = self.enc3(_down(e2))
+        d2 = self.dec2(torch.cat([_up(e3, e2.shape[-2:]), e2], 1))
+        d1 = self.dec1(torch.cat([_up(d2, e1.shape[-2:]), e1], 1))
+        return self.head(d1)
+
+    def config(self) -> dict[str, Any]:
+        """The constructor arguments (what the weights file records)."""
+        return {"candidates": [list(c) for c in self.geometric], "colour": [list(c) for c in self.colour],
+                "colour_scale": self.colour_scale, "widths": list(self.widths)}
+
+    def save(self, path: str | Path, provenance: dict[str, Any]) -> None:
+        """Write config, weights (as lists) and ``provenance`` to a JSON file (no pickle)."""
+        state = {k: v.detach().float().tolist() for k, v in self.state_dict().items()}
+        Path(path).write_text(json.dumps({"config": self.config(), "provenance": provenance, "state": state}))
+
+    @classmethod
+    def load(cls, path: str | Path) -> PyramidNet:
+        """Read a file written by :meth:`save`."""
+        data = json.loads(Path(path).read_text())
+        net = cls(**data["config"])
+        net.load_state_dict({k: torch.tensor(v, dtype=torch.float32) for k, v in data["state"].items()})
+        net.provenance = data.get("provenance", {})
+        return net.eval().requires_grad_(False)
+
+
+_DEFAULT: dict[torch.device, PyramidNet] = {}
+
+
+def default_net(device: torch.device | str = "cpu") -> PyramidNet:
+    """The shipped network (``pyramid_weights.json``) on ``device``: read once per process, one
+    copy per device."""
+    device = torch.device(device)
+    if device not in _DEFAULT:
+        if device.type != "cpu":
+            _DEFAULT[device] = copy.deepcopy(default_net()).to(device)
+        elif not WEIGHTS.is_file():
+            raise FileNotFoundError(f"{WEIGHTS}: the pyramid's weights are missing (python scripts/train_pyramid.py)")
+        else:
+            _DEFAULT[device] = PyramidNet.load(WEIGHTS)
+    return _DEFAULT[device]
+
+
+def _groups(net: PyramidNet) -> dict[str, list[int]]:
+    """The candidates' indices (into ``net.candidates``) by group and mixing scale: "geometric@1",
+    "geometric@2", "geometric@4", "colour@1", ... (scale 1 is mixed as outputs at full
+    resolution, scale 2 as coefficients at 1/2, coarser ones at 1/4)."""
+    out: dict[str, list[int]] = {f"{g}@{m}": [] for g in ("geometric", "colour") for m in (1, MIX_SCALE, FEATURE_SCALE)}
+    for k, (s, _, _) in enumerate(net.candidates):
+        out[f"{'geometric' if k < len(net.geometric) else 'colour'}@{min(s, FEATURE_SCALE)}"].append(k)
+    return out
+
+
+def _features(x: torch.Tensor, xs: dict[int, torch.Tensor], gs: dict[int, torch.Tensor], mean_p: torch.Tensor,
+              m: torch.Tensor, spp: float | torch.Tensor, views: list[torch.Tensor]) -> torch.Tensor:
+    """The network's features at 1/4 resolution (module docstring) from the light ``x``, the
+    pyramids of the centred light and guide, the light's mean ``mean_p`` and mean luminance
+    ``m`` and the candidates' ``views``."""
+    B = x.shape[0]
+    light4 = xs[FEATURE_SCALE] + mean_p
+    lum = _luminance(x)
+    lum4 = _luminance(light4)
+    var = (F.avg_pool2d(lum.square(), FEATURE_SCALE, ceil_mode=True) - lum4.square()).clamp_min(0)
+    g4 = gs[FEATURE_SCALE]
+    edge = (F.avg_pool2d(gs[1].square().sum(1, keepdim=True), FEATURE_SCALE, ceil_mode=True)
+            - g4.square().sum(1, keepdim=True)).clamp_min(0)
+    if isinstance(spp, torch.Tensor):
+        level = torch.log2(spp.to(x.dtype).reshape(-1, 1, 1, 1).expand(B, 1, 1, 1))
+    else:
+        level = torch.full((B, 1, 1, 1), math.log2(spp), dtype=x.dtype, device=x.device)
+    base = torch.log1p(lum4 / m)
+    feats = [torch.log1p(light4.clamp_min(0) / m), torch.log(var / (lum4.square() + 0.01 * m.square()) + 1e-4),
+             g4, torch.log(edge + 1e-6), level.expand_as(lum4)]
+    feats += [torch.log1p(_luminance(v + mean_p).clamp_min(0) / m) - base for v in views]
+    return torch.cat(feats, 1)
+
+
+def pyramid_inputs(
+    x: torch.Tensor, guide: torch.Tensor, spp: float | torch.Tensor, net: PyramidNet
+) -> tuple[torch.Tensor, dict[str, torch.Tensor], dict[str, torch.Tensor]]:
+    """The first half of :func:`pyramid`: the network's features ``(B, F, ⌈H/4⌉, ⌈W/4⌉)``, the
+    candidates' coefficients by group and mixing scale (keys of :func:`_groups`; ``(B, k, n + 1,
+    C, h, w)`` with ``h, w`` the 1/2 or 1/4 resolution, over the guide's ``G`` channels for the
+    geometric ones, the first ``min(G, 3)`` and the colour channel for the colour ones) and what
+    :func:`pyramid_mix` needs besides (the centred guide, its colour channel, the light's mean),
+    all in the compute dtype. ``x (B, C, H, W) >= 0``, ``guide (B, G, H, W)``, ``spp`` a float
+    or ``(B,)`` tensor.
+
+    Example:
+        >>> net = PyramidNet()
+        >>> f, c, rest = pyramid_inputs(torch.rand(1, 3, 16, 16), torch.rand(1, 4, 16, 16), 1.0, net)
+        >>> f.shape, c["geometric@4"].shape
+        (torch.Size([1, 22, 4, 4]), torch.Size([1, 4, 5, 3, 4, 4]))
+    """
+    B = x.shape[0]
+    mean_p, mean_g = x.mean((2, 3), keepdim=True), guide.mean((2, 3), keepdim=True)
+    top = max(net.top, FEATURE_SCALE)
+    xs, gs = _levels(x - mean_p, top), _levels(guide - mean_g, top)
+    m = _luminance(mean_p).clamp_min(torch.finfo(x.dtype).tiny)  # each image's mean light level
+    coeffs, views = {}, []
+
+    def fit(levels: dict[int, torch.Tensor], s: int, r: int, e: float) -> torch.Tensor:
+        """One candidate's coefficients at its mixing scale (at scale 1 its centred output); its
+        view at 1/4 appended to ``views``."""
+        n = levels[s].shape[1]
+        eps = torch.full((B, n, 1, 1), e, dtype=x.dtype, device=x.device)
+        zero = torch.zeros((B, n, 1, 1), dtype=x.dtype, device=x.device)
+        c = backends.run(backends.GuidedOp(levels[s], xs[s], zero, torch.zeros_like(mean_p), r, eps,
+                                           coefficients_only=s > 1))
+        if s == 1:
+            views.append(F.avg_pool2d(c, FEATURE_SCALE, ceil_mode=True))
+            return c
+        # what the candidate makes of the light at 1/4 resolution (a feature)
+        if s < FEATURE_SCALE:  # finer: applied at its scale, then averaged down
+            views.append(F.avg_pool2d(apply_coefficients(c, levels[s]), FEATURE_SCALE // s, ceil_mode=True))
+            return c
+        c = _finer(c, s, FEATURE_SCALE, xs)
+        views.append(apply_coefficients(c, levels[FEATURE_SCALE]))
+        return c
+
+    groups = _groups(net)
+    for key in ("geometric@1", "geometric@2", "geometric@4"):
+        coeffs[key] = [fit(gs, *net.candidates[k]) for k in groups[key]]
+    # the colour channel: the log-luminance of the first candidate's full-resolution output (its
+    # luminance is the model of the channel-mean coefficients)
+    s0 = min(net.candidates[0][0], FEATURE_SCALE)
+    if s0 == 1:
+        first = _luminance(coeffs["geometric@1"][0])
+    else:
+        c0 = _finer(coeffs[f"geometric@{s0}"][0].mean(2, keepdim=True), s0, MIX_SCALE, xs)
+        first = backends.run(backends.UpsampleApplyOp(c0, gs[1]))
+    lum_guide = net.colour_scale * torch.log((first + _luminance(mean_p)).clamp_min(0) / m + 0.01)
+    lum_guide = lum_guide - lum_guide.mean((2, 3), keepdim=True)
+    keep = min(guide.shape[1], 3)
+    lum_levels = _levels(lum_guide, top)
+    cs = {s: torch.cat([gs[s][:, :keep], lum_levels[s]], 1) for s in lum_levels
+          if s > 1 or groups["colour@1"]}
+    for key in ("colour@1", "colour@2", "colour@4"):
+        coeffs[key] = [fit(cs, *net.candidates[k]) for k in groups[key]]
+    coeffs = {k: torch.stack(v, 1) for k, v in coeffs.items() if v}
+    order = [k for key in groups.values() for k in key]  # the views were made in group order
+    views = [views[order.index(k)] for k in range(len(net.candidates))]
+    feats = _features(x, xs, gs, mean_p, m, spp, views)
+    return feats, coeffs, {"guide": gs[1], "colour": lum_guide, "mean": mean_p}
+
+
+def pyramid_mix(
+    net: PyramidNet, head: torch.Tensor, coeffs: dict[str, torch.Tensor], x: torch.Tensor,
+    rest: dict[str, torch.Tensor], return_weights: bool = False,
+) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
+    """The second half of :func:`pyramid`: ``head = net(features)`` at 1/4 resolution; the
+    softmax of its candidate logits mixes the candidates' ``coeffs`` (:func:`pyramid_inputs`),
+    those of scale >= 4 at 1/4, those of scale 2 at 1/2 with the weights upsampled; the mix is
+    upsampled to full resolution and applied to the guide and its colour channel, and the
+    residual of the light ``x (B, C, H, W)`` is given back band by band with the sigmoid of the
+    gain logits (module docstring). Returns ``(B, C, H, W)`` and, with ``return_weights``, the
+    weights ``(B, K + 4, ⌈H/4⌉, ⌈W/4⌉)`` at 1/4 resolution: the candidates', then the four gains.
+
+    Example:
+        >>> net = PyramidNet()
+        >>> x, g = torch.rand(1, 3, 16, 16), torch.rand(1, 4, 16, 16)
+        >>> f, c, rest = pyramid_inputs(x, g, 1.0, net)
+        >>> pyramid_mix(net, net(f), c, x, rest).shape
+        torch.Size([1, 3, 16, 16])
+    """
+    K = len(net.candidates)
+    full = x.shape[-2:]
+    half = ((full[0] + 1) // 2, (full[1] + 1) // 2)
+    w = torch.softmax(head[:, :K], 1)
+    groups = _groups(net)
+    mixed = {}
+    for group in ("geometric", "colour"):
+        coarse, fine = f"{group}@{FEATURE_SCALE}", f"{group}@{MIX_SCALE}"
+        out = 0
+        if coarse in coeffs:
+            out = _up5((w[:, groups[coarse], None, None] * coeffs[coarse]).sum(1), half)
+        if fine in coeffs:
+            out = out + (_up(w[:, groups[fine]], half)[:, :, None, None] * coeffs[fine]).sum(1)
+        mixed[group] = out
+    G, keep = rest["guide"].shape[1], min(rest["guide"].shape[1], 3)
+    geo, col = mixed["geometric"], mixed["colour"]
+    if isinstance(col, torch.Tensor):  # the colour model's normal slopes and offset join the geometric ones
+        geo = torch.cat([geo[:, :keep] + col[:, :keep], geo[:, keep:G], geo[:, G:] + col[:, -1:]], 1)
+        slope = torch.cat([col[:, keep : keep + 1], torch.zeros_like(col[:, -1:])], 1)
+        model = backends.run(backends.UpsampleApplyOp(slope, rest["colour"]))
+    else:
+        model = 0
+    model = model + backends.run(backends.UpsampleApplyOp(geo, rest["guide"])) + rest["mean"]
+    outputs = [k for k in ("geometric@1", "colour@1") if k in coeffs]  # scale 1: outputs, mixed at full resolution
+    if outputs:
+        w_full = _up(_up(w[:, [k for key in outputs for k in groups[key]]], half), full)
+        model = model + (w_full[:, :, None] * torch.cat([coeffs[k] for k in outputs], 1)).sum(1)
+    gain = torch.sigmoid(head[:, K : K + len(BANDS)])  # at 1/4
+    gains = {1: _up(_up(gain[:, :1], half), full), 2: _up(gain[:, 1:2], half), 4: gain[:, 2:3], 8: _down(gain[:, 3:])}
+    res = _levels(x - model, BANDS[-1])
+    band = gains[8] * res[8]
+    for s in BANDS[-2::-1]:
+        size = res[s].shape[-2:]
+        band = _up(band, size) + gains[s] * (res[s] - _up(res[2 * s], size))
+    out = model + band
+    return (out, torch.cat([w, gain], 1)) if return_weights else out
+
+
+def pyramid(
+    x: torch.Tensor, guide: torch.Tensor, *, spp: float | torch.Tensor = 1.0, net: PyramidNet | None = None,
+    return_weights: bool = False,
+) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
+    """Filter ``x`` with the learned guided pyramid (module docstring).
+
+    Args:
+        x: ``(B, C, H, W)`` source, >= 0 (the Denoiser's demodulated, firefly-clamped light), any
+            scale (the network's inputs are relative to each image's mean).
+        guide: ``(B, G, H, W)``, ``1 <= G <= 4``, same dtype and device (e.g.
+            :func:`~torchgi.filters.guide_from` with ``depth_scale="image"``).
+        spp: samples per pixel the noise corresponds to, a float or ``(B,)`` tensor (>= 1).
+        net: the network, on ``x``'s device; None = the shipped one there (:func:`default_net`).
+        return_weights: also return the ``(B, K + 4, ⌈H/4⌉, ⌈W/4⌉)`` weights (the per-pixel
+            choice: the candidates' in ``net.candidates`` order, then the gains of the
+            residual's bands at scales 1, 2, 4 and its low-pass at 8, all at 1/4 resolution).
+
+    Returns:
+        ``(B, C, H, W)`` in the dtype and on the device of ``x`` (float16 is computed in float32),
+        and the weights when asked.
+
+    Example:
+        >>> x, g = torch.rand(1, 3, 16, 16), torch.rand(1, 4, 16, 16)
+        >>> out, w = pyramid(x, g, spp=1.0, net=PyramidNet(), return_weights=True)
+        >>> out.shape, w.shape
+        (torch.Size([1, 3, 16, 16]), torch.Size([1, 16, 4, 4]))
+    """
+    check_shape(x, "B C H W", "x")
+    check_floating(x, "x")
+    check_shape(guide, "B G H W", "guide", {"B": x.shape[0], "H": x.shape[2], "W": x.shape[3]})
+    check_same_device({"x": x, "guide": guide})
+    check_same_floating({"x": x, "guide": guide})
+    if not 1 <= guide.shape[1] <= 4:
+        raise ShapeError(f"guide: expected 1 to 4 channels, got {guide.shape[1]} (shape {tuple(guide.shape)})")
+    if isinstance(spp, (int, float)) and not (math.isfinite(spp) and spp >= 1):
+        raise RangeError(f"spp: expected a finite number >= 1, got {spp!r}")
+    net = default_net(x.device) if net is None else net
+    if next(net.parameters()).device != x.device:
+        raise ValueError(f"net: on {next(net.parameters()).device}, x on {x.device} (move one of them)")
+    if not is_recording():
+        check_finite(x, "x")
+        check_finite(guide, "guide")
+    ct = compute_dtype(x.dtype)
+    xs, gs = x.to(ct), guide.to(ct)
+    feats, coeffs, rest = pyramid_inputs(xs, gs, spp, net)
+    p = next(net.parameters())
+    out, w = pyramid_mix(net, net(feats.to(p.dtype)).to(ct), coeffs, xs, rest, return_weights=True)
+    out = out.to(x.dtype)
+    return (out, w.to(x.dtype)) if return_weights else out
+
+
+class Pyramid(nn.Module):
+    """Module form of :func:`pyramid`; the network is a submodule (moves with ``.to()``).
+
+    Example:
+        >>> Pyramid(PyramidNet())(torch.rand(1, 3, 8, 8), torch.rand(1, 4, 8, 8), spp=2.0).shape
+        torch.Size([1, 3, 8, 8])
+    """
+
+    def __init__(self, net: PyramidNet | None = None) -> None:
+        super().__init__()
+        self.net = net if net is not None else PyramidNet.load(WEIGHTS)
+
+    def forward(self, x: torch.Tensor, guide: torch.Tensor, spp: float | torch.Tensor = 1.0) -> torch.Tensor:
+        return pyramid(x, guide, spp=spp, net=self.net)
