@@ -68,6 +68,7 @@ def methods(inputs: dict[str, torch.Tensor], device: str) -> dict:
         'Denoiser("guided", subsample=1)': lambda: full(**inputs),
         f"guided kernel (r={radius})": lambda: guided_filter(x, guide, radius=radius, eps=GUIDED.eps, workspace=ws),
     }
+    fns['Denoiser("pyramid")'] = lambda d=Denoiser("pyramid"): d(**inputs)
     default = Denoiser()
     if default.method != "guided":
         fns[f'Denoiser() ("{default.method}")'] = lambda: default(**inputs)

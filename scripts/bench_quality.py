@@ -26,6 +26,7 @@ method against the classical peers and OIDN (relMSE, and OIDN's ms over its ms).
 from __future__ import annotations
 
 import argparse
+import math
 import statistics
 import sys
 import time
@@ -173,6 +174,7 @@ def methods_for(scene, noisy, t_noisy, spp, args, peer_fns) -> dict:
     """Every method's ``(fn, seconds its input took to render)`` for one noisy render."""
     methods = {
         "noisy": (lambda gb=noisy: gb.color, t_noisy),
+        "torchgi pyramid": (lambda gb=noisy, d=Denoiser("pyramid"): d(gb), t_noisy),
         "torchgi blend": (lambda gb=noisy, d=Denoiser("blend"): d(gb), t_noisy),
         "torchgi guided": (lambda gb=noisy, d=Denoiser("guided"): d(gb), t_noisy),
         "torchgi atrous": (lambda gb=noisy: Denoiser("atrous")(gb), t_noisy),
@@ -212,6 +214,7 @@ def run(args) -> list[dict]:
         for spp in args.spp:
             noisy, t_noisy = rendered(lambda: noisy_fn(spp))
             choice_map(noisy, out_dir / f"blend_choice_{name}_{spp}spp.png")
+            pyramid_map(noisy, out_dir / f"pyramid_choice_{name}_{spp}spp.png")
             for method, (fn, render_s) in methods_for(scene, noisy, t_noisy, spp, args, peer_fns).items():
                 if fn is None:
                     continue  # SVGF needs a variance: none at 1 spp or from Mitsuba
@@ -240,6 +243,32 @@ def choice_map(gb, path: Path) -> None:
     rad = torch.from_numpy(rgb).permute(2, 0, 1).float()
     tone = lambda x: metrics.tonemap(x)[0].clamp(0, 1) ** (1 / 2.2)
     row = torch.cat([tone(gb.color), tone(out), rad], -1)
+    write_png(path, (row * 255).round().byte().permute(1, 2, 0).numpy(), overwrite=True)  # the run's own output
+
+
+def pyramid_map(gb, path: Path) -> None:
+    """The pyramid's per-pixel choice as a picture: noisy | pyramid | the expected log2 scale of
+    its candidates (black: full resolution, yellow: scale 8) | the share of the colour-guided
+    candidates (black 0 to yellow 1) | the gain of the residual's finest band (black 0 to yellow
+    1); the three maps at 1/4 resolution, shown enlarged (``Denoiser.weights``)."""
+    import matplotlib
+
+    from torchgi.filters.pyramid import default_net
+    from torchgi.io.png import write_png
+
+    d, net = Denoiser("pyramid"), default_net()
+    out, w = d(gb), d.weights(gb)
+    K = len(net.candidates)
+    scales = torch.tensor([math.log2(s) for s, _, _ in net.candidates], dtype=w.dtype).view(1, -1, 1, 1)
+    maps = [(w[:, :K] * scales).sum(1) / 3, w[:, len(net.geometric) : K].sum(1), w[:, K]]
+    H, W = gb.color.shape[-2:]
+    tone = lambda x: metrics.tonemap(x)[0].clamp(0, 1) ** (1 / 2.2)
+    panels = [tone(gb.color), tone(out)]
+    for m in maps:
+        big = torch.nn.functional.interpolate(m[:, None], scale_factor=4, mode="nearest")[0, 0, :H, :W]
+        rgb = matplotlib.colormaps["inferno"](big.clamp(0, 1).numpy())[..., :3]
+        panels.append(torch.from_numpy(rgb).permute(2, 0, 1).float())
+    row = torch.cat(panels, -1)
     write_png(path, (row * 255).round().byte().permute(1, 2, 0).numpy(), overwrite=True)  # the run's own output
 
 

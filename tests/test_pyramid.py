@@ -10,10 +10,11 @@ import copy
 import pytest
 import torch
 
+from tests.helpers import check_data_hash, check_weights_provenance
 from tests.helpers import rel_error as rel
 from tests.oracles import block_means, fast_guided_oracle, guided_oracle, upsample
 from torchgi.core import NonFiniteError, RangeError
-from torchgi.filters.pyramid import Pyramid, PyramidNet, pyramid
+from torchgi.filters.pyramid import WEIGHTS, Pyramid, PyramidNet, default_net, pyramid
 
 
 def _inputs(B=1, H=32, W=48, seed=0, dtype=torch.float32):
@@ -190,3 +191,79 @@ def test_bad_input():
     with pytest.raises(RangeError, match="candidates"):
         PyramidNet(candidates=[(3, 1, 1e-5)])
 
+
+def test_the_shipped_weights_say_where_they_came_from():
+    check_weights_provenance(WEIGHTS, "scripts/train_pyramid.py", PyramidNet.load)
+
+
+def test_the_shipped_weights_name_the_data_they_were_trained_on():
+    """When the data are here: ``$TORCHGI_LEARNED_DATA`` or out/datagen-learned."""
+    import os
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    folder = Path(os.environ.get("TORCHGI_LEARNED_DATA", root / "out" / "datagen-learned"))
+    check_data_hash(WEIGHTS, folder, "configs/data_gen/learned.yaml")
+
+
+@pytest.mark.slow
+def test_onnx_parity_at_two_resolutions(tmp_path):
+    """onnxruntime against the torch Denoiser("pyramid") on two renders (sizes with partial
+    blocks at every level of the pyramid). The bound is the measured level, not issue 28's 1e-4:
+    at 40x47 onnxruntime differs from the same graph run by torch by 1.6e-3 of the range (3.2e-4
+    at 27x34, 1.5e-4 at 128x135), and the torch code from the C kernels by 5.5e-4: float32 box
+    sums, amplified by the network's log-luminance features in dark pixels (docs/pyramid.md)."""
+    pytest.importorskip("onnxruntime")
+    pytest.importorskip("onnxscript")
+    pytest.importorskip("embreex")
+    import torchgi
+    from torchgi.denoise import Denoiser
+    from torchgi.export import OrtDenoiser, export_onnx
+
+    deployed = Denoiser("pyramid").deploy(spp=1)
+    g = torch.Generator().manual_seed(0)
+    examples = [torch.rand(2, 3, 24, 32, generator=g) for _ in range(4)] + [torch.rand(2, 1, 24, 32, generator=g)]
+    path = export_onnx(deployed, examples, tmp_path / "pyramid.onnx", input_names=list(deployed.input_names),
+                       optimize=False)
+    ort = OrtDenoiser(path)
+    for size in (40, 27):
+        gb = torchgi.render(torchgi.scenes.cornell(size).with_resolution(size, size + 7), spp=1, bounces=1)
+        ours = Denoiser("pyramid")(gb)
+        assert rel(deployed(gb.color, gb.emission, gb.albedo, gb.normal, gb.depth), ours) < 1e-6
+        assert rel(ort(gb), ours) < 3e-3, size
+
+
+@pytest.mark.parametrize("name", ["rough_spheres_small_light", "fence_sky"])
+def test_the_shipped_weights_beat_an_untrained_network_and_the_guided_filter(monkeypatch, name):
+    """The trained network must be what makes the pyramid good: the same candidates with a fresh
+    random initialisation or all-zero weights (a uniform mix giving back half of the residual),
+    and the guided Denoiser, have more error on a render of a judged scene (torchgi's own
+    meshes, 64², 1 spp). Measured: rough_spheres_small_light 0.45x / 0.46x / 0.41x, fence_sky
+    0.46x / 0.47x / 0.74x; the bounds leave room for noise."""
+    import importlib
+
+    import torchgi
+    from tests.test_scene_sets import load
+    from torchgi import metrics
+
+    pytest.importorskip("embreex", reason="the render extra is not installed")
+    module = importlib.import_module("torchgi.filters.pyramid")
+    scene = load(f"judged/{name}").with_resolution(64, 64)
+    noisy, ref = torchgi.render(scene, spp=1, bounces=1, seed=1), torchgi.render(scene, spp=256, bounces=1, seed=2)
+
+    def error(net: PyramidNet | None = None) -> float:
+        if net is not None:
+            monkeypatch.setattr(module, "default_net", lambda device=None: net)
+        return float(metrics.relmse(torchgi.Denoiser("pyramid")(noisy), ref.color))
+
+    shipped = error()
+    guided = float(metrics.relmse(torchgi.Denoiser("guided")(noisy), ref.color))
+    uniform, fresh = copy.deepcopy(default_net()), copy.deepcopy(default_net())
+    torch.manual_seed(0)
+    with torch.no_grad():
+        for p in uniform.parameters():
+            p.zero_()
+        for m in fresh.modules():
+            if hasattr(m, "reset_parameters"):
+                m.reset_parameters()
+    assert shipped < 0.8 * error(uniform) and shipped < 0.8 * error(fresh) and shipped < 0.9 * guided
