@@ -78,6 +78,24 @@ def test_plane_under_sky_reflects_albedo_times_sky(integrator):
 
 
 @pytest.mark.parametrize("integrator", ["path", "basic"])
+def test_a_new_scene_is_never_rendered_with_a_freed_ones_lights(integrator):
+    """The tracers cache each scene's BVH and tables; a scene freed and a new one built at the
+    same address (CPython reuses it at once) with the same geometry but another light must not
+    get the old tables. Direct light of a point light: red, then blue, then red again."""
+    cam = Camera((0, 2, 0), (0, 0, 0), up=(0, 0, -1), fov=20, resolution=(4, 4))
+    ids, colours = set(), []
+    for colour in [(1.0, 0.0, 0.0), (0.0, 0.0, 1.0)] * 3:
+        scene = Scene(cam, [plane(albedo=0.6)], [PointLight((0.1, 1.0, 0.0), colour)])
+        ids.add(id(scene))
+        direct = torchgi.render(scene, spp=1, bounces=1, integrator=integrator).direct.mean((0, 2, 3))
+        colours.append(int(direct.argmax()))
+        del scene
+    assert colours == [0, 2] * 3
+    if len(ids) == 6:
+        pytest.skip("no scene address was reused here: the case did not arise")
+
+
+@pytest.mark.parametrize("integrator", ["path", "basic"])
 def test_point_light_inverse_square_cosine_law(integrator):
     # Irradiance from a point light of intensity I at height h: E = I cos / d^2 = I h / d^3.
     cam = Camera((0, 2, 0), (0, 0, 0), up=(0, 0, -1), fov=20, resolution=(8, 8))

@@ -12,6 +12,7 @@ side the face normal points to (counter-clockwise winding).
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import itertools
 import math
 import warnings
@@ -332,7 +333,7 @@ class SceneArrays:
     sky: np.ndarray | None
     scale: float
     skipped: int
-    key: str
+    key: str  # SHA-256 of the arrays: what the tracers' caches are keyed by
 
 
 @dataclasses.dataclass(eq=False)
@@ -422,21 +423,23 @@ def _flatten(scene: Scene) -> SceneArrays:
     lo, hi = triangles.reshape(-1, 3).min(0), triangles.reshape(-1, 3).max(0)
     scale = float(max(np.abs(lo).max(), np.abs(hi).max(), (hi - lo).max()))
     f32 = np.float32
-    return SceneArrays(
-        triangles=np.ascontiguousarray(triangles, dtype=f32),
-        normals=normals.astype(f32),
-        material=material,
-        albedo=albedo.astype(f32),
-        emission=emission.astype(f32),
-        roughness=np.array([m.roughness for m in materials], dtype=f32),
-        kind=np.array([GLOSSY if m.type == "glossy" else DIFFUSE for m in materials], dtype=np.int64),
-        light_tris=light_tris,
-        light_prob=light_prob.astype(np.float64),
-        light_pdf=light_pdf.astype(f32),
-        points=np.array([p.position for p in points], dtype=f32).reshape(-1, 3),
-        intensities=np.array([p.intensity for p in points], dtype=f32).reshape(-1, 3),
-        sky=np.array(skies[0].radiance, dtype=f32) if skies and max(skies[0].radiance) > 0 else None,
-        scale=scale,
-        skipped=skipped,
-        key=f"{id(scene)}-{len(triangles)}-{float(triangles.sum()):.9g}",
-    )
+    fields = {
+        "triangles": np.ascontiguousarray(triangles, dtype=f32),
+        "normals": normals.astype(f32),
+        "material": material,
+        "albedo": albedo.astype(f32),
+        "emission": emission.astype(f32),
+        "roughness": np.array([m.roughness for m in materials], dtype=f32),
+        "kind": np.array([GLOSSY if m.type == "glossy" else DIFFUSE for m in materials], dtype=np.int64),
+        "light_tris": light_tris,
+        "light_prob": light_prob.astype(np.float64),
+        "light_pdf": light_pdf.astype(f32),
+        "points": np.array([p.position for p in points], dtype=f32).reshape(-1, 3),
+        "intensities": np.array([p.intensity for p in points], dtype=f32).reshape(-1, 3),
+        "sky": np.array(skies[0].radiance, dtype=f32) if skies and max(skies[0].radiance) > 0 else None,
+    }
+    # the tracers' caches are keyed by content: a scene object's id is reused after it is freed
+    digest = hashlib.sha256()
+    for name, value in fields.items():
+        digest.update(name.encode() + (b"-" if value is None else np.ascontiguousarray(value).tobytes()))
+    return SceneArrays(**fields, scale=scale, skipped=skipped, key=digest.hexdigest())
