@@ -331,11 +331,12 @@ class Denoiser(torch.nn.Module):
         return out if self.hdr else out.clamp(0, 1)
 
     def weights(self, gb: GBuffer) -> torch.Tensor:
-        """Methods "blend" and "pyramid": the ``(B, K, H, W)`` per-pixel weights it gives its ``K``
-        candidates for ``gb`` (what it chose, summing to 1 per pixel; the blend's candidates' radii
-        in px are ``BlendNet.candidate_radii()`` of :func:`torchgi.filters.blend.default_net`; the
-        pyramid's are at 1/4 resolution, ``PyramidNet.candidates`` then the
-        residual's four band gains, of :func:`torchgi.filters.pyramid.default_net`).
+        """Methods "blend" and "pyramid": the per-pixel weights it gives its candidates for ``gb``
+        (what it chose). The blend: ``(B, K, H, W)`` summing to 1 per pixel, the candidates' radii
+        in px ``BlendNet.candidate_radii()`` of :func:`torchgi.filters.blend.default_net`. The
+        pyramid: ``(B, K + 4, ⌈H/4⌉, ⌈W/4⌉)``, the weights of ``PyramidNet.candidates`` of
+        :func:`torchgi.filters.pyramid.default_net` (summing to 1) then the gains in [0, 1] of the
+        residual's four bands.
 
         Example:
             >>> from torchgi.render import render, scenes

@@ -17,18 +17,18 @@ the sample count and what each candidate makes of the light, and gives per-pixel
 softmax ``w_k`` mixes the candidates' *coefficients*: those of scale >= 4 at 1/4 resolution,
 where the weights are, those of scale 2 at 1/2 with the weights upsampled; the mixed
 coefficients are upsampled and applied to the full-resolution guide once; candidates of scale
-1 (the guided filter at full resolution) are mixed as outputs, their weights upsampled to full
-resolution. That gives the model ``M``; what the guide cannot explain
-(shadow edges, reflections, glossy highlights) stays in the residual ``x - M``, and the
-remaining outputs, through a sigmoid, are per-pixel gains ``g_1, g_2, g_4 ∈ [0, 1]`` of its
-Laplacian bands and ``g_8`` of its low-pass at 1/8::
+1 (the guided filter at full resolution, outputs ``y_j``) are mixed as outputs, their weights
+upsampled to full resolution. That gives the model ``M``; what the guide cannot explain (shadow
+edges, reflections, glossy highlights) stays in the residual ``x - M``, and the remaining
+outputs, through a sigmoid, are per-pixel gains ``g_1, g_2, g_4 ∈ [0, 1]`` of its Laplacian
+bands and ``g_8`` of its low-pass at 1/8::
 
-    M = μ + (Σ_k w_k a_k) · I + Σ_k w_k b_k
+    M = μ + (Σ_k w_k a_k) · I + Σ_k w_k b_k + Σ_j w_j y_j
     P_8 = g_8 · R_8,   P_s = up(P_2s) + g_s · (R_s - up(R_2s))  for s = 4, 2, 1
     out = M + P_1
 
-where ``μ`` is the light's image mean (the ``b`` are
-fitted to the light centred the same way), ``R_s`` the ``s x s`` means of ``x - M`` and ``up``
+where ``μ`` is the light's image mean (the ``b`` and ``y_j`` are fitted to the light centred
+the same way), ``R_s`` the ``s x s`` means of ``x - M`` and ``up``
 the bilinear x2 (so gains of 1 everywhere give back ``x``, gains of 0 the model: a coarse gain
 corrects the model's low-frequency bias, whose noise the means have removed). The gains are
 evaluated at 1/4 resolution and resampled to their band (bilinear x2 steps up, 2 x 2 means down
@@ -44,16 +44,18 @@ to 1/8). The network's features at 1/4 resolution, with ``m`` each image's mean 
 
 Each level of the pyramid is the 2 x 2 means of the one below; coefficients go up one level at
 a time by bilinear x2 (pixel centres aligned). So the full-resolution work is a pyramid of
-means, the product of the upsampled coefficients with the guide and the residual's pyramid,
-whatever the number of candidates (a mix of linear models is a linear model). Coarse scales
+means, the scale-1 fits, one product of the upsampled coefficients with the guide whatever the
+number of coarser candidates (a mix of linear models is a linear model) and the residual's
+pyramid. Coarse scales
 remove the low-frequency noise a 1-spp image keeps; the residual's bands keep what the guide
 does not explain where the noise allows. Trained end to end by ``scripts/train_pyramid.py`` on
 project-rendered scenes that are never benchmark scenes; the weights ship beside this module
 (``pyramid_weights.json``) with their training config, commit and data hash.
 :func:`pyramid_inputs` and :func:`pyramid_mix` are the two halves training uses.
 
-Everything is tensor code around the seam's :class:`~torchgi.backends.GuidedOp` (compiled
-back ends solve the candidates eagerly; the torch code under autograd, tracing and export):
+Everything is tensor code around the seam's :class:`~torchgi.backends.GuidedOp` and
+:class:`~torchgi.backends.UpsampleApplyOp` (compiled back ends run them eagerly; the torch code
+under autograd, tracing and export):
 differentiable with respect to the light, the guide and the network's weights, float16 in and
 out (computed in float32).
 """
