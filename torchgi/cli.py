@@ -16,6 +16,7 @@ import torch
 
 import torchgi
 from torchgi.core.errors import TorchGIError
+from torchgi.denoise import EXPORTABLE, METHODS
 
 __all__ = ["main"]
 
@@ -151,7 +152,7 @@ def cmd_export(args: argparse.Namespace) -> int:
     path = export_denoiser(args.method, args.out, spp=args.spp, quality=args.quality,
                            sigma_position=args.sigma_position, overwrite=args.overwrite)
     print(f"wrote {path} ({args.method}, {args.spp} spp, {args.quality}); inputs color, emission, albedo, normal, "
-          f"{'depth' if args.method == 'guided' else 'position'} (B, C, H, W) float32, dynamic B/H/W")
+          f"{'position' if args.method == 'atrous' else 'depth'} (B, C, H, W) float32, dynamic B/H/W")
     return 0
 
 
@@ -248,7 +249,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("denoise", help="denoise an EXR with AOVs (colour, albedo, normal; uses position, depth, "
                        "emission when present)")
     p.add_argument("input", help="multi-layer EXR: torchgi, Blender/Cycles, Mitsuba 3 or Arnold layer names")
-    p.add_argument("--method", choices=["guided", "atrous", "bilateral", "none"], default="guided")
+    p.add_argument("--method", choices=list(METHODS), default="guided")
     p.add_argument("--quality", choices=["fast", "balanced", "high"], default="balanced")
     p.add_argument("--radius", type=_positive_int, default=None, help="filter radius (default: from spp)")
     p.add_argument("--out", required=True, help="output EXR (layer 'color'; never overwritten unless --overwrite)")
@@ -258,7 +259,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_denoise)
 
     p = sub.add_parser("export", help="export a Denoiser to ONNX (needs the onnx extra)")
-    p.add_argument("--method", choices=["guided", "atrous"], default="guided")
+    p.add_argument("--method", choices=list(EXPORTABLE), default="guided")
     p.add_argument("--spp", type=float, default=1.0, help="samples per pixel the parameters are fixed for")
     p.add_argument("--quality", choices=["fast", "balanced", "high"], default="balanced")
     p.add_argument("--sigma-position", type=float, default=None, help="À-Trous σ_x, scene units squared")

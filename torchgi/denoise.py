@@ -46,9 +46,10 @@ from torchgi.geometry import sigma_position_rule
 from torchgi.settings import ATROUS, BILATERAL, GUIDED, PIPELINE
 from torchgi.supersample import EyeSamples
 
-__all__ = ["DENOISERS", "METHODS", "QUALITIES", "Denoiser", "DeployedDenoiser"]
+__all__ = ["DENOISERS", "EXPORTABLE", "METHODS", "QUALITIES", "Denoiser", "DeployedDenoiser"]
 
 METHODS = ("pyramid", "blend", "guided", "atrous", "bilateral", "none")
+EXPORTABLE = ("pyramid", "blend", "guided", "atrous")  # the methods Denoiser.deploy() fixes for ONNX
 QUALITIES = ("fast", "balanced", "high")
 # fireflies are clamped at this many times their local level before each method's filter
 _FIREFLY = {"pyramid": GUIDED.firefly, "blend": GUIDED.firefly, "guided": GUIDED.firefly, "atrous": ATROUS.firefly, "bilateral": BILATERAL.firefly, "none": GUIDED.firefly}
@@ -182,8 +183,7 @@ class Denoiser(torch.nn.Module):
                 "sigma_color": p.get("sigma_color", ATROUS.deployed_sigma_color),
             }
         else:
-            raise ValueError(f"method: only 'pyramid', 'blend', 'guided' and 'atrous' deploy to ONNX, not "
-                             f"{self.method!r}")
+            raise ValueError(f"method: only {', '.join(EXPORTABLE)} deploy to ONNX, not {self.method!r}")
         return DeployedDenoiser(self.method, params)
 
     def extra_repr(self) -> str:
@@ -529,7 +529,7 @@ class DeployedDenoiser(torch.nn.Module):
 
     def __init__(self, method: str, params: dict[str, Any], net: torch.nn.Module | None = None) -> None:
         super().__init__()
-        check_option(method, "method", ("pyramid", "blend", "guided", "atrous"))
+        check_option(method, "method", EXPORTABLE)
         if (net is None) != (method in ("guided", "atrous")):
             raise ValueError("net: the learned methods ('pyramid', 'blend') need their network, the others none")
         self.method, self.params, self.net = method, dict(params), net
