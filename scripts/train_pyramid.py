@@ -87,7 +87,9 @@ def crops(data: list[dict], size: int, count: int, g: torch.Generator) -> dict:
         for k, t in d["coeffs"].items():  # "<group>@<scale>": cut at that scale
             parts["coeffs." + k] = cut(t, int(k.split("@")[1]))
         parts["rest.mean"] = d["rest"]["mean"]
-        parts["rest.guide"], parts["rest.colour"] = cut(d["rest"]["guide"], 1), cut(d["rest"]["colour"], 1)
+        for k in ("guide", "colour"):  # full resolution (no colour channel without colour candidates)
+            if k in d["rest"]:
+                parts["rest." + k] = cut(d["rest"][k], 1)
         for k, t in parts.items():
             out.setdefault(k, []).append(t)
     batch = {k: torch.cat(v) for k, v in out.items()}
@@ -174,6 +176,8 @@ def parse() -> argparse.Namespace:
     ap.add_argument("--lr", type=float, default=5e-4)
     ap.add_argument("--clip", type=float, default=1.0, help="gradient norm clip")
     ap.add_argument("--widths", type=int, nargs=3, default=[16, 24, 32])
+    ap.add_argument("--colour", type=float, nargs="*", default=None,
+                    help="scale radius eps triples of the colour-guided candidates (none: no colour candidates)")
     ap.add_argument("--candidates", type=float, nargs="+", default=None,
                     help="scale radius eps triples (default: PyramidNet's)")
     ap.add_argument("--every", type=int, default=500, help="steps between validations")
@@ -188,8 +192,10 @@ def main() -> None:
     torch.manual_seed(args.seed)
     t0 = time.perf_counter()
     commit, dirty = git_state()  # before training: the code that trained
-    kw = {} if args.candidates is None else {"candidates": [args.candidates[i : i + 3]
-                                                             for i in range(0, len(args.candidates), 3)]}
+    triples = lambda v: [v[i : i + 3] for i in range(0, len(v), 3)]
+    kw = {} if args.candidates is None else {"candidates": triples(args.candidates)}
+    if args.colour is not None:
+        kw["colour"] = triples(args.colour)
     net = PyramidNet(widths=args.widths, **kw)
     ds = ShardDataset(args.data, features=FEATURES)
     data = [prepared(ds[i], net) for i in tqdm(range(len(ds)), desc="prepare", unit="shard", mininterval=30)]

@@ -108,11 +108,13 @@ def _choosing(k: int, gain: float) -> PyramidNet:
     return net
 
 
-@pytest.mark.parametrize("spp, scales", [(1.0, "default"), (4.0, "default"), (2.0, "with full resolution")])
+@pytest.mark.parametrize("spp, scales", [(1.0, "default"), (4.0, "default"), (2.0, "with full resolution"),
+                                         (1.0, "no colour")])
 def test_matches_the_float64_oracle(spp, scales):
     torch.manual_seed(1)
-    kw = {} if scales == "default" else {"candidates": [(2, 1, 1e-5), (1, 2, 1e-6), (8, 2, 1e-5)],
-                                         "colour": [(1, 1, 1e-5), (4, 2, 1e-5)]}
+    kw = {"default": {}, "with full resolution": {"candidates": [(2, 1, 1e-5), (1, 2, 1e-6), (8, 2, 1e-5)],
+                                                  "colour": [(1, 1, 1e-5), (4, 2, 1e-5)]},
+          "no colour": {"colour": []}}[scales]
     net = PyramidNet(**kw)  # a random network: every feature and candidate counts
     with torch.no_grad():
         net.head.weight.mul_(20)  # sharp, spatially varying weights

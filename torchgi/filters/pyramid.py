@@ -270,6 +270,21 @@ def _features(x: torch.Tensor, xs: dict[int, torch.Tensor], gs: dict[int, torch.
     return torch.cat(feats, 1)
 
 
+def _colour_channel(net: PyramidNet, coeffs: dict[str, list[torch.Tensor]], xs: dict[int, torch.Tensor],
+                    gs: dict[int, torch.Tensor], mean_p: torch.Tensor, m: torch.Tensor) -> torch.Tensor:
+    """The colour candidates' guide channel ``(B, 1, H, W)``, centred: the scaled log-luminance of
+    the first candidate's full-resolution output (its luminance is the model of the channel-mean
+    coefficients)."""
+    s0 = min(net.candidates[0][0], FEATURE_SCALE)
+    if s0 == 1:
+        first = _luminance(coeffs["geometric@1"][0])
+    else:
+        c0 = _finer(coeffs[f"geometric@{s0}"][0].mean(2, keepdim=True), s0, MIX_SCALE, xs)
+        first = backends.run(backends.UpsampleApplyOp(c0, gs[1]))
+    lum_guide = net.colour_scale * torch.log((first + _luminance(mean_p)).clamp_min(0) / m + 0.01)
+    return lum_guide - lum_guide.mean((2, 3), keepdim=True)
+
+
 def pyramid_inputs(
     x: torch.Tensor, guide: torch.Tensor, spp: float | torch.Tensor, net: PyramidNet
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor], dict[str, torch.Tensor]]:
@@ -316,27 +331,20 @@ def pyramid_inputs(
     groups = _groups(net)
     for key in ("geometric@1", "geometric@2", "geometric@4"):
         coeffs[key] = [fit(gs, *net.candidates[k]) for k in groups[key]]
-    # the colour channel: the log-luminance of the first candidate's full-resolution output (its
-    # luminance is the model of the channel-mean coefficients)
-    s0 = min(net.candidates[0][0], FEATURE_SCALE)
-    if s0 == 1:
-        first = _luminance(coeffs["geometric@1"][0])
-    else:
-        c0 = _finer(coeffs[f"geometric@{s0}"][0].mean(2, keepdim=True), s0, MIX_SCALE, xs)
-        first = backends.run(backends.UpsampleApplyOp(c0, gs[1]))
-    lum_guide = net.colour_scale * torch.log((first + _luminance(mean_p)).clamp_min(0) / m + 0.01)
-    lum_guide = lum_guide - lum_guide.mean((2, 3), keepdim=True)
-    keep = min(guide.shape[1], 3)
-    lum_levels = _levels(lum_guide, top)
-    cs = {s: torch.cat([gs[s][:, :keep], lum_levels[s]], 1) for s in lum_levels
-          if s > 1 or groups["colour@1"]}
-    for key in ("colour@1", "colour@2", "colour@4"):
-        coeffs[key] = [fit(cs, *net.candidates[k]) for k in groups[key]]
+    rest = {"guide": gs[1], "mean": mean_p}
+    if net.colour:
+        rest["colour"] = _colour_channel(net, coeffs, xs, gs, mean_p, m)
+        keep = min(guide.shape[1], 3)
+        lum_levels = _levels(rest["colour"], top)
+        cs = {s: torch.cat([gs[s][:, :keep], lum_levels[s]], 1) for s in lum_levels
+              if s > 1 or groups["colour@1"]}
+        for key in ("colour@1", "colour@2", "colour@4"):
+            coeffs[key] = [fit(cs, *net.candidates[k]) for k in groups[key]]
     coeffs = {k: torch.stack(v, 1) for k, v in coeffs.items() if v}
     order = [k for key in groups.values() for k in key]  # the views were made in group order
     views = [views[order.index(k)] for k in range(len(net.candidates))]
     feats = _features(x, xs, gs, mean_p, m, spp, views)
-    return feats, coeffs, {"guide": gs[1], "colour": lum_guide, "mean": mean_p}
+    return feats, coeffs, rest
 
 
 def pyramid_mix(
