@@ -7,8 +7,9 @@ The data are the shards of ``configs/data_gen/learned.yaml``: ten scenes that ar
 scenes. ``--holdout`` scenes (default: two of them) are never trained on: they are the validation
 set, evaluated on whole images every ``--every`` steps and at the end beside
 ``Denoiser("guided")``, ``Denoiser("blend")`` and OIDN high, so that the design is chosen without
-the judged scenes. Each noisy shard goes through the Denoiser's own pipeline up to its filter
-(:func:`train_blend.prepared`'s recording filter: demodulation, light sources, firefly clamp),
+the judged scenes (docs/pyramid.md: 526 s for the shipped 4000 steps on 2 cores). Each noisy
+shard goes through the Denoiser's own pipeline up to its filter (:func:`prepared`'s recording
+filter, as in train_blend.py: demodulation, light sources, firefly clamp),
 then :func:`~torchgi.filters.pyramid.pyramid_inputs` once per shard (features and candidate
 coefficients, no gradient: they do not depend on the weights); training runs the network and
 :func:`~torchgi.filters.pyramid.pyramid_mix` on random crops (offsets on the 1/4 grid, so the crops
