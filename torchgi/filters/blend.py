@@ -24,8 +24,6 @@ respect to the source, guide and the network's weights, ONNX-exportable, float16
 
 from __future__ import annotations
 
-import copy
-import json
 import math
 from collections.abc import Sequence
 from pathlib import Path
@@ -39,6 +37,7 @@ from torchgi.core.dtypes import compute_dtype
 from torchgi.core.errors import RangeError
 from torchgi.filters.box import box
 from torchgi.filters.guided import guided
+from torchgi.filters.learned import SavedNet, shipped
 
 __all__ = ["Blend", "BlendNet", "blend", "blend_candidates", "blend_features", "default_net"]
 
@@ -128,7 +127,7 @@ def blend_features(
     return torch.cat(feats, 1)
 
 
-class BlendNet(nn.Module):
+class BlendNet(SavedNet):
     """The per-pixel MLP of :func:`blend`: ``features (B, F, H, W)`` → logits ``(B, K, H, W)``
     (the features and their box means at ``context`` radii, two hidden ReLU layers as 1x1
     convolutions), and the candidate set it was trained for.
@@ -192,20 +191,6 @@ class BlendNet(nn.Module):
                 "colour_scale": self.colour_scale, "reference": self.reference, "hidden": self.hidden,
                 "context": list(self.context), "fine_radii": list(self.fine_radii), "fine_eps": self.fine_eps}
 
-    def save(self, path: str | Path, provenance: dict[str, Any]) -> None:
-        """Write config, weights (as lists) and ``provenance`` to a JSON file (no pickle)."""
-        state = {k: v.detach().double().tolist() for k, v in self.state_dict().items()}
-        Path(path).write_text(json.dumps({"config": self.config(), "provenance": provenance, "state": state}))
-
-    @classmethod
-    def load(cls, path: str | Path) -> BlendNet:
-        """Read a file written by :meth:`save`."""
-        data = json.loads(Path(path).read_text())
-        net = cls(**data["config"])
-        net.load_state_dict({k: torch.tensor(v, dtype=torch.float32) for k, v in data["state"].items()})
-        net.provenance = data.get("provenance", {})
-        return net.eval().requires_grad_(False)
-
 
 _DEFAULT: dict[torch.device, BlendNet] = {}
 
@@ -213,15 +198,7 @@ _DEFAULT: dict[torch.device, BlendNet] = {}
 def default_net(device: torch.device | str = "cpu") -> BlendNet:
     """The shipped network (``blend_weights.json``) on ``device``: read once per process, one
     copy per device."""
-    device = torch.device(device)
-    if device not in _DEFAULT:
-        if device.type != "cpu":
-            _DEFAULT[device] = copy.deepcopy(default_net()).to(device)
-        elif not WEIGHTS.is_file():
-            raise FileNotFoundError(f"{WEIGHTS}: the blend's weights are missing (python scripts/train_blend.py)")
-        else:
-            _DEFAULT[device] = BlendNet.load(WEIGHTS)
-    return _DEFAULT[device]
+    return shipped(BlendNet, WEIGHTS, device, _DEFAULT, "the blend's weights", "scripts/train_blend.py")
 
 
 def _weights(net: BlendNet, candidates: Sequence[torch.Tensor], guide: torch.Tensor,

@@ -62,8 +62,6 @@ out (computed in float32).
 
 from __future__ import annotations
 
-import copy
-import json
 import math
 from collections.abc import Sequence
 from pathlib import Path
@@ -85,6 +83,7 @@ from torchgi.core.check import (
 )
 from torchgi.core.dtypes import compute_dtype
 from torchgi.core.errors import RangeError, ShapeError
+from torchgi.filters.learned import SavedNet, shipped
 
 __all__ = ["Pyramid", "PyramidNet", "default_net", "pyramid", "pyramid_inputs", "pyramid_mix"]
 
@@ -144,7 +143,7 @@ def _triples(values: Sequence[Sequence[float]], name: str) -> tuple[tuple[int, i
     return tuple(out)
 
 
-class PyramidNet(nn.Module):
+class PyramidNet(SavedNet):
     """The network of :func:`pyramid`: features ``(B, F, h, w)`` at 1/4 resolution → ``(B, K +
     4, h, w)``: logits over the ``K`` candidates (``candidates`` then ``colour``), then the gain
     logits of the residual's bands (:data:`BANDS`); and the candidate set it was trained for.
@@ -204,20 +203,6 @@ class PyramidNet(nn.Module):
         return {"candidates": [list(c) for c in self.geometric], "colour": [list(c) for c in self.colour],
                 "colour_scale": self.colour_scale, "widths": list(self.widths)}
 
-    def save(self, path: str | Path, provenance: dict[str, Any]) -> None:
-        """Write config, weights (as lists) and ``provenance`` to a JSON file (no pickle)."""
-        state = {k: v.detach().float().tolist() for k, v in self.state_dict().items()}
-        Path(path).write_text(json.dumps({"config": self.config(), "provenance": provenance, "state": state}))
-
-    @classmethod
-    def load(cls, path: str | Path) -> PyramidNet:
-        """Read a file written by :meth:`save`."""
-        data = json.loads(Path(path).read_text())
-        net = cls(**data["config"])
-        net.load_state_dict({k: torch.tensor(v, dtype=torch.float32) for k, v in data["state"].items()})
-        net.provenance = data.get("provenance", {})
-        return net.eval().requires_grad_(False)
-
 
 _DEFAULT: dict[torch.device, PyramidNet] = {}
 
@@ -225,15 +210,7 @@ _DEFAULT: dict[torch.device, PyramidNet] = {}
 def default_net(device: torch.device | str = "cpu") -> PyramidNet:
     """The shipped network (``pyramid_weights.json``) on ``device``: read once per process, one
     copy per device."""
-    device = torch.device(device)
-    if device not in _DEFAULT:
-        if device.type != "cpu":
-            _DEFAULT[device] = copy.deepcopy(default_net()).to(device)
-        elif not WEIGHTS.is_file():
-            raise FileNotFoundError(f"{WEIGHTS}: the pyramid's weights are missing (python scripts/train_pyramid.py)")
-        else:
-            _DEFAULT[device] = PyramidNet.load(WEIGHTS)
-    return _DEFAULT[device]
+    return shipped(PyramidNet, WEIGHTS, device, _DEFAULT, "the pyramid's weights", "scripts/train_pyramid.py")
 
 
 def _groups(net: PyramidNet) -> dict[str, list[int]]:

@@ -1,0 +1,71 @@
+"""What the learned filters share: their networks' weights as JSON (no pickle) with the
+provenance of their training, and the shipped network read once per process."""
+
+from __future__ import annotations
+
+import copy
+import json
+from pathlib import Path
+from typing import Any, TypeVar
+
+import torch
+from torch import nn
+from typing_extensions import Self
+
+__all__ = ["SavedNet", "shipped"]
+
+N = TypeVar("N", bound="SavedNet")
+
+
+class SavedNet(nn.Module):
+    """A network saved with its constructor arguments (:meth:`config`, defined by each learned
+    filter) and the provenance of its training.
+
+    Example:
+        >>> from torchgi.filters.pyramid import PyramidNet
+        >>> import os, tempfile
+        >>> path = os.path.join(tempfile.mkdtemp(), "net.json")
+        >>> PyramidNet().save(path, {"script": "example"})
+        >>> PyramidNet.load(path).provenance
+        {'script': 'example'}
+    """
+
+    def config(self) -> dict[str, Any]:
+        """The constructor arguments (what the weights file records)."""
+        raise NotImplementedError
+
+    def save(self, path: str | Path, provenance: dict[str, Any]) -> None:
+        """Write config, weights (as lists) and ``provenance`` to a JSON file (no pickle)."""
+        state = {k: v.detach().double().tolist() for k, v in self.state_dict().items()}
+        Path(path).write_text(json.dumps({"config": self.config(), "provenance": provenance, "state": state}))
+
+    @classmethod
+    def load(cls, path: str | Path) -> Self:
+        """Read a file written by :meth:`save`: the network in eval mode, without gradients,
+        with its ``provenance``."""
+        data = json.loads(Path(path).read_text())
+        net = cls(**data["config"])
+        net.load_state_dict({k: torch.tensor(v, dtype=torch.float32) for k, v in data["state"].items()})
+        net.provenance = data.get("provenance", {})
+        return net.eval().requires_grad_(False)
+
+
+def shipped(cls: type[N], path: Path, device: torch.device | str, cache: dict[torch.device, N], what: str,
+            script: str) -> N:
+    """The network of ``cls`` shipped at ``path`` on ``device``: read once per process into
+    ``cache``, one copy per device; a missing file names ``what`` and the ``script`` that makes it.
+
+    Example:
+        >>> from torchgi.filters.pyramid import WEIGHTS, PyramidNet
+        >>> len(shipped(PyramidNet, WEIGHTS, "cpu", {}, "the pyramid's weights", "scripts/train_pyramid.py").candidates)
+        12
+    """
+    device = torch.device(device)
+    if device not in cache:
+        if device.type != "cpu":
+            cache[device] = copy.deepcopy(shipped(cls, path, "cpu", cache, what, script)).to(device)
+        elif not path.is_file():
+            raise FileNotFoundError(f"{path}: {what} are missing (python {script})")
+        else:
+            cache[device] = cls.load(path)
+    return cache[device]
