@@ -39,9 +39,11 @@ from torchgi.settings import GUIDED
 FEATURES = ("color", "albedo", "normal", "depth", "emission", "variance")
 
 
-def prepared(sample: dict, net: BlendNet) -> dict:
-    """One shard through the Denoiser's pipeline: candidates, features, the demodulator and the
-    light added back, and the target, all ``(1, ., H, W)``."""
+def filter_input(sample: dict, method: str) -> dict:
+    """One shard through the Denoiser's pipeline up to its filter (a recording filter: light
+    sources kept, demodulation, firefly clamp): the filter's input ``x``, its guide (as
+    ``Denoiser(method)`` builds it), the sample count it sees, the demodulator and the light
+    added back, the target, the GBuffer, the shard's name and spp; tensors ``(1, ., H, W)``."""
     t = {k: sample[k][None] for k in FEATURES}
     H, W = t["color"].shape[-2:]
     gb = GBuffer(**t, spp=torch.full((1, 1, H, W), int(sample["spp"]), dtype=torch.int32))
@@ -53,14 +55,22 @@ def prepared(sample: dict, net: BlendNet) -> dict:
         return torch.zeros_like(x)
 
     kept = light.restore(gb.color, gb.emission, None, gb.albedo, surface, record, GUIDED.firefly, box)
-    guide = guide_from(gb.normal, gb.depth, depth_scale="image")  # as Denoiser('blend') builds it
-    spp = Denoiser("blend")._spp(gb, surface)
-    cands = blend_candidates(seen["x"], guide, radii=net.radii, eps=net.eps, colour_radii=net.colour_radii,
+    return {"x": seen["x"], "guide": guide_from(gb.normal, gb.depth, depth_scale="image"),
+            "spp": Denoiser(method)._spp(gb, surface), "demod": light.demodulator(gb.albedo, surface),
+            "kept": kept, "target": sample["target"][None], "gbuffer": gb, "name": sample["name"],
+            "shard_spp": int(sample["spp"])}
+
+
+def prepared(sample: dict, net: BlendNet) -> dict:
+    """One shard through the Denoiser's pipeline: candidates, features, the demodulator and the
+    light added back, and the target, all ``(1, ., H, W)``."""
+    d = filter_input(sample, "blend")
+    cands = blend_candidates(d["x"], d["guide"], radii=net.radii, eps=net.eps, colour_radii=net.colour_radii,
                              colour_scale=net.colour_scale, fine_radii=net.fine_radii,
                              fine_eps=net.fine_eps)
-    return {"cands": torch.stack(cands, 1), "feats": blend_features(cands, guide, spp, net.reference),
-            "demod": light.demodulator(gb.albedo, surface), "kept": kept, "target": sample["target"][None],
-            "name": sample["name"], "spp": int(sample["spp"]), "gbuffer": gb}
+    return {"cands": torch.stack(cands, 1), "feats": blend_features(cands, d["guide"], d["spp"], net.reference),
+            "demod": d["demod"], "kept": d["kept"], "target": d["target"], "name": d["name"],
+            "spp": d["shard_spp"], "gbuffer": d["gbuffer"]}
 
 
 def output(net: BlendNet, d: dict) -> torch.Tensor:

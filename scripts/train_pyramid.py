@@ -8,8 +8,8 @@ scenes. ``--holdout`` scenes (default: two of them) are never trained on: they a
 set, evaluated on whole images every ``--every`` steps and at the end beside
 ``Denoiser("guided")``, ``Denoiser("blend")`` and OIDN high, so that the design is chosen without
 the judged scenes (docs/pyramid.md: 526 s for the shipped 4000 steps on 2 cores). Each noisy
-shard goes through the Denoiser's own pipeline up to its filter (:func:`prepared`'s recording
-filter, as in train_blend.py: demodulation, light sources, firefly clamp),
+shard goes through the Denoiser's own pipeline up to its filter (``train_blend.filter_input``'s
+recording filter: demodulation, light sources, firefly clamp),
 then :func:`~torchgi.filters.pyramid.pyramid_inputs` once per shard (features and candidate
 coefficients, no gradient: they do not depend on the weights); training runs the network and
 :func:`~torchgi.filters.pyramid.pyramid_mix` on random crops (offsets on the 1/4 grid, so the crops
@@ -28,15 +28,12 @@ from pathlib import Path
 
 import torch
 from tqdm.auto import tqdm
-from train_blend import FEATURES, data_sha256, git_state, oidn_high
+from train_blend import FEATURES, data_sha256, filter_input, git_state, oidn_high
 
-from torchgi import light, metrics
-from torchgi.buffers import GBuffer
+from torchgi import metrics
 from torchgi.data import ShardDataset
 from torchgi.denoise import Denoiser
-from torchgi.filters import box, guide_from
 from torchgi.filters.pyramid import FEATURE_SCALE, PyramidNet, pyramid_inputs, pyramid_mix
-from torchgi.settings import GUIDED
 
 HOLDOUT = ("mirror_lamps", "lucy_sun_glossy")
 
@@ -48,24 +45,11 @@ def scene_of(name: str) -> str:
 
 def prepared(sample: dict, net: PyramidNet) -> dict:
     """One shard through the Denoiser's pipeline up to the filter, then the pyramid's inputs."""
-    t = {k: sample[k][None] for k in FEATURES}
-    H, W = t["color"].shape[-2:]
-    gb = GBuffer(**t, spp=torch.full((1, 1, H, W), int(sample["spp"]), dtype=torch.int32))
-    surface = light.surface_mask(gb.hit, gb.albedo)
-    seen = {}
-
-    def record(x):
-        seen["x"] = x
-        return torch.zeros_like(x)
-
-    kept = light.restore(gb.color, gb.emission, None, gb.albedo, surface, record, GUIDED.firefly, box)
-    guide = guide_from(gb.normal, gb.depth, depth_scale="image")  # as Denoiser('pyramid') builds it
-    spp = Denoiser("pyramid")._spp(gb, surface)
+    d = filter_input(sample, "pyramid")
     with torch.no_grad():
-        feats, coeffs, rest = pyramid_inputs(seen["x"], guide, max(spp, 1.0), net)
-    return {"feats": feats, "coeffs": coeffs, "x": seen["x"], "rest": rest,
-            "demod": light.demodulator(gb.albedo, surface), "kept": kept, "target": sample["target"][None],
-            "name": sample["name"], "spp": int(sample["spp"]), "gbuffer": gb}
+        feats, coeffs, rest = pyramid_inputs(d["x"], d["guide"], max(d["spp"], 1.0), net)
+    return {"feats": feats, "coeffs": coeffs, "x": d["x"], "rest": rest, "demod": d["demod"], "kept": d["kept"],
+            "target": d["target"], "name": d["name"], "spp": d["shard_spp"], "gbuffer": d["gbuffer"]}
 
 
 def output(net: PyramidNet, d: dict) -> torch.Tensor:
