@@ -89,3 +89,40 @@ def check_data_hash(weights, folder, config: str) -> None:
     prov = json.loads(weights.read_text())["provenance"]
     assert h.hexdigest() == prov["data_sha256"]
     assert prov["data_config"] == index["config"]
+
+
+def shipped_untrained_guided(monkeypatch, method: str, name: str, size: int) -> tuple[float, float, float, float]:
+    """relMSE on a judged render (``name``, ``size``², 1 spp against 256 spp, 1 bounce) of
+    ``Denoiser(method)`` with its shipped network, with that network's weights all zero, with
+    them freshly initialised (seed 0), and of ``Denoiser("guided")``: what a learned method's
+    test asks of its trained weights."""
+    import copy
+    import importlib
+
+    import pytest
+
+    import torchgi
+    from tests.test_scene_sets import load
+    from torchgi import metrics
+
+    pytest.importorskip("embreex", reason="the render extra is not installed")
+    module = importlib.import_module(f"torchgi.filters.{method}")
+    scene = load(f"judged/{name}").with_resolution(size, size)
+    noisy, ref = torchgi.render(scene, spp=1, bounces=1, seed=1), torchgi.render(scene, spp=256, bounces=1, seed=2)
+
+    def error(net=None) -> float:
+        if net is not None:
+            monkeypatch.setattr(module, "default_net", lambda device=None: net)
+        return float(metrics.relmse(torchgi.Denoiser(method)(noisy), ref.color))
+
+    shipped = error()
+    guided = float(metrics.relmse(torchgi.Denoiser("guided")(noisy), ref.color))
+    uniform, fresh = copy.deepcopy(module.default_net()), copy.deepcopy(module.default_net())
+    torch.manual_seed(0)
+    with torch.no_grad():
+        for p in uniform.parameters():
+            p.zero_()
+        for m in fresh.modules():
+            if hasattr(m, "reset_parameters"):
+                m.reset_parameters()
+    return shipped, error(uniform), error(fresh), guided

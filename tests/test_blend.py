@@ -7,7 +7,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from tests.helpers import check_data_hash, check_weights_provenance
+from tests.helpers import check_data_hash, check_weights_provenance, shipped_untrained_guided
 from tests.helpers import rel_error as rel
 from tests.oracles import box_oracle, guided_oracle
 from torchgi.core import NonFiniteError, RangeError
@@ -183,31 +183,5 @@ def test_the_shipped_weights_beat_an_untrained_network_and_the_guided_filter(mon
     rough_spheres_small_light 0.57x / 0.58x / 0.32x, fence_sky 0.69x / 0.70x / 0.55x; the bounds
     leave room for noise. Not on every judged scene: on mirror_floor_cubes the trained and the
     uniform blend are equal (0.993x)."""
-    import copy
-    import importlib
-
-    import torchgi
-    from tests.test_scene_sets import load
-    from torchgi import metrics
-
-    pytest.importorskip("embreex", reason="the render extra is not installed")
-    module = importlib.import_module("torchgi.filters.blend")
-    scene = load(f"judged/{name}").with_resolution(48, 48)
-    noisy, ref = torchgi.render(scene, spp=1, bounces=1, seed=1), torchgi.render(scene, spp=256, bounces=1, seed=2)
-
-    def error(net: BlendNet | None = None) -> float:
-        if net is not None:
-            monkeypatch.setattr(module, "default_net", lambda device=None: net)
-        return float(metrics.relmse(torchgi.Denoiser("blend")(noisy), ref.color))
-
-    shipped = error()
-    guided = float(metrics.relmse(torchgi.Denoiser("guided")(noisy), ref.color))
-    uniform, fresh = copy.deepcopy(default_net()), copy.deepcopy(default_net())
-    torch.manual_seed(0)
-    with torch.no_grad():
-        for p in uniform.parameters():
-            p.zero_()
-        for m in fresh.modules():
-            if hasattr(m, "reset_parameters"):
-                m.reset_parameters()
-    assert shipped < bound * error(uniform) and shipped < bound * error(fresh) and shipped < guided_bound * guided
+    shipped, uniform, fresh, guided = shipped_untrained_guided(monkeypatch, "blend", name, 48)
+    assert shipped < bound * uniform and shipped < bound * fresh and shipped < guided_bound * guided

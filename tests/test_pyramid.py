@@ -10,11 +10,11 @@ import copy
 import pytest
 import torch
 
-from tests.helpers import check_data_hash, check_weights_provenance
+from tests.helpers import check_data_hash, check_weights_provenance, shipped_untrained_guided
 from tests.helpers import rel_error as rel
 from tests.oracles import block_means, fast_guided_oracle, guided_oracle, upsample
 from torchgi.core import NonFiniteError, RangeError
-from torchgi.filters.pyramid import WEIGHTS, Pyramid, PyramidNet, default_net, pyramid
+from torchgi.filters.pyramid import WEIGHTS, Pyramid, PyramidNet, pyramid
 
 
 def _inputs(B=1, H=32, W=48, seed=0, dtype=torch.float32):
@@ -242,30 +242,5 @@ def test_the_shipped_weights_beat_an_untrained_network_and_the_guided_filter(mon
     and the guided Denoiser, have more error on a render of a judged scene (torchgi's own
     meshes, 64², 1 spp). Measured: rough_spheres_small_light 0.45x / 0.46x / 0.41x, fence_sky
     0.46x / 0.47x / 0.74x; the bounds leave room for noise."""
-    import importlib
-
-    import torchgi
-    from tests.test_scene_sets import load
-    from torchgi import metrics
-
-    pytest.importorskip("embreex", reason="the render extra is not installed")
-    module = importlib.import_module("torchgi.filters.pyramid")
-    scene = load(f"judged/{name}").with_resolution(64, 64)
-    noisy, ref = torchgi.render(scene, spp=1, bounces=1, seed=1), torchgi.render(scene, spp=256, bounces=1, seed=2)
-
-    def error(net: PyramidNet | None = None) -> float:
-        if net is not None:
-            monkeypatch.setattr(module, "default_net", lambda device=None: net)
-        return float(metrics.relmse(torchgi.Denoiser("pyramid")(noisy), ref.color))
-
-    shipped = error()
-    guided = float(metrics.relmse(torchgi.Denoiser("guided")(noisy), ref.color))
-    uniform, fresh = copy.deepcopy(default_net()), copy.deepcopy(default_net())
-    torch.manual_seed(0)
-    with torch.no_grad():
-        for p in uniform.parameters():
-            p.zero_()
-        for m in fresh.modules():
-            if hasattr(m, "reset_parameters"):
-                m.reset_parameters()
-    assert shipped < 0.8 * error(uniform) and shipped < 0.8 * error(fresh) and shipped < 0.9 * guided
+    shipped, uniform, fresh, guided = shipped_untrained_guided(monkeypatch, "pyramid", name, 64)
+    assert shipped < 0.8 * uniform and shipped < 0.8 * fresh and shipped < 0.9 * guided
