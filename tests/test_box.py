@@ -2,7 +2,7 @@ import pytest
 import torch
 
 from torchgi.backends.torch_code import PlaneBoxer
-from torchgi.backends.torch_code import box_cumsum as _box_cumsum
+from torchgi.backends.torch_code import box_pool as _box_pool
 from torchgi.core import NonFiniteError, ShapeError
 from torchgi.filters import Box, box
 
@@ -17,7 +17,7 @@ def test_reference_matches_avg_pool(H, W, r):
     x = torch.randn(2, 3, H, W, dtype=torch.float64, generator=torch.Generator().manual_seed(H * W + r))
     want = box_oracle(x, r)
     torch.testing.assert_close(box(x, r), want, rtol=1e-12, atol=1e-12)  # CPU fast path
-    torch.testing.assert_close(_box_cumsum(x, r), want, rtol=1e-12, atol=1e-12)  # autograd/export path
+    torch.testing.assert_close(_box_pool(x, r), want, rtol=1e-12, atol=1e-12)  # autograd/export path
 
 
 def test_plane_boxer_matches_oracle_in_float32():

@@ -19,7 +19,7 @@ def test_matches_float64_oracle(n, r):
     assert rel_err(guided(p, I, radius=r, eps=0.01), want) < 1e-5  # CPU compiled kernel, float32
     with backends.use("torch"):
         assert rel_err(guided(p, I, radius=r, eps=0.01), want) < 1e-5  # CPU torch fast path, float32
-    p64 = p.double().requires_grad_()  # autograd forces the cumsum (export) path
+    p64 = p.double().requires_grad_()  # autograd forces the box_pool (export) path
     assert rel_err(guided(p64, I.double(), radius=r, eps=0.01).detach(), want) < 1e-10
 
 
@@ -30,7 +30,7 @@ def test_subsampled_matches_float64_oracle(s, device):
     want = fast_guided_oracle(p, I, 6, 0.01, s)
     out = guided(p.to(device), I.to(device), radius=6, eps=0.01, subsample=s)
     assert out.shape == p.shape and out.device.type == device.type
-    assert rel_err(out.cpu(), want) < 1e-5  # CPU: the fast path; CUDA: the cumsum path
+    assert rel_err(out.cpu(), want) < 1e-5  # CPU: the fast path; CUDA: the box_pool path
     p64 = p.double().requires_grad_()
     got = guided(p64, I.double(), radius=6, eps=0.01, subsample=s)
     assert rel_err(got.detach(), want) < 1e-10

@@ -1,10 +1,12 @@
-"""Box filter (mean over a ``(2r+1)²`` window) by prefix sums: cost independent of ``r``.
+"""Box filter (mean over a ``(2r+1)²`` window).
 
 Borders are count-normalised: the window shrinks at the image edge, so the output is the
 mean of the pixels that exist. Any ``r >= 0`` works, including ``r`` larger than the image.
 Computed by the back end :mod:`torchgi.backends` picks: the C or Triton kernels (sums in
-double) for eager float32 calls, else the torch code (prefix sums along one axis at a time;
-differentiable, exported to ONNX as ``CumSum``/``Gather``).
+double) for eager float32 calls and the torch code's blocked prefix sums for other eager CPU
+calls (cost independent of ``r``), else the torch code's two separable average pools
+(differentiable, exported to ONNX as ``AveragePool``: each window summed directly, cost
+growing with ``r``).
 
 Precision: sums run along one axis at a time over mean-free data where the caller
 centres it (the guided filter does), so float32 keeps ~1e-6 relative accuracy at 4K.

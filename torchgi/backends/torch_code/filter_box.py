@@ -1,5 +1,6 @@
-"""The torch code of the box filter: separable ``torch.cumsum`` + ``index_select``
-(:func:`box_cumsum`; exported to ONNX as ``CumSum``/``Gather``); eagerly on the CPU,
+"""The torch code of the box filter: two separable ``avg_pool2d`` passes without padding in the
+counts (:func:`box_pool`: each window summed directly, so no long float32 prefix sums; under
+autograd and tracing, exported to ONNX as ``AveragePool``); eagerly on the CPU,
 :class:`PlaneBoxer` (blocked prefix sums - a 16x16 triangular matmul per block plus a carry -
 into reused buffers, a cache-sized stack of planes at a time)."""
 
@@ -38,20 +39,19 @@ def _counts(n: int | torch.Tensor, r: int, device: torch.device) -> tuple[torch.
     return hi, lo
 
 
-def box_cumsum(x: torch.Tensor, r: int) -> torch.Tensor:
-    """Separable count-normalised box mean of ``(..., H, W)`` by cumsum and gathers.
+def box_pool(x: torch.Tensor, r: int) -> torch.Tensor:
+    """Separable count-normalised box mean of ``(..., H, W)``.
 
     Example:
-        >>> box_cumsum(torch.arange(3.0).view(1, 1, 1, 3), 1)
+        >>> box_pool(torch.arange(3.0).view(1, 1, 1, 3), 1)
         tensor([[[[0.5000, 1.0000, 1.5000]]]])
     """
-    H, W = x.shape[-2], x.shape[-1]
-    s = F.pad(torch.cumsum(x, -1), (1, 0))
-    hi, lo = _counts(W, r, x.device)
-    x = (s.index_select(-1, hi) - s.index_select(-1, lo)) / (hi - lo).to(x.dtype)
-    s = F.pad(torch.cumsum(x, -2), (0, 0, 1, 0))
-    hi, lo = _counts(H, r, x.device)
-    return (s.index_select(-2, hi) - s.index_select(-2, lo)) / (hi - lo).to(x.dtype)[:, None]
+    shape = x.shape
+    y = x.reshape(-1, 1, shape[-2], shape[-1])
+    k = 2 * r + 1
+    y = F.avg_pool2d(y, (1, k), stride=1, padding=(0, r), count_include_pad=False)
+    y = F.avg_pool2d(y, (k, 1), stride=1, padding=(r, 0), count_include_pad=False)
+    return y.reshape(shape)
 
 
 def _segments(n: int, r: int) -> list[tuple[int, int]]:
@@ -76,7 +76,7 @@ class PlaneBoxer:
     Example:
         >>> boxer = PlaneBoxer(4, 5, radius=1, dtype=torch.float64)
         >>> x = torch.rand(4, 5, dtype=torch.float64)
-        >>> torch.allclose(boxer(x, torch.empty_like(x)), box_cumsum(x[None, None], 1)[0, 0])
+        >>> torch.allclose(boxer(x, torch.empty_like(x)), box_pool(x[None, None], 1)[0, 0])
         True
     """
 
@@ -166,7 +166,7 @@ class PlaneBoxer:
 
 def box(desc: BoxOp) -> torch.Tensor:
     """:class:`~torchgi.backends.base.BoxOp` in torch: :class:`PlaneBoxer` eagerly on the CPU,
-    else :func:`box_cumsum`.
+    else :func:`box_pool`.
 
     Example:
         >>> box(BoxOp(torch.arange(3.0).view(1, 1, 1, 3), 1))
@@ -174,7 +174,7 @@ def box(desc: BoxOp) -> torch.Tensor:
     """
     x = desc.x
     if not in_place(desc) or x.numel() == 0:
-        return box_cumsum(x, desc.radius)
+        return box_pool(x, desc.radius)
     B, C, H, W = x.shape
     out = torch.empty(B, C, H, W, dtype=x.dtype)
     PlaneBoxer(H, W, desc.radius, x.dtype)(x.reshape(B * C, H, W), out.view(B * C, H, W))

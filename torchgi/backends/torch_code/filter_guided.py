@@ -15,7 +15,7 @@ from torchgi.backends.base import (
     UpsampleApplyOp,
     run,
 )
-from torchgi.backends.torch_code.filter_box import PlaneBoxer, box_cumsum, in_place
+from torchgi.backends.torch_code.filter_box import PlaneBoxer, box_pool, in_place
 from torchgi.core.dtypes import compute_dtype, variance_rounding
 
 
@@ -119,7 +119,7 @@ def _unpack(planes: list[torch.Tensor], n: int, Cs: int):
 def _guided_reference(
     I: torch.Tensor, p: torch.Tensor, r: int, eps: torch.Tensor, coefficients_only: bool = False
 ) -> torch.Tensor:
-    """Differentiable, traceable path: cumsum box filters over stacked planes. Returns the output
+    """Differentiable, traceable path: :func:`box_pool` over stacked planes. Returns the output
     without ``mean(p)`` (centred inputs), or the box-filtered coefficients ``(B, n + 1, Cs, H, W)``
     (``a_0 .. a_{n-1}, b``)."""
     n, Cs = I.shape[1], p.shape[1]
@@ -128,9 +128,9 @@ def _guided_reference(
         tensors[a][:, i : i + 1] * (tensors[b][:, j : j + 1] if b else 1) if b else tensors[a][:, i : i + 1]
         for a, i, b, j in _product_specs(n, Cs)
     ]
-    m = box_cumsum(torch.cat(planes, 1), r)
+    m = box_pool(torch.cat(planes, 1), r)
     a, b = solve(*_unpack(list(m.split(1, 1)), n, Cs), eps)
-    coeffs = box_cumsum(torch.cat(a + [b], 1), r)
+    coeffs = box_pool(torch.cat(a + [b], 1), r)
     if coefficients_only:
         return coeffs.unflatten(1, (n + 1, Cs))
     return apply_coefficients(coeffs.unflatten(1, (n + 1, Cs)), I)
@@ -257,7 +257,7 @@ def guided(desc: GuidedOp) -> torch.Tensor:
         >>> p = torch.rand(1, 1, 6, 6); m = p.mean((2, 3), keepdim=True)
         >>> flat = torch.ones(1, 1, 6, 6)   # a constant guide: the box mean of the box mean
         >>> out = guided(GuidedOp(flat, p, torch.ones(1, 1, 1, 1), m, 1, torch.zeros(1, 1, 1, 1)))
-        >>> torch.allclose(out, box_cumsum(box_cumsum(p, 1), 1), atol=1e-6)
+        >>> torch.allclose(out, box_pool(box_pool(p, 1), 1), atol=1e-6)
         True
     """
     g, p, e = desc.guide, desc.src, desc.eps
