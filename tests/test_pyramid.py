@@ -73,7 +73,7 @@ def pyramid_oracle(x, guide, spp, net):
     edge = block_means((gc[:, :4] ** 2).sum(1, keepdim=True), 4) - (g4**2).sum(1, keepdim=True)
     base = torch.log1p(lum(x4) / m)
     feats = [torch.log1p(x4 / m), torch.log(var / (lum(x4) ** 2 + 0.01 * m**2) + 1e-4), g4,
-             torch.log(edge + 1e-6), torch.full_like(base, torch.log2(torch.tensor(float(spp))).item())]
+             torch.log(edge + 1e-4), torch.full_like(base, torch.log2(torch.tensor(float(spp))).item())]
     feats += [torch.log1p(lum(v + mp) / m) - base for v in views]
     head = copy.deepcopy(net).double()(torch.cat(feats, 1))
     K = len(coeffs)

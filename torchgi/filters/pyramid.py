@@ -5,7 +5,7 @@ they leave out is given back, band by band (issue 28).
 Each *candidate* is the guided filter (normal + depth guide) fitted at one scale ``s`` of the
 image pyramid (``s x s`` means of the light and the guide, He & Sun 2015) with one radius and
 one ε: its coefficients ``(a, b)`` say how the light follows the guide around each pixel at that
-scale. The *colour* candidates are fitted the same way on another guide: the normal (the guide's
+scale. The optional *colour* candidates (none by default: docs/pyramid.md) are fitted the same way on another guide: the normal (the guide's
 first three channels) and a colour channel ``λ · log(lum(y) / m + 0.01)``, ``y`` the first
 candidate's output at full resolution, ``m`` the image's mean luminance, ``λ`` the colour scale
 (0.1): they follow the shadow and shading edges, reflections and highlights that normal and depth
@@ -36,8 +36,9 @@ to 1/8). The network's features at 1/4 resolution, with ``m`` each image's mean 
 (channel mean) of ``x`` and ``·₄`` a 4 x 4 mean:
 
 - ``log(1 + x₄ / m)`` per channel; ``log(var₄ / (lum₄² + 0.01 m²) + 1e-4)`` with ``var₄ =
-  (lum²)₄ - lum₄²`` (the local noise and texture); the centred guide ``I₄``; ``log(e + 1e-6)``
-  with ``e = (|I|²)₄ - |I₄|²`` (the guide's edges); ``log2(spp)``;
+  (lum²)₄ - lum₄²`` (the local noise and texture); the centred guide ``I₄``; ``log(e + 1e-4)``
+  with ``e = (|I|²)₄ - |I₄|²`` (the guide's edges; the floor keeps float32's cancellation in
+  ``e``, ~1e-7, from reaching the network); ``log2(spp)``;
 - per candidate ``log(1 + lum(v) / m) - log(1 + lum₄ / m)``, ``v`` the candidate's output at
   1/4 resolution (coefficients upsampled to it, or for finer candidates applied at their scale
   and averaged down).
@@ -152,20 +153,20 @@ class PyramidNet(SavedNet):
         candidates: ``(scale, radius, eps)`` per candidate on the guide: the pyramid scale (2, 4,
             8, ...: a power of two >= 2), the window radius in pixels of that scale and ε (guide
             units²).
-        colour: the same for the colour candidates (module docstring).
+        colour: the same for the colour candidates (module docstring; none by default).
         colour_scale: λ, the colour channel's guide units per e-fold of luminance.
         widths: channels of the U-Net's three levels (1/4, 1/8, 1/16 resolution).
 
     Example:
         >>> net = PyramidNet()
         >>> net(torch.rand(1, net.features, 16, 16)).shape
-        torch.Size([1, 16, 16, 16])
+        torch.Size([1, 13, 16, 16])
     """
 
     def __init__(self, *, candidates: Sequence[Sequence[float]] = ((2, 1, 1e-5), (2, 2, 1e-5), (2, 2, 1e-6),
                                                                     (4, 2, 1e-5), (4, 4, 1e-5), (8, 2, 1e-5),
                                                                     (8, 4, 1e-5), (1, 1, 1e-5), (1, 2, 1e-6)),
-                 colour: Sequence[Sequence[float]] = ((2, 2, 1e-5), (4, 2, 1e-5), (8, 2, 1e-5)),
+                 colour: Sequence[Sequence[float]] = (),
                  colour_scale: float = 0.1, widths: Sequence[int] = (16, 24, 32)) -> None:
         super().__init__()
         self.geometric = _triples(candidates, "candidates")
@@ -242,7 +243,7 @@ def _features(x: torch.Tensor, xs: dict[int, torch.Tensor], gs: dict[int, torch.
         level = torch.full((B, 1, 1, 1), math.log2(spp), dtype=x.dtype, device=x.device)
     base = torch.log1p(lum4 / m)
     feats = [torch.log1p(light4.clamp_min(0) / m), torch.log(var / (lum4.square() + 0.01 * m.square()) + 1e-4),
-             g4, torch.log(edge + 1e-6), level.expand_as(lum4)]
+             g4, torch.log(edge + 1e-4), level.expand_as(lum4)]
     feats += [torch.log1p(_luminance(v + mean_p).clamp_min(0) / m) - base for v in views]
     return torch.cat(feats, 1)
 
@@ -277,7 +278,7 @@ def pyramid_inputs(
         >>> net = PyramidNet()
         >>> f, c, rest = pyramid_inputs(torch.rand(1, 3, 16, 16), torch.rand(1, 4, 16, 16), 1.0, net)
         >>> f.shape, c["geometric@4"].shape
-        (torch.Size([1, 22, 4, 4]), torch.Size([1, 4, 5, 3, 4, 4]))
+        (torch.Size([1, 19, 4, 4]), torch.Size([1, 4, 5, 3, 4, 4]))
     """
     B = x.shape[0]
     mean_p, mean_g = x.mean((2, 3), keepdim=True), guide.mean((2, 3), keepdim=True)
@@ -406,7 +407,7 @@ def pyramid(
         >>> x, g = torch.rand(1, 3, 16, 16), torch.rand(1, 4, 16, 16)
         >>> out, w = pyramid(x, g, spp=1.0, net=PyramidNet(), return_weights=True)
         >>> out.shape, w.shape
-        (torch.Size([1, 3, 16, 16]), torch.Size([1, 16, 4, 4]))
+        (torch.Size([1, 3, 16, 16]), torch.Size([1, 13, 4, 4]))
     """
     check_shape(x, "B C H W", "x")
     check_floating(x, "x")
