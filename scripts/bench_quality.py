@@ -248,7 +248,7 @@ def choice_map(gb, path: Path) -> None:
 
 def pyramid_map(gb, path: Path) -> None:
     """The pyramid's per-pixel choice as a picture: noisy | pyramid | the expected log2 scale of
-    its candidates (black: full resolution, yellow: scale 8) | the share of the colour-guided
+    its candidates (black: full resolution, yellow: scale 8) | the share of the full-resolution
     candidates (black 0 to yellow 1) | the gain of the residual's finest band (black 0 to yellow
     1); the three maps at 1/4 resolution, shown enlarged (``Denoiser.weights``)."""
     import matplotlib
@@ -260,7 +260,8 @@ def pyramid_map(gb, path: Path) -> None:
     out, w = d(gb), d.weights(gb)
     K = len(net.candidates)
     scales = torch.tensor([math.log2(s) for s, _, _ in net.candidates], dtype=w.dtype).view(1, -1, 1, 1)
-    maps = [(w[:, :K] * scales).sum(1) / 3, w[:, len(net.geometric) : K].sum(1), w[:, K]]
+    full = [k for k, (s, _, _) in enumerate(net.candidates) if s == 1]
+    maps = [(w[:, :K] * scales).sum(1) / 3, w[:, full].sum(1), w[:, K]]
     H, W = gb.color.shape[-2:]
     tone = lambda x: metrics.tonemap(x)[0].clamp(0, 1) ** (1 / 2.2)
     panels = [tone(gb.color), tone(out)]
