@@ -9,11 +9,18 @@ import torch.nn.functional as F
 
 
 def box_oracle(x: torch.Tensor, r: int) -> torch.Tensor:
-    """Count-normalised (2r+1)² mean via avg_pool (float64, separable: rows then columns)."""
+    """Count-normalised (2r+1)² mean in float64 by prefix sums, one axis at a time, each window's
+    sum the difference of two prefix sums over its clipped extent, divided by that extent (a
+    different algorithm from the torch code's average pools and the C kernels' running sums)."""
     x = x.double()
-    k = 2 * r + 1
-    x = F.avg_pool2d(x, (1, k), stride=1, padding=(0, r), count_include_pad=False)
-    return F.avg_pool2d(x, (k, 1), stride=1, padding=(r, 0), count_include_pad=False)
+    for axis in (-1, -2):
+        n = x.shape[axis]
+        S = torch.cat([torch.zeros_like(x.narrow(axis, 0, 1)), x.cumsum(axis)], axis)
+        j = torch.arange(n, device=x.device)
+        lo, hi = (j - r).clamp(0, n), (j + r + 1).clamp(0, n)
+        count = (hi - lo).to(x.dtype)
+        x = (S.index_select(axis, hi) - S.index_select(axis, lo)) / (count if axis == -1 else count[:, None])
+    return x
 
 
 def guided_oracle(p: torch.Tensor, I: torch.Tensor, r: int, eps, coefficients: bool = False) -> torch.Tensor:

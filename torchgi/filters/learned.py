@@ -58,7 +58,7 @@ def shipped(cls: type[N], path: Path, device: torch.device | str, cache: dict[to
     Example:
         >>> from torchgi.filters.pyramid import WEIGHTS, PyramidNet
         >>> len(shipped(PyramidNet, WEIGHTS, "cpu", {}, "the pyramid's weights", "scripts/train_pyramid.py").candidates)
-        12
+        9
     """
     device = torch.device(device)
     if device not in cache:
