@@ -5,7 +5,6 @@ from __future__ import annotations
 import math
 
 import torch
-import torch.nn.functional as F
 
 
 def box_oracle(x: torch.Tensor, r: int) -> torch.Tensor:
