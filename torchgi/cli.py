@@ -150,9 +150,11 @@ def cmd_export(args: argparse.Namespace) -> int:
     from torchgi.export import export_denoiser
 
     path = export_denoiser(args.method, args.out, spp=args.spp, quality=args.quality,
-                           sigma_position=args.sigma_position, overwrite=args.overwrite)
-    print(f"wrote {path} ({args.method}, {args.spp} spp, {args.quality}); inputs color, emission, albedo, normal, "
-          f"{'position' if args.method == 'atrous' else 'depth'} (B, C, H, W) float32, dynamic B/H/W")
+                           sigma_position=args.sigma_position, emission=args.emission, overwrite=args.overwrite)
+    inputs = ["color"] + (["emission"] if args.emission else []) + [
+        "albedo", "normal", "position" if args.method == "atrous" else "depth"]
+    print(f"wrote {path} ({args.method}, {args.spp} spp, {args.quality}); inputs {', '.join(inputs)} "
+          f"(B, C, H, W) float32, dynamic B/H/W")
     return 0
 
 
@@ -263,6 +265,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--spp", type=float, default=1.0, help="samples per pixel the parameters are fixed for")
     p.add_argument("--quality", choices=["fast", "balanced", "high"], default="balanced")
     p.add_argument("--sigma-position", type=float, default=None, help="À-Trous σ_x, scene units squared")
+    p.add_argument("--no-emission", dest="emission", action="store_false",
+                   help="a graph without an emission input, for renders without one (light sources found from the "
+                        "colour, as the Denoiser does without one)")
     p.add_argument("--out", required=True, help="the .onnx file (never overwritten unless --overwrite)")
     p.add_argument("--overwrite", action="store_true")
     p.set_defaults(func=cmd_export)

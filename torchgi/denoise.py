@@ -46,7 +46,7 @@ from torchgi.geometry import sigma_position_rule
 from torchgi.settings import ATROUS, BILATERAL, GUIDED, PIPELINE
 from torchgi.supersample import EyeSamples
 
-__all__ = ["DENOISERS", "EXPORTABLE", "METHODS", "QUALITIES", "Denoiser", "DeployedDenoiser"]
+__all__ = ["DENOISERS", "EXPORTABLE", "METHODS", "QUALITIES", "Denoiser", "DeployedDenoiser", "DeployedDenoiserWithoutEmission"]
 
 METHODS = ("pyramid", "blend", "guided", "atrous", "bilateral", "none")
 EXPORTABLE = ("pyramid", "blend", "guided", "atrous")  # the methods Denoiser.deploy() fixes for ONNX
@@ -156,23 +156,43 @@ class Denoiser(torch.nn.Module):
                 config = yaml.safe_load(fh)
         return DENOISERS.build(config)
 
-    def deploy(self, *, spp: float = 1.0, sigma_position: float | None = None) -> DeployedDenoiser:
+    def deploy(self, *, spp: float | None = None, sigma_position: float | None = None, emission: bool = True,
+               frame: GBuffer | None = None) -> DeployedDenoiser:
         """Fix this Denoiser's parameters for ``spp`` samples per pixel (and, for "atrous", σ_x in
         scene units squared, required unless given at construction) and return the exportable module.
+
+        Args:
+            spp: the sample count the parameters are chosen for (default 1; not with ``frame``).
+            sigma_position: À-Trous' σ_x when not given at construction.
+            emission: the graph takes an emission layer (as the eager call given one); False: it
+                takes none and finds the light sources from the colour, as the eager call without one.
+            frame: a representative :class:`GBuffer`: the choices the eager call makes from its
+                data are made on it and fixed - the sample count its noise corresponds to (the
+                radius or À-Trous levels follow) and, for "guided", the half or full resolution.
 
         Example:
             >>> Denoiser("guided").deploy(spp=4)
             DeployedDenoiser(method='guided', radius=2, eps=0.0001)
         """
+        if frame is not None and spp is not None:
+            raise ValueError("spp, frame: give one of them (frame fixes the sample count from its data)")
+        if frame is not None:
+            surface = light.surface_mask(frame.hit, frame.albedo)
+            spp = self._spp(frame, surface)
+        spp = 1.0 if spp is None else float(spp)
         p = self.filter_params
         if self.method == "blend":
-            return DeployedDenoiser("blend", {"spp": float(spp)}, net=default_net())
+            return _deployed("blend", {"spp": max(spp, 1.0)}, default_net(), emission)
         if self.method == "pyramid":
-            return DeployedDenoiser("pyramid", {"spp": float(spp)}, net=pyramid_net())
+            return _deployed("pyramid", {"spp": max(spp, 1.0)}, pyramid_net(), emission)
         if self.method == "guided":
             params = {"radius": self._radius(spp, GUIDED.radius), "eps": p.get("eps", GUIDED.eps)}
-            if p.get("subsample", 1) > 1:
-                params["subsample"] = p["subsample"]
+            subsample = p.get("subsample", 1)
+            if frame is not None:
+                spec, _ = self._guide_spec(frame)
+                subsample = self._subsample(spec, *frame.color.shape[-2:], frame.spp)
+            if subsample > 1:
+                params["subsample"] = subsample
         elif self.method == "atrous":
             sigma_x = p.get("sigma_position", sigma_position)
             if sigma_x is None:
@@ -184,7 +204,7 @@ class Denoiser(torch.nn.Module):
             }
         else:
             raise ValueError(f"method: only {', '.join(EXPORTABLE)} deploy to ONNX, not {self.method!r}")
-        return DeployedDenoiser(self.method, params)
+        return _deployed(self.method, params, None, emission)
 
     def extra_repr(self) -> str:
         params = "".join(f", {k}={v!r}" for k, v in self.filter_params.items())
@@ -518,14 +538,19 @@ class DeployedDenoiser(torch.nn.Module):
     """A :class:`Denoiser` with every choice fixed, as plain tensor code for ONNX export.
 
     ``forward(color, emission, albedo, normal, depth)`` for "pyramid", "blend" and "guided" and
-    ``forward(color, emission, albedo, normal, position)`` for "atrous", all ``(B, C, H, W)``:
-    the Denoiser's pipeline (module docstring) with the fixed parameters; surfaces are the pixels
+    ``forward(color, emission, albedo, normal, position)`` for "atrous", all ``(B, C, H, W)``
+    (:attr:`input_names`; :class:`DeployedDenoiserWithoutEmission` takes none): the
+    Denoiser's pipeline (module docstring) with the fixed parameters; surfaces are the pixels
     of non-zero albedo; it takes no variance, so it does not back off toward the input
-    (:func:`torchgi.light.back_off`). ``emission`` is required (zeros when no light source is in view). A pixel
+    (:func:`torchgi.light.back_off`). With an emission input (zeros when no light source is in
+    view) the light sources are those pixels, as in the eager call given one; without it they
+    are found from the colour, as in the eager call given none. A pixel
     that is NaN/Inf in any input is a hole (:func:`_fill_holes`): the output is finite
     everywhere and, outside the hole's filter footprint, that of the clean input (an exported
     graph cannot raise). Built by :meth:`Denoiser.deploy`.
     """
+
+    emission = True  # the graph's inputs include an emission layer
 
     def __init__(self, method: str, params: dict[str, Any], net: torch.nn.Module | None = None) -> None:
         super().__init__()
@@ -537,11 +562,15 @@ class DeployedDenoiser(torch.nn.Module):
     @property
     def input_names(self) -> tuple[str, ...]:
         last = "position" if self.method == "atrous" else "depth"
-        return ("color", "emission", "albedo", "normal", last)
+        return ("color",) + (("emission",) if self.emission else ()) + ("albedo", "normal", last)
 
     def forward(self, color: torch.Tensor, emission: torch.Tensor, albedo: torch.Tensor, normal: torch.Tensor,
                 geometry: torch.Tensor) -> torch.Tensor:
-        color, emission, albedo, normal, geometry = _fill_holes([color, emission, albedo, normal, geometry])
+        return self._run(*_fill_holes([color, emission, albedo, normal, geometry]))
+
+    def _run(self, color: torch.Tensor, emission: torch.Tensor | None, albedo: torch.Tensor, normal: torch.Tensor,
+             geometry: torch.Tensor) -> torch.Tensor:
+        """The pipeline on hole-filled inputs (``emission`` None: light sources from the colour)."""
         surface = light.surface_mask(None, albedo)
 
         def filter_fn(x: torch.Tensor) -> torch.Tensor:
@@ -560,8 +589,34 @@ class DeployedDenoiser(torch.nn.Module):
         return light.restore(color, emission, None, albedo, surface, filter_fn, _FIREFLY[self.method], box)
 
     def extra_repr(self) -> str:
-        return f"method={self.method!r}, " + ", ".join(f"{k}={v!r}" for k, v in self.params.items())
+        return f"method={self.method!r}, " + ", ".join(f"{k}={v!r}" for k, v in self.params.items()) + (
+            "" if self.emission else ", emission=False")
 
+
+class DeployedDenoiserWithoutEmission(DeployedDenoiser):
+    """:class:`DeployedDenoiser` for renders without an emission layer: ``forward(color, albedo,
+    normal, depth | position)``; the light sources are found from the colour, as the eager
+    Denoiser does without one. Built by :meth:`Denoiser.deploy` with ``emission=False``.
+
+    Example:
+        >>> Denoiser("guided").deploy(emission=False).input_names
+        ('color', 'albedo', 'normal', 'depth')
+    """
+
+    emission = False
+
+    def forward(self, color: torch.Tensor, albedo: torch.Tensor, normal: torch.Tensor,  # type: ignore[override]
+                geometry: torch.Tensor) -> torch.Tensor:
+        color, albedo, normal, geometry = _fill_holes([color, albedo, normal, geometry])
+        return self._run(color, None, albedo, normal, geometry)
+
+
+
+def _deployed(method: str, params: dict[str, Any], net: torch.nn.Module | None, emission: bool) -> DeployedDenoiser:
+    """The exportable module of :meth:`Denoiser.deploy`: with or without an emission input."""
+    if emission:
+        return DeployedDenoiser(method, params, net)
+    return DeployedDenoiserWithoutEmission(method, params, net)
 
 
 DENOISERS: Registry[Denoiser] = Registry("denoiser")

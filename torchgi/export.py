@@ -114,17 +114,22 @@ def export_denoiser(
     method: str,
     path: str | os.PathLike,
     *,
-    spp: float = 1.0,
+    spp: float | None = None,
     quality: str = "balanced",
     sigma_position: float | None = None,
+    emission: bool = True,
+    frame: Any = None,
     overwrite: bool = False,
     **filter_params: Any,
 ) -> Path:
-    """Export ``torchgi.Denoiser(method, quality, **filter_params)`` fixed for ``spp`` to ONNX.
+    """Export ``torchgi.Denoiser(method, quality, **filter_params)`` fixed for ``spp`` samples
+    per pixel, or for a representative GBuffer ``frame`` (:meth:`torchgi.Denoiser.deploy`), to ONNX.
 
-    The graph takes ``color, emission, albedo, normal`` and ``depth`` (guided) or ``position``
-    (À-Trous, with ``sigma_position`` in scene units squared), all ``(B, C, H, W)`` float32 with
-    dynamic B/H/W, and returns the denoised ``(B, 3, H, W)`` colour.
+    The graph takes ``color``, ``emission`` (not with ``emission=False``: the light sources are
+    then found from the colour, as the eager Denoiser does without an emission layer),
+    ``albedo``, ``normal`` and ``depth`` (or ``position`` for À-Trous, with ``sigma_position``
+    in scene units squared), all ``(B, C, H, W)`` float32 with dynamic B/H/W, and returns the
+    denoised ``(B, 3, H, W)`` colour.
 
     Example:
         >>> p = export_denoiser("guided", os.path.join(tempfile.mkdtemp(), "d.onnx"))
@@ -133,18 +138,20 @@ def export_denoiser(
     """
     from torchgi.denoise import Denoiser
 
-    module = Denoiser(method, quality, **filter_params).deploy(spp=spp, sigma_position=sigma_position)
+    module = Denoiser(method, quality, **filter_params).deploy(spp=spp, sigma_position=sigma_position,
+                                                               emission=emission, frame=frame)
     g = torch.Generator().manual_seed(0)
     B, H, W = 2, 24, 32
-    examples = [torch.rand(B, 3, H, W, generator=g) for _ in range(4)] + [
-        torch.rand(B, 3 if method == "atrous" else 1, H, W, generator=g)]
+    examples = [torch.rand(B, 3 if name != "depth" else 1, H, W, generator=g) for name in module.input_names]
     return export_onnx(module, examples, path, input_names=list(module.input_names), overwrite=overwrite,
                        optimize=method != "atrous")
 
 
 class OrtDenoiser:
     """An exported Denoiser in onnxruntime, called like :class:`torchgi.Denoiser`: with a
-    GBuffer or with named tensors (``emission`` defaults to zeros)."""
+    GBuffer or with named tensors: those of :attr:`input_names` (an emission layer the graph
+    was exported with must be given, one it was exported without is refused; nothing is
+    made up)."""
 
     def __init__(self, path: str | os.PathLike, providers: Sequence[str] | None = None) -> None:
         self.session = OrtSession(path, providers)
@@ -152,7 +159,15 @@ class OrtDenoiser:
 
     def __call__(self, gb=None, **tensors: torch.Tensor) -> torch.Tensor:
         if gb is not None:
-            tensors = {k: getattr(gb, k) for k in self.input_names if getattr(gb, k, None) is not None}
-        if "emission" not in tensors and "color" in tensors:
-            tensors["emission"] = torch.zeros_like(tensors["color"])
+            tensors = {k: getattr(gb, k) for k in set(self.input_names) | {"emission"}
+                       if getattr(gb, k, None) is not None}
+        missing = [k for k in self.input_names if k not in tensors]
+        if "emission" in missing:
+            raise ValueError("emission: this graph was exported with an emission input; pass it (zeros when no "
+                             "light source is in view) or export with emission=False for renders without one")
+        if "emission" in tensors and "emission" not in self.input_names:
+            raise ValueError("emission: this graph was exported without an emission input (emission=False); "
+                             "export with emission=True to use one")
+        if missing:
+            raise ValueError(f"{', '.join(missing)}: required by this graph (inputs {', '.join(self.input_names)})")
         return self.session(**{k: v.float() for k, v in tensors.items() if k in self.input_names})
