@@ -29,6 +29,7 @@ LAYERS = (
     ("filters",),
     ("render",),
     ("sampling",),
+    ("deployed",),
     ("denoise",),
     ("temporal", "data", "export"),
     ("",),

@@ -220,6 +220,12 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _out_flags(p: argparse.ArgumentParser, what: str) -> None:
+    """``--out`` (required; ``what`` it is) and ``--overwrite`` on ``p``."""
+    p.add_argument("--out", required=True, help=f"{what}; never overwritten unless --overwrite")
+    p.add_argument("--overwrite", action="store_true")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="torchgi", description=torchgi.__doc__.splitlines()[0])
     parser.add_argument("--version", action="version", version=f"torchgi {torchgi.__version__}")
@@ -243,8 +249,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resolution", type=_positive_int, nargs=2, metavar=("W", "H"), help="override the camera's")
     p.add_argument("--workers", type=_positive_int, default=None, help="tracer threads or processes (default: all)")
     p.add_argument("--frames", type=_positive_int, help="N frames of camera.path: <out>_<frame:04d>.exr, motion layer")
-    p.add_argument("--out", required=True, help="output EXR (never overwritten unless --overwrite)")
-    p.add_argument("--overwrite", action="store_true")
+    _out_flags(p, "output EXR")
     p.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
     p.set_defaults(func=cmd_render)
 
@@ -254,8 +259,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--method", choices=list(METHODS), default="guided")
     p.add_argument("--quality", choices=["fast", "balanced", "high"], default="balanced")
     p.add_argument("--radius", type=_positive_int, default=None, help="filter radius (default: from spp)")
-    p.add_argument("--out", required=True, help="output EXR (layer 'color'; never overwritten unless --overwrite)")
-    p.add_argument("--overwrite", action="store_true")
+    _out_flags(p, "output EXR (layer 'color')")
     p.add_argument("--sanitize", action="store_true", help="replace NaN/Inf in the input by 0 (with a warning)")
     p.add_argument("--max-memory-mb", type=float, help="most MB denoising adds beyond the input (tiles; guided)")
     p.set_defaults(func=cmd_denoise)
@@ -265,11 +269,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--spp", type=float, default=1.0, help="samples per pixel the parameters are fixed for")
     p.add_argument("--quality", choices=["fast", "balanced", "high"], default="balanced")
     p.add_argument("--sigma-position", type=float, default=None, help="À-Trous σ_x, scene units squared")
-    p.add_argument("--no-emission", dest="emission", action="store_false",
-                   help="a graph without an emission input, for renders without one (light sources found from the "
-                        "colour, as the Denoiser does without one)")
-    p.add_argument("--out", required=True, help="the .onnx file (never overwritten unless --overwrite)")
-    p.add_argument("--overwrite", action="store_true")
+    p.add_argument("--no-emission", dest="emission", action="store_false", help="a graph without emission input")
+    _out_flags(p, "the .onnx file")
     p.set_defaults(func=cmd_export)
 
     p = sub.add_parser("datagen", help="noisy/reference EXR shards for training (resumable; local or Dask)")

@@ -38,6 +38,7 @@ from torchgi.buffers import GBuffer
 from torchgi.core.check import check_finite, check_option, finite_or_sanitized_all
 from torchgi.core.errors import ShapeError
 from torchgi.core.registry import Registry
+from torchgi.deployed import EXPORTABLE, FIREFLY, DeployedDenoiser, DeployedDenoiserWithoutEmission, deployed
 from torchgi.filters import atrous, box, cross_bilateral, guide_from, guided
 from torchgi.filters.blend import blend, default_net
 from torchgi.filters.pyramid import default_net as pyramid_net
@@ -49,10 +50,7 @@ from torchgi.supersample import EyeSamples
 __all__ = ["DENOISERS", "EXPORTABLE", "METHODS", "QUALITIES", "Denoiser", "DeployedDenoiser", "DeployedDenoiserWithoutEmission"]
 
 METHODS = ("pyramid", "blend", "guided", "atrous", "bilateral", "none")
-EXPORTABLE = ("pyramid", "blend", "guided", "atrous")  # the methods Denoiser.deploy() fixes for ONNX
 QUALITIES = ("fast", "balanced", "high")
-# fireflies are clamped at this many times their local level before each method's filter
-_FIREFLY = {"pyramid": GUIDED.firefly, "blend": GUIDED.firefly, "guided": GUIDED.firefly, "atrous": ATROUS.firefly, "bilateral": BILATERAL.firefly, "none": GUIDED.firefly}
 _INPUTS = ("color", "albedo", "normal", "position", "depth", "emission", "direct", "indirect", "variance", "spp",
            "hit")
 
@@ -182,9 +180,9 @@ class Denoiser(torch.nn.Module):
         spp = 1.0 if spp is None else float(spp)
         p = self.filter_params
         if self.method == "blend":
-            return _deployed("blend", {"spp": max(spp, 1.0)}, default_net(), emission)
+            return deployed("blend", {"spp": max(spp, 1.0)}, default_net(), emission)
         if self.method == "pyramid":
-            return _deployed("pyramid", {"spp": max(spp, 1.0)}, pyramid_net(), emission)
+            return deployed("pyramid", {"spp": max(spp, 1.0)}, pyramid_net(), emission)
         if self.method == "guided":
             params = {"radius": self._radius(spp, GUIDED.radius), "eps": p.get("eps", GUIDED.eps)}
             subsample = p.get("subsample", 1)
@@ -204,7 +202,7 @@ class Denoiser(torch.nn.Module):
             }
         else:
             raise ValueError(f"method: only {', '.join(EXPORTABLE)} deploy to ONNX, not {self.method!r}")
-        return _deployed(self.method, params, None, emission)
+        return deployed(self.method, params, None, emission)
 
     def extra_repr(self) -> str:
         params = "".join(f", {k}={v!r}" for k, v in self.filter_params.items())
@@ -251,7 +249,7 @@ class Denoiser(torch.nn.Module):
         else:
             level = light.level(gb.color, gb.emission, kept, gb.albedo, surface)
             out = light.restore(gb.color, gb.emission, kept, gb.albedo, surface,
-                                lambda x: self._filter(x, gb, surface), _FIREFLY[self.method], box, level)
+                                lambda x: self._filter(x, gb, surface), FIREFLY[self.method], box, level)
             out = _back_off(out, gb, surface, level)
         return out if self.hdr else out.clamp(0, 1)
 
@@ -341,7 +339,7 @@ class Denoiser(torch.nn.Module):
             lit = x
         else:
             lit = light.filter_light(x, light.median_level(light.every4(x), light.every4(surface)),
-                                     lambda v: self._filter(v, gb, surface), _FIREFLY[self.method], box)
+                                     lambda v: self._filter(v, gb, surface), FIREFLY[self.method], box)
         lit = torch.where(surface, lit, 0.0)  # no reflected light without a surface
         own, sample_own = gb.emission, samples.emission
         if not self.filter_direct:
@@ -478,23 +476,6 @@ def _back_off(out: torch.Tensor, gb: GBuffer, surface: torch.Tensor, level: torc
     return backends.run(backends.BackOffOp(out, c, v, n, light.emitting(c, e, a, on, level)))
 
 
-def _fill_holes(tensors: list[torch.Tensor]) -> list[torch.Tensor]:
-    """``tensors`` (each ``(B, C, H, W)``) with every pixel that is NaN/Inf in any channel of any
-    of them made a hole: all its inputs replaced by the mean of the finite pixels within
-    ``PIPELINE.hole_radius`` (normalised convolution; 0 where there is none), so nothing
-    non-finite reaches the filter and the hole's output comes from its neighbours. Plain
-    tensor ops (exportable); finite inputs pass unchanged."""
-    ok = torch.stack([torch.isfinite(t).all(1, keepdim=True) for t in tensors]).all(0)
-    w = ok.to(tensors[0].dtype)
-    count = box(w, PIPELINE.hole_radius)
-    out = []
-    for t in tensors:
-        clean = torch.where(ok, t, 0.0)
-        filled = box(clean, PIPELINE.hole_radius) / count.clamp_min(1e-6)
-        out.append(torch.where(ok, t, torch.where(count > 1e-6, filled, 0.0)))
-    return out
-
-
 def _footprint(radius: int, s: int) -> int:
     """How far (px) the guided pipeline's output reaches into its input: the firefly window, the
     light-source opening, the guided filter's two box passes at radius r (r / s at 1 / s
@@ -532,91 +513,6 @@ def _tiled(op: Callable[..., torch.Tensor], color: torch.Tensor, max_memory_mb: 
                                                             x0 - cols.start : x0 - cols.start + side]
             del tile
     return out
-
-
-class DeployedDenoiser(torch.nn.Module):
-    """A :class:`Denoiser` with every choice fixed, as plain tensor code for ONNX export.
-
-    ``forward(color, emission, albedo, normal, depth)`` for "pyramid", "blend" and "guided" and
-    ``forward(color, emission, albedo, normal, position)`` for "atrous", all ``(B, C, H, W)``
-    (:attr:`input_names`; :class:`DeployedDenoiserWithoutEmission` takes none): the
-    Denoiser's pipeline (module docstring) with the fixed parameters; surfaces are the pixels
-    of non-zero albedo; it takes no variance, so it does not back off toward the input
-    (:func:`torchgi.light.back_off`). With an emission input (zeros when no light source is in
-    view) the light sources are those pixels, as in the eager call given one; without it they
-    are found from the colour, as in the eager call given none. A pixel
-    that is NaN/Inf in any input is a hole (:func:`_fill_holes`): the output is finite
-    everywhere and, outside the hole's filter footprint, that of the clean input (an exported
-    graph cannot raise). Built by :meth:`Denoiser.deploy`.
-    """
-
-    emission = True  # the graph's inputs include an emission layer
-
-    def __init__(self, method: str, params: dict[str, Any], net: torch.nn.Module | None = None) -> None:
-        super().__init__()
-        check_option(method, "method", EXPORTABLE)
-        if (net is None) != (method in ("guided", "atrous")):
-            raise ValueError("net: the learned methods ('pyramid', 'blend') need their network, the others none")
-        self.method, self.params, self.net = method, dict(params), net
-
-    @property
-    def input_names(self) -> tuple[str, ...]:
-        last = "position" if self.method == "atrous" else "depth"
-        return ("color",) + (("emission",) if self.emission else ()) + ("albedo", "normal", last)
-
-    def forward(self, color: torch.Tensor, emission: torch.Tensor, albedo: torch.Tensor, normal: torch.Tensor,
-                geometry: torch.Tensor) -> torch.Tensor:
-        return self._run(*_fill_holes([color, emission, albedo, normal, geometry]))
-
-    def _run(self, color: torch.Tensor, emission: torch.Tensor | None, albedo: torch.Tensor, normal: torch.Tensor,
-             geometry: torch.Tensor) -> torch.Tensor:
-        """The pipeline on hole-filled inputs (``emission`` None: light sources from the colour)."""
-        surface = light.surface_mask(None, albedo)
-
-        def filter_fn(x: torch.Tensor) -> torch.Tensor:
-            if self.method == "pyramid":
-                return pyramid(x, guide_from(normal, geometry, depth_scale="image"), spp=self.params["spp"],
-                               net=self.net)
-            if self.method == "blend":
-                return blend(x, guide_from(normal, geometry, depth_scale="image"), spp=self.params["spp"], net=self.net)
-            if self.method == "guided":
-                return guided(x, guide_from(normal, geometry, depth_scale="image"), radius=self.params["radius"],
-                              eps=self.params["eps"], subsample=self.params.get("subsample", 1))
-            return atrous(x, normal, geometry, iterations=self.params["iterations"],
-                          sigma_normal=self.params["sigma_normal"], sigma_position=self.params["sigma_position"],
-                          sigma_color=self.params["sigma_color"])
-
-        return light.restore(color, emission, None, albedo, surface, filter_fn, _FIREFLY[self.method], box)
-
-    def extra_repr(self) -> str:
-        return f"method={self.method!r}, " + ", ".join(f"{k}={v!r}" for k, v in self.params.items()) + (
-            "" if self.emission else ", emission=False")
-
-
-class DeployedDenoiserWithoutEmission(DeployedDenoiser):
-    """:class:`DeployedDenoiser` for renders without an emission layer: ``forward(color, albedo,
-    normal, depth | position)``; the light sources are found from the colour, as the eager
-    Denoiser does without one. Built by :meth:`Denoiser.deploy` with ``emission=False``.
-
-    Example:
-        >>> Denoiser("guided").deploy(emission=False).input_names
-        ('color', 'albedo', 'normal', 'depth')
-    """
-
-    emission = False
-
-    def forward(self, color: torch.Tensor, albedo: torch.Tensor, normal: torch.Tensor,  # type: ignore[override]
-                geometry: torch.Tensor) -> torch.Tensor:
-        color, albedo, normal, geometry = _fill_holes([color, albedo, normal, geometry])
-        return self._run(color, None, albedo, normal, geometry)
-
-
-
-def _deployed(method: str, params: dict[str, Any], net: torch.nn.Module | None, emission: bool) -> DeployedDenoiser:
-    """The exportable module of :meth:`Denoiser.deploy`: with or without an emission input."""
-    if emission:
-        return DeployedDenoiser(method, params, net)
-    return DeployedDenoiserWithoutEmission(method, params, net)
 
 
 DENOISERS: Registry[Denoiser] = Registry("denoiser")

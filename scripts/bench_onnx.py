@@ -1,0 +1,104 @@
+"""The exported default Denoiser in onnxruntime against the eager one (issue 32): relMSE and ms.
+
+    python scripts/bench_onnx.py --out out/bench-onnx [--sizes 512 1080p] [--spp 1 4] [--ref-spp 256]
+
+For each judged scene (``configs/scenes/sets.yaml``; torchgi renders only), size and spp: a noisy
+render and a ``--ref-spp`` reference; the default ``Denoiser()`` exported with the choices it
+makes on that render (``export_denoiser(frame=...)``) and with or without an emission input,
+run in onnxruntime on the render (without its emission layer for the second) and beside it,
+alternating, the eager default on the same inputs - the graph takes no variance, so the eager
+call gets none either - and the eager default with the render's variance (its full input, which
+lets it back off toward the input). Each row: relMSE against the reference, the median ms of
+``--rounds`` calls, and onnxruntime's largest difference from the eager call over the eager
+output's largest value. Writes ``onnx.csv``, ``onnx.json``, ``onnx.md``. torch on 2 threads,
+onnxruntime with its default (one per core: 2 on the project's benchmark machine).
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+from benchmark_utils import available_scenes, markdown_table, metadata, scene_sets, write_results
+
+import torchgi
+from torchgi import metrics
+from torchgi.denoise import Denoiser
+from torchgi.export import OrtDenoiser, export_denoiser
+
+SIZES = {"256": (256, 256), "512": (512, 512), "1080p": (1080, 1920)}
+
+
+def timed(fns: dict, rounds: int) -> dict:
+    """Median ms of each of ``fns`` over ``rounds`` alternating calls (after one warm-up each),
+    and the last output of each."""
+    times, outs = {k: [] for k in fns}, {}
+    for f in fns.values():
+        f()
+    for _ in range(rounds):
+        for k, f in fns.items():
+            t = time.perf_counter()
+            outs[k] = f()
+            times[k].append((time.perf_counter() - t) * 1e3)
+    return {k: (sorted(v)[len(v) // 2], outs[k]) for k, v in times.items()}
+
+
+def run(args) -> list[dict]:
+    rows, graphs = [], {}
+    tmp = Path(tempfile.mkdtemp())
+    for size in args.sizes:
+        H, W = SIZES[size]
+        for name, scene in available_scenes([s for s in args.scenes if ":" not in s], W):
+            scene = scene.with_resolution(W, H)
+            ref = torchgi.render(scene, spp=args.ref_spp, bounces=args.bounces, seed=999).color
+            for spp in args.spp:
+                gb = torchgi.render(scene, spp=spp, bounces=args.bounces, seed=1)
+                for emission in (True, False):
+                    full = gb if emission else gb.replace(emission=None)
+                    same = full.replace(variance=None)  # what the graph is fed
+                    key = (repr(Denoiser().deploy(frame=same, emission=emission)), emission)
+                    if key not in graphs:  # one export per distinct set of fixed choices
+                        graphs[key] = OrtDenoiser(export_denoiser(
+                            "guided", tmp / f"g{len(graphs)}.onnx", frame=same, emission=emission))
+                    d, ort = Denoiser(), graphs[key]
+                    res = timed({"eager": lambda d=d, g=same: d(g), "onnxruntime": lambda o=ort, g=same: o(g),
+                                 "eager with variance": lambda d=d, g=full: d(g)}, args.rounds)
+                    eager = res["eager"][1]
+                    for method, (ms, out) in res.items():
+                        rows.append({"scene": Path(name).name, "size": size, "spp": spp,
+                                     "emission layer": emission, "method": method,
+                                     "relmse": float(metrics.relmse(out, ref)), "ms": ms,
+                                     "rel_diff_vs_eager": float((out - eager).abs().max() / eager.abs().max()),
+                                     "graph": key[0] if method == "onnxruntime" else ""})
+                    print({k: rows[-3][k] for k in ("scene", "size", "spp", "emission layer")},
+                          {r["method"]: (round(r["relmse"], 6), round(r["ms"], 1)) for r in rows[-3:]}, flush=True)
+    return rows
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", default="out/bench-onnx")
+    ap.add_argument("--set", default="judged", choices=("judged", "tuning", "training"))
+    ap.add_argument("--scenes", nargs="+", help="these entries instead of --set's")
+    ap.add_argument("--sizes", nargs="+", default=["512", "1080p"], choices=list(SIZES))
+    ap.add_argument("--spp", type=int, nargs="+", default=[1, 4])
+    ap.add_argument("--ref-spp", type=int, default=256)
+    ap.add_argument("--bounces", type=int, default=2)
+    ap.add_argument("--rounds", type=int, default=3)
+    args = ap.parse_args()
+    args.scenes = args.scenes or scene_sets()[args.set]
+    torch.set_num_threads(2)
+    rows = run(args)
+    out = Path(args.out)
+    write_results(rows, metadata(torch.get_num_threads()), out, "onnx")
+    md = markdown_table(rows, ["scene", "size", "spp", "emission layer", "method", "relmse", "ms",
+                               "rel_diff_vs_eager", "graph"])
+    (out / "onnx.md").write_text(md + "\n")
+    print(md)
+
+
+if __name__ == "__main__":
+    main()
