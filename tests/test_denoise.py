@@ -31,11 +31,11 @@ def test_every_method_lowers_the_error(cornell, method):
     # and the filter itself does the work: the same pipeline with an identity filter (its light
     # sources and firefly clamp alone give 0.32-0.56x the noisy error here) has 1.7x the error
     from torchgi import light
-    from torchgi.denoise import _FIREFLY
+    from torchgi.deployed import FIREFLY
     from torchgi.filters import box
 
     surface = light.surface_mask(noisy.hit, noisy.albedo)
-    identity = light.restore(noisy.color, noisy.emission, None, noisy.albedo, surface, lambda x: x, _FIREFLY[method], box)
+    identity = light.restore(noisy.color, noisy.emission, None, noisy.albedo, surface, lambda x: x, FIREFLY[method], box)
     assert float(metrics.relmse(out, ref.color)) < 0.6 * float(metrics.relmse(identity, ref.color))
 
 
