@@ -46,7 +46,7 @@ class DeployedDenoiser(torch.nn.Module):
     ``forward(color, emission, albedo, normal, depth)`` for "pyramid", "blend" and "guided" and
     ``forward(color, emission, albedo, normal, position)`` for "atrous", all ``(B, C, H, W)``
     (:attr:`input_names`; :class:`DeployedDenoiserWithoutEmission` takes none): the
-    Denoiser's pipeline (module docstring) with the fixed parameters; surfaces are the pixels
+    Denoiser's pipeline (:mod:`torchgi.denoise`'s docstring) with the fixed parameters; surfaces are the pixels
     of non-zero albedo; it takes no variance, so it does not back off toward the input
     (:func:`torchgi.light.back_off`). With an emission input (zeros when no light source is in
     view) the light sources are those pixels, as in the eager call given one; without it they
@@ -118,9 +118,15 @@ class DeployedDenoiserWithoutEmission(DeployedDenoiser):
         return self._run(color, None, albedo, normal, geometry)
 
 
-
 def deployed(method: str, params: dict[str, Any], net: torch.nn.Module | None, emission: bool) -> DeployedDenoiser:
-    """The exportable module of :meth:`Denoiser.deploy`: with or without an emission input."""
+    """The exportable module :meth:`torchgi.Denoiser.deploy` returns for ``method`` (one of
+    :data:`EXPORTABLE`) with its fixed ``params`` and network: :class:`DeployedDenoiser`, or
+    :class:`DeployedDenoiserWithoutEmission` when ``emission`` is False.
+
+    Example:
+        >>> deployed("guided", {"radius": 2, "eps": 1e-4}, None, emission=False)
+        DeployedDenoiserWithoutEmission(method='guided', radius=2, eps=0.0001, emission=False)
+    """
     if emission:
         return DeployedDenoiser(method, params, net)
     return DeployedDenoiserWithoutEmission(method, params, net)
