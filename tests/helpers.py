@@ -126,3 +126,32 @@ def shipped_untrained_guided(monkeypatch, method: str, name: str, size: int) -> 
             if hasattr(m, "reset_parameters"):
                 m.reset_parameters()
     return shipped, error(uniform), error(fresh), guided
+
+
+def onnx_parity(tmp_path, method: str, sizes: tuple[int, ...]) -> tuple[list[str], list[tuple[float, float]]]:
+    """``Denoiser(method).deploy(spp=1)`` exported (without the ONNX optimizer: half the export
+    time) and run on Cornell box renders of ``size x (size + 7)``, 1 spp: the graph's input names
+    and, per size, the eager deployed module's and onnxruntime's :func:`rel_error` against the
+    eager ``Denoiser(method)``."""
+    import pytest
+
+    pytest.importorskip("onnxruntime")
+    pytest.importorskip("onnxscript")
+    pytest.importorskip("embreex")
+    import torchgi
+    from torchgi.denoise import Denoiser
+    from torchgi.export import OrtDenoiser, export_onnx
+
+    deployed = Denoiser(method).deploy(spp=1)
+    g = torch.Generator().manual_seed(0)
+    examples = [torch.rand(2, 3, 24, 32, generator=g) for _ in range(4)] + [torch.rand(2, 1, 24, 32, generator=g)]
+    path = export_onnx(deployed, examples, tmp_path / f"{method}.onnx", input_names=list(deployed.input_names),
+                       optimize=False)
+    ort = OrtDenoiser(path)
+    errors = []
+    for size in sizes:
+        gb = torchgi.render(torchgi.scenes.cornell(size).with_resolution(size, size + 7), spp=1, bounces=1)
+        ours = Denoiser(method)(gb)
+        errors.append((rel_error(deployed(gb.color, gb.emission, gb.albedo, gb.normal, gb.depth), ours),
+                       rel_error(ort(gb), ours)))
+    return ort.input_names, errors

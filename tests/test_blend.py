@@ -7,7 +7,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from tests.helpers import check_data_hash, check_weights_provenance, shipped_untrained_guided
+from tests.helpers import check_data_hash, check_weights_provenance, onnx_parity, shipped_untrained_guided
 from tests.helpers import rel_error as rel
 from tests.oracles import box_oracle, guided_oracle
 from torchgi.core import NonFiniteError, RangeError
@@ -153,25 +153,11 @@ def test_onnx_parity_at_two_resolutions(tmp_path):
     kernels sum in double, and the blend's log-luminance features amplify that in dark pixels
     (docs/blend.md). The graph is exported without the ONNX optimizer (half the export time;
     ``export_denoiser`` runs it, and test_onnx.py covers that path for the guided Denoiser)."""
-    pytest.importorskip("onnxruntime")
-    pytest.importorskip("onnxscript")
-    pytest.importorskip("embreex")
-    import torchgi
-    from torchgi.denoise import Denoiser
-    from torchgi.export import OrtDenoiser, export_onnx
-
-    deployed = Denoiser("blend").deploy(spp=1)
-    g = torch.Generator().manual_seed(0)
-    examples = [torch.rand(2, 3, 24, 32, generator=g) for _ in range(4)] + [torch.rand(2, 1, 24, 32, generator=g)]
-    path = export_onnx(deployed, examples, tmp_path / "blend.onnx", input_names=list(deployed.input_names),
-                       optimize=False)
-    ort = OrtDenoiser(path)
-    assert ort.input_names == ["color", "emission", "albedo", "normal", "depth"]
-    for size in (40, 24):
-        gb = torchgi.render(torchgi.scenes.cornell(size).with_resolution(size, size + 7), spp=1, bounces=1)
-        ours = Denoiser("blend")(gb)
-        assert rel(deployed(gb.color, gb.emission, gb.albedo, gb.normal, gb.depth), ours) < 1e-6
-        assert rel(ort(gb), ours) < 2e-3, size
+    names, errors = onnx_parity(tmp_path, "blend", (40, 24))
+    assert names == ["color", "emission", "albedo", "normal", "depth"]
+    for size, (deployed, ort) in zip((40, 24), errors, strict=True):
+        assert deployed < 1e-6, size
+        assert ort < 2e-3, size
 
 
 @pytest.mark.parametrize("name, bound, guided_bound", [("rough_spheres_small_light", 0.8, 0.6),

@@ -10,7 +10,7 @@ import copy
 import pytest
 import torch
 
-from tests.helpers import check_data_hash, check_weights_provenance, shipped_untrained_guided
+from tests.helpers import check_data_hash, check_weights_provenance, onnx_parity, shipped_untrained_guided
 from tests.helpers import rel_error as rel
 from tests.oracles import block_means, fast_guided_oracle, guided_oracle, upsample
 from torchgi.core import NonFiniteError, RangeError
@@ -215,24 +215,10 @@ def test_onnx_parity_at_two_resolutions(tmp_path):
     Measured: 1.8e-6 at 99x106, 2.6e-6 at 128x135 (2.3e-4 at 40x47, 6.5e-5 at 64x71: small
     images, where a few coarse blocks carry the whole image; docs/pyramid.md). The torch code's
     former box mean by float32 prefix sums over whole rows fails it (1.6e-4 at 99x106)."""
-    pytest.importorskip("onnxruntime")
-    pytest.importorskip("onnxscript")
-    pytest.importorskip("embreex")
-    import torchgi
-    from torchgi.denoise import Denoiser
-    from torchgi.export import OrtDenoiser, export_onnx
-
-    deployed = Denoiser("pyramid").deploy(spp=1)
-    g = torch.Generator().manual_seed(0)
-    examples = [torch.rand(2, 3, 24, 32, generator=g) for _ in range(4)] + [torch.rand(2, 1, 24, 32, generator=g)]
-    path = export_onnx(deployed, examples, tmp_path / "pyramid.onnx", input_names=list(deployed.input_names),
-                       optimize=False)
-    ort = OrtDenoiser(path)
-    for size in (99, 128):
-        gb = torchgi.render(torchgi.scenes.cornell(size).with_resolution(size, size + 7), spp=1, bounces=1)
-        ours = Denoiser("pyramid")(gb)
-        assert rel(deployed(gb.color, gb.emission, gb.albedo, gb.normal, gb.depth), ours) < 1e-6
-        assert rel(ort(gb), ours) < 1e-4, size
+    _, errors = onnx_parity(tmp_path, "pyramid", (99, 128))
+    for size, (deployed, ort) in zip((99, 128), errors, strict=True):
+        assert deployed < 1e-6, size
+        assert ort < 1e-4, size
 
 
 @pytest.mark.parametrize("name", ["rough_spheres_small_light", "fence_sky"])
