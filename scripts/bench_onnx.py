@@ -9,7 +9,8 @@ run in onnxruntime on the render (without its emission layer for the second) and
 alternating, the eager default on the same inputs - the graph takes no variance, so the eager
 call gets none either - and the eager default with the render's variance (its full input, which
 lets it back off toward the input). Each row: relMSE against the reference, the median ms of
-``--rounds`` calls, and onnxruntime's largest difference from the eager call over the eager
+``--rounds`` alternating calls (``bench_pipeline.timed``: each round starts one method later), and
+onnxruntime's largest difference from the eager call over the eager
 output's largest value. Writes ``onnx.csv``, ``onnx.json``, ``onnx.md``. torch on 2 threads,
 onnxruntime with its default (one per core: 2 on the project's benchmark machine).
 """
@@ -18,10 +19,10 @@ from __future__ import annotations
 
 import argparse
 import tempfile
-import time
 from pathlib import Path
 
 import torch
+from bench_pipeline import timed
 from benchmark_utils import available_scenes, markdown_table, metadata, scene_sets, write_results
 
 import torchgi
@@ -30,20 +31,6 @@ from torchgi.denoise import Denoiser
 from torchgi.export import OrtDenoiser, export_denoiser
 
 SIZES = {"256": (256, 256), "512": (512, 512), "1080p": (1080, 1920)}
-
-
-def timed(fns: dict, rounds: int) -> dict:
-    """Median ms of each of ``fns`` over ``rounds`` alternating calls (after one warm-up each),
-    and the last output of each."""
-    times, outs = {k: [] for k in fns}, {}
-    for f in fns.values():
-        f()
-    for _ in range(rounds):
-        for k, f in fns.items():
-            t = time.perf_counter()
-            outs[k] = f()
-            times[k].append((time.perf_counter() - t) * 1e3)
-    return {k: (sorted(v)[len(v) // 2], outs[k]) for k, v in times.items()}
 
 
 def run(args) -> list[dict]:
@@ -64,10 +51,12 @@ def run(args) -> list[dict]:
                         graphs[key] = OrtDenoiser(export_denoiser(
                             "guided", tmp / f"g{len(graphs)}.onnx", frame=same, emission=emission))
                     d, ort = Denoiser(), graphs[key]
-                    res = timed({"eager": lambda d=d, g=same: d(g), "onnxruntime": lambda o=ort, g=same: o(g),
-                                 "eager with variance": lambda d=d, g=full: d(g)}, args.rounds)
-                    eager = res["eager"][1]
-                    for method, (ms, out) in res.items():
+                    fns = {"eager": lambda d=d, g=same: d(g), "onnxruntime": lambda o=ort, g=same: o(g),
+                           "eager with variance": lambda d=d, g=full: d(g)}
+                    outs = {k: f() for k, f in fns.items()}
+                    eager = outs["eager"]
+                    for method, ms in timed(fns, args.rounds, "cpu").items():
+                        out = outs[method]
                         rows.append({"scene": Path(name).name, "size": size, "spp": spp,
                                      "emission layer": emission, "method": method,
                                      "relmse": float(metrics.relmse(out, ref)), "ms": ms,
