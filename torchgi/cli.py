@@ -151,8 +151,9 @@ def cmd_export(args: argparse.Namespace) -> int:
 
     path = export_denoiser(args.method, args.out, spp=args.spp, quality=args.quality,
                            sigma_position=args.sigma_position, emission=args.emission, overwrite=args.overwrite)
-    inputs = ["color"] + (["emission"] if args.emission else []) + [
-        "albedo", "normal", "position" if args.method == "atrous" else "depth"]
+    import onnx
+
+    inputs = [i.name for i in onnx.load(str(path)).graph.input]  # as written, not restated here
     print(f"wrote {path} ({args.method}, {args.spp} spp, {args.quality}); inputs {', '.join(inputs)} "
           f"(B, C, H, W) float32, dynamic B/H/W")
     return 0
