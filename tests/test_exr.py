@@ -139,3 +139,33 @@ def test_missing_layer_names_what_was_found():
         find_aovs(layers, required=("color", "albedo"))
     with pytest.raises(LayerError, match="layer 'normal' .*has 2 channels, expected 3"):
         find_aovs({"normal": torch.zeros(2, 2, 2)}, required=())
+
+
+def test_frame_paths_orders_folders_globs_and_patterns_by_frame_number(tmp_path):
+    """``torchgi.io.sequence.frame_paths`` (the frames of ``denoise --temporal``): digits compare
+    as numbers (f_9 before f_10), a ``#`` run matches at least that many digits and nothing else,
+    an explicit list keeps its order; empty matches, missing files and one name twice are refused."""
+    from torchgi.io.sequence import frame_paths
+
+    for name in ("f_10.exr", "f_9.exr", "f_100.exr", "f_x.exr", "g_1.exr", "notes.txt"):
+        (tmp_path / name).write_bytes(b"")
+    def names(spec):
+        return [p.name for p in frame_paths(spec)]
+
+    assert names([tmp_path]) == ["f_9.exr", "f_10.exr", "f_100.exr", "f_x.exr", "g_1.exr"]
+    assert names([str(tmp_path / "f_*.exr")]) == ["f_9.exr", "f_10.exr", "f_100.exr", "f_x.exr"]
+    assert names([str(tmp_path / "f_##.exr")]) == ["f_10.exr", "f_100.exr"]
+    assert names([str(tmp_path / "f_#.exr")]) == ["f_9.exr", "f_10.exr", "f_100.exr"]
+    assert names([tmp_path / "f_10.exr", tmp_path / "f_9.exr"]) == ["f_10.exr", "f_9.exr"]
+    with pytest.raises(FileNotFoundError, match="pattern"):
+        frame_paths([str(tmp_path / "h_####.exr")])
+    with pytest.raises(FileNotFoundError, match="no such file"):
+        frame_paths([tmp_path / "f_9.exr", tmp_path / "f_8.exr"])
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "f_9.exr").write_bytes(b"")
+    with pytest.raises(ValueError, match="f_9.exr"):
+        frame_paths([tmp_path / "f_9.exr", other / "f_9.exr"])
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(FileNotFoundError, match="holds no .exr"):
+        frame_paths([tmp_path / "empty"])

@@ -22,6 +22,7 @@ import torch
 
 from torchgi.core.check import check_option, require
 from torchgi.core.errors import DTypeError, ExrError, LayerError, ShapeError
+from torchgi.io.motion import motion_convention_of, to_torchgi_motion
 
 __all__ = ["AOV_ALIASES", "AOV_CHANNELS", "find_aovs", "read_aovs", "read_exr", "write_exr"]
 
@@ -33,7 +34,7 @@ _MAGIC = b"\x76\x2f\x31\x01"
 # denoised result when Cycles writes denoising data, so its "Noisy Image" comes first, and
 # Cycles' "Denoising *" guides (made for denoisers) win over its plain Normal/Depth passes.
 # Motion: Blender's "Vector" (X, Y of its 4 components) and Arnold's "motionvector" (R, G) are
-# read as stored; their sign and axis conventions are the renderers' (torchgi's: GBuffer.motion).
+# converted to torchgi's convention (GBuffer.motion) from their renderer's (torchgi.io.motion).
 AOV_ALIASES: dict[str, tuple[str, ...]] = {
     "color": ("color", "noisy image", "combined", "", "rgba", "rgb", "beauty", "hdr", "ldr", "image"),
     "albedo": ("denoising albedo", "albedo", "alb", "diffcol", "diffuse_albedo"),
@@ -241,7 +242,8 @@ def _normalise(name: str) -> list[str]:
 
 
 def find_aovs(
-    layers: Mapping[str, torch.Tensor], *, required: Iterable[str] = ("color",), source: str = "layers"
+    layers: Mapping[str, torch.Tensor], *, required: Iterable[str] = ("color",), source: str = "layers",
+    motion_convention: str | None = None,
 ) -> dict[str, torch.Tensor]:
     """Map renderer-specific layer names to torchgi's canonical AOV names.
 
@@ -249,11 +251,15 @@ def find_aovs(
         layers: layer name -> ``(C, H, W)`` tensor, as from :func:`read_exr`.
         required: canonical names that must be found.
         source: what ``layers`` came from, for error messages (a path, say).
+        motion_convention: the convention the motion layer is written in (``"torchgi"``,
+            ``"cycles"``, ``"arnold"``: :mod:`torchgi.io.motion`); None = its layer name's
+            (``motion``: torchgi, ``Vector``: Cycles, ``motionvector``: Arnold).
 
     Returns:
         Canonical name (``color``, ``albedo``, ``normal``, ``position``, ``depth``,
-        ``emission``, ``direct``, ``indirect``, ``variance``, ``spp``, ``hit``) -> tensor
-        ``(C, H, W)``; 3-channel AOVs drop an alpha channel, depth keeps one channel.
+        ``emission``, ``direct``, ``indirect``, ``variance``, ``spp``, ``hit``, ``motion``) ->
+        tensor ``(C, H, W)``; 3-channel AOVs drop an alpha channel, depth keeps one channel;
+        ``motion`` (2 channels) in torchgi's convention (``GBuffer.motion``).
 
     Raises:
         LayerError: a required AOV is missing (the message lists the layers found) or a
@@ -282,6 +288,8 @@ def find_aovs(
                     f"{source}: layer {match!r} (used as {aov}) has {value.shape[0]} channels, expected {want}"
                 )
             value = value[:want]
+        if aov == "motion":
+            value = to_torchgi_motion(value, motion_convention or motion_convention_of(match))
         found[aov] = value
     missing = [r for r in required if r not in found]
     if missing:
@@ -293,10 +301,11 @@ def find_aovs(
     return found
 
 
-def read_aovs(path: str | os.PathLike, *, required: Iterable[str] = ("color",)) -> dict[str, torch.Tensor]:
+def read_aovs(path: str | os.PathLike, *, required: Iterable[str] = ("color",),
+              motion_convention: str | None = None) -> dict[str, torch.Tensor]:
     """Read an EXR written by torchgi, Blender/Cycles, Mitsuba 3 or Arnold into canonical AOVs.
 
-    Shorthand for ``find_aovs(read_exr(path), required=required)``.
+    Shorthand for ``find_aovs(read_exr(path), required=required, motion_convention=...)``.
 
     Example:
         >>> import tempfile, os
@@ -305,4 +314,4 @@ def read_aovs(path: str | os.PathLike, *, required: Iterable[str] = ("color",)) 
         >>> sorted(read_aovs(p, required=("color", "normal")))
         ['color', 'normal']
     """
-    return find_aovs(read_exr(path), required=required, source=str(path))
+    return find_aovs(read_exr(path), required=required, source=str(path), motion_convention=motion_convention)
