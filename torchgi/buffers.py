@@ -118,6 +118,29 @@ class GBuffer:
         """All field names, in a fixed order."""
         return tuple(_CHANNELS)
 
+    @classmethod
+    def from_inputs(cls, gb: GBuffer | None, tensors: dict[str, torch.Tensor], *, by: str) -> GBuffer:
+        """The one rule for the inputs of every denoiser (``Denoiser``, ``TemporalDenoiser``): a
+        GBuffer, or any GBuffer field by its name (``(B, C, H, W)`` tensors, checked as the
+        GBuffer checks them); a field the method does not read is accepted and ignored.
+
+        Raises:
+            ValueError: both a GBuffer and named tensors, or a name that is no GBuffer field
+                (the message names it and ``by``).
+
+        Example:
+            >>> GBuffer.from_inputs(None, {"color": torch.zeros(1, 3, 2, 2)}, by="a denoiser").shape
+            (1, 2, 2)
+        """
+        if gb is not None and tensors:
+            raise ValueError(f"{by}: pass a GBuffer or named tensors, not both")
+        if gb is not None:
+            return gb
+        unknown = sorted(set(tensors) - set(cls.fields()))
+        if unknown:
+            raise ValueError(f"{by}: unknown input(s) {', '.join(unknown)}; known: {', '.join(cls.fields())}")
+        return cls(**tensors)
+
     def items(self) -> Iterator[tuple[str, torch.Tensor]]:
         """``(name, tensor)`` for every present field."""
         for name in _CHANNELS:
@@ -282,7 +305,8 @@ class GBuffer:
 
     @classmethod
     def from_exr(
-        cls, path: str | os.PathLike, *, required: Sequence[str] = ("color",), sanitize: bool = False
+        cls, path: str | os.PathLike, *, required: Sequence[str] = ("color",), sanitize: bool = False,
+        motion_convention: str | None = None,
     ) -> GBuffer:
         """Read a GBuffer (B = 1) from an EXR of torchgi, Blender/Cycles, Mitsuba 3 or Arnold.
 
@@ -293,6 +317,8 @@ class GBuffer:
         Args:
             sanitize: replace NaN/Inf in any float layer by 0 (with a warning giving the
                 count) instead of raising.
+            motion_convention: the motion layer's convention (``"torchgi"``, ``"cycles"``,
+                ``"arnold"``); None = its layer name's (:func:`torchgi.io.find_aovs`).
 
         Example:
             >>> import tempfile, os
@@ -303,7 +329,7 @@ class GBuffer:
         """
         from torchgi.io.exr import read_aovs
 
-        aovs = read_aovs(path, required=required)
+        aovs = read_aovs(path, required=required, motion_convention=motion_convention)
         fields: dict[str, torch.Tensor] = {}
         for name, t in aovs.items():
             if name == "hit":

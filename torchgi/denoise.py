@@ -51,8 +51,6 @@ __all__ = ["DENOISERS", "EXPORTABLE", "METHODS", "QUALITIES", "Denoiser", "Deplo
 
 METHODS = ("pyramid", "blend", "guided", "atrous", "bilateral", "none")
 QUALITIES = ("fast", "balanced", "high")
-_INPUTS = ("color", "albedo", "normal", "position", "depth", "emission", "direct", "indirect", "variance", "spp",
-           "hit")
 
 
 def _noise_free(gb: GBuffer) -> bool:
@@ -212,16 +210,7 @@ class Denoiser(torch.nn.Module):
 
     # ------------------------------------------------------------------------------ call
     def forward(self, gb: GBuffer | None = None, **tensors: torch.Tensor) -> torch.Tensor:
-        if gb is not None and tensors:
-            raise ValueError("pass a GBuffer or named tensors, not both")
-        if gb is None:
-            unknown = sorted(set(tensors) - set(_INPUTS))
-            if unknown:
-                raise ValueError(f"unknown input(s) {', '.join(unknown)}; known: {', '.join(_INPUTS)}")
-            if "color" not in tensors and not ("direct" in tensors and "indirect" in tensors):
-                raise ShapeError("color: required (or direct and indirect)")
-            gb = GBuffer(**tensors)  # validates shapes, devices, dtypes
-        return self._denoise(gb)
+        return self._denoise(GBuffer.from_inputs(gb, tensors, by="Denoiser"))
 
     def _denoise(self, gb: GBuffer) -> torch.Tensor:
         if gb.color is None:

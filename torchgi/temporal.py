@@ -48,8 +48,6 @@ from torchgi.settings import GUIDED, PIPELINE, TEMPORAL
 
 __all__ = ["DeployedTemporal", "TemporalDenoiser", "TemporalState", "temporal_step"]
 
-_INPUTS = ("color", "albedo", "normal", "depth", "motion", "emission", "hit")
-
 
 @dataclasses.dataclass
 class TemporalState:
@@ -173,7 +171,7 @@ def temporal_step(
         out = _blend_fresh(out, length, inputs, fresh, fresh_share)
     # the output history (demodulated), within sqrt(clamp x the accumulated light's noise variance) of this frame's
     lit = (out - emission) / demod
-    sigma = torch.sqrt(t.clamp * box(var / frames, 1))
+    sigma = torch.sqrt(t.clamp * box(var / frames, 1).clamp_min(0))  # the box's sums can cancel below 0
     h = torch.maximum(torch.minimum(hist_out, lit + sigma), lit - sigma)
     beta = torch.maximum(1.0 / length, torch.full((), t.output_alpha, dtype=x.dtype, device=x.device))
     lit = torch.where(hist_length > 0, h + beta * (lit - h), lit)
@@ -181,14 +179,11 @@ def temporal_step(
     return lit * demod + emission, nxt
 
 
-def _check_inputs(tensors: dict[str, torch.Tensor]) -> GBuffer:
-    unknown = sorted(set(tensors) - set(_INPUTS))
-    if unknown:
-        raise ValueError(f"unknown input(s) {', '.join(unknown)}; known: {', '.join(_INPUTS)}")
+def _check_inputs(gb: GBuffer) -> GBuffer:
     for name in ("color", "albedo", "normal", "depth", "motion"):
-        if tensors.get(name) is None:
+        if getattr(gb, name) is None:
             raise ShapeError(f"{name}: required by the TemporalDenoiser")
-    return GBuffer(**tensors)  # shapes, one device, one dtype; guides (motion included) finite
+    return gb
 
 
 def _checked(den: torch.nn.Module) -> Spatial:
@@ -201,7 +196,8 @@ class TemporalDenoiser(torch.nn.Module):
 
     Call once per frame, in order, with a :class:`~torchgi.GBuffer` (as from
     :func:`torchgi.render_sequence`) or named ``(B, C, H, W)`` tensors: ``color``, ``albedo``,
-    ``normal``, ``depth``, ``motion`` and when available ``emission`` and ``hit``. Returns that
+    ``normal``, ``depth``, ``motion`` and when available ``emission`` and ``hit``; the other
+    GBuffer fields are accepted and ignored, as by the Denoiser (:meth:`GBuffer.from_inputs`). Returns that
     frame's ``(B, 3, H, W)`` denoised radiance in the input dtype and device. :meth:`reset`
     forgets the history (call it at a cut; a cut the motion does not explain is also caught by the
     consistency tests, pixel by pixel). A change of shape, dtype or device starts a new history.
@@ -235,12 +231,7 @@ class TemporalDenoiser(torch.nn.Module):
         return f"sanitize={self.sanitize}"
 
     def forward(self, gb: GBuffer | None = None, **tensors: torch.Tensor) -> torch.Tensor:
-        if gb is not None and tensors:
-            raise ValueError("pass a GBuffer or named tensors, not both")
-        if gb is None:
-            gb = _check_inputs(tensors)
-        else:
-            gb = _check_inputs({k: getattr(gb, k) for k in _INPUTS if getattr(gb, k) is not None})
+        gb = _check_inputs(GBuffer.from_inputs(gb, tensors, by="TemporalDenoiser"))
         color, emission = finite_or_sanitized_all({"color": gb.color, "emission": gb.emission}, self.sanitize)
         s = self.state
         if s is not None and (s.light.shape != color.shape or s.light.dtype != color.dtype
