@@ -31,7 +31,8 @@ LAYERS = (
     ("sampling",),
     ("deployed",),
     ("denoise",),
-    ("temporal", "data", "export"),
+    ("temporal", "data"),
+    ("export",),
     ("",),
     ("cli",),
 )

@@ -17,6 +17,7 @@ import torch
 import torchgi
 from torchgi.core.errors import TorchGIError
 from torchgi.denoise import EXPORTABLE, METHODS
+from torchgi.io.motion import MOTION_CONVENTIONS
 
 __all__ = ["main"]
 
@@ -130,31 +131,123 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 
 def cmd_denoise(args: argparse.Namespace) -> int:
-    """Denoise the colour of a multi-layer EXR (torchgi, Blender/Cycles, Mitsuba or Arnold names)."""
+    """Denoise the colour of a multi-layer EXR (torchgi, Blender/Cycles, Mitsuba or Arnold names),
+    or with ``--temporal`` an animation, frame by frame (:func:`_denoise_sequence`)."""
     from torchgi.denoise import Denoiser
     from torchgi.io import write_exr
 
-    gb = torchgi.GBuffer.from_exr(args.input, required=("color", "albedo", "normal"), sanitize=args.sanitize)
+    if args.temporal:
+        return _denoise_sequence(args)
+    if len(args.input) != 1:
+        raise ValueError(f"input: one EXR without --temporal, got {len(args.input)}")
+    if args.motion_convention is not None:
+        raise ValueError("--motion-convention: only with --temporal (a single frame's denoising reads no motion)")
+    gb = torchgi.GBuffer.from_exr(args.input[0], required=("color", "albedo", "normal"), sanitize=args.sanitize)
+    method, quality = args.method or "guided", args.quality or "balanced"
     params = {} if args.radius is None else {"radius": args.radius}
     t0 = time.perf_counter()
-    out = Denoiser(args.method, args.quality, max_memory_mb=args.max_memory_mb, **params)(gb)
+    out = Denoiser(method, quality, max_memory_mb=args.max_memory_mb, **params)(gb)
     seconds = time.perf_counter() - t0
     path = write_exr(args.out, {"color": out[0]}, overwrite=args.overwrite)
-    print(f"denoised {args.input} ({gb.shape[2]}x{gb.shape[1]}) with {args.method} in {seconds * 1e3:.1f} ms; "
+    print(f"denoised {args.input[0]} ({gb.shape[2]}x{gb.shape[1]}) with {method} in {seconds * 1e3:.1f} ms; "
           f"wrote {path}")
     return 0
 
 
-def cmd_export(args: argparse.Namespace) -> int:
-    """Export a Denoiser, fixed for an spp, to ONNX."""
-    from torchgi.export import export_denoiser
+SUMMARY = "summary.json"  # what `denoise --temporal` writes beside the frames
 
-    path = export_denoiser(args.method, args.out, spp=args.spp, quality=args.quality,
-                           sigma_position=args.sigma_position, emission=args.emission, overwrite=args.overwrite)
+
+def _denoise_sequence(args: argparse.Namespace) -> int:
+    """``torchgi denoise --temporal FRAMES --out FOLDER``: the TemporalDenoiser over the frames in
+    order, one EXR per frame (the input's file name, layer ``color``) and ``summary.json`` in the
+    folder. Resumable: a frame already written is kept (never overwritten without --overwrite)
+    and still denoised, so that the history of the frames after it is the one an uninterrupted
+    run has; the summary's settings must match the run's."""
+    from tqdm.auto import tqdm
+
+    from torchgi.io import write_exr
+    from torchgi.io.sequence import frame_paths
+    from torchgi.temporal import TemporalDenoiser
+
+    for flag, value in (("--method", args.method), ("--quality", args.quality), ("--radius", args.radius),
+                        ("--max-memory-mb", args.max_memory_mb)):
+        if value is not None:
+            raise ValueError(f"{flag}: not with --temporal (the TemporalDenoiser's spatial filter is fixed)")
+    paths = frame_paths(args.input)
+    folder = Path(args.out)
+    if folder.exists() and not folder.is_dir():
+        raise ValueError(f"--out: {folder} is a file; with --temporal it is the folder the frames go to")
+    outs = [folder / p.name for p in paths]
+    clash = next((p for p, o in zip(paths, outs) if p.resolve() == o.resolve()), None)
+    if clash is not None:
+        raise ValueError(f"--out: the output of {clash} would replace it; choose another folder")
+    settings = {"command": "torchgi denoise --temporal", "torchgi": torchgi.__version__, "sanitize": args.sanitize,
+                "motion_convention": args.motion_convention or "from each file's motion layer name"}
+    summary_path, written = folder / SUMMARY, set()
+    if summary_path.exists() and not args.overwrite:
+        try:
+            earlier = json.loads(summary_path.read_text())
+            written = {r["output"] for r in earlier["frames"]}
+        except (ValueError, KeyError, TypeError) as exc:
+            raise ValueError(f"--out: {summary_path} is not a summary this command wrote; pass --overwrite or "
+                             "choose another folder") from exc
+        if earlier["settings"] != settings:
+            raise ValueError(f"--out: {folder} holds frames denoised with other settings ({earlier['settings']}); "
+                             "pass --overwrite or choose another folder")
+    foreign = next((o for o in outs if o.exists() and str(o) not in written), None)
+    if foreign is not None and not args.overwrite:
+        raise FileExistsError(f"--out: {foreign} exists and is not a frame this command wrote there; pass "
+                              "--overwrite or choose another folder")
+    folder.mkdir(parents=True, exist_ok=True)
+    den, rows = TemporalDenoiser(sanitize=args.sanitize), []
+    with tqdm(total=len(paths), disable=not args.progress, unit="frame", desc="denoise") as bar:
+        for path, out_path in zip(paths, outs):
+            gb = torchgi.GBuffer.from_exr(path, required=("color", "albedo", "normal", "depth", "motion"),
+                                          sanitize=args.sanitize, motion_convention=args.motion_convention)
+            t0 = time.perf_counter()
+            out = den(gb)
+            ms = (time.perf_counter() - t0) * 1e3
+            kept = out_path.exists() and not args.overwrite
+            if not kept:
+                write_exr(out_path, {"color": out[0]}, overwrite=args.overwrite)
+            rows.append({"input": str(path), "output": str(out_path), "ms": round(ms, 3), "kept": kept})
+            _write_json(summary_path, {"settings": settings, "frames": rows})
+            bar.update()
+    kept = sum(r["kept"] for r in rows)
+    print(f"denoised {len(rows)} frame(s) with the TemporalDenoiser in {sum(r['ms'] for r in rows) / 1e3:.2f} s; "
+          f"wrote {len(rows) - kept} to {folder} (kept {kept} already there); summary {summary_path}")
+    return 0
+
+
+def _write_json(path: Path, data: dict) -> None:
+    """``data`` as JSON at ``path``, replaced atomically (a file this command owns)."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps(data, indent=1))
+    os.replace(tmp, path)
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    """Export a Denoiser, fixed for an spp, or with ``--temporal`` one frame of the temporal
+    denoiser (its state as inputs and outputs), to ONNX."""
+    from torchgi.export import export_denoiser, export_temporal
+
+    if args.temporal:
+        given = [f for f, v in (("--method", args.method), ("--spp", args.spp), ("--quality", args.quality),
+                                ("--sigma-position", args.sigma_position)) if v is not None]
+        if given or not args.emission:
+            raise ValueError(f"{(given or ['--no-emission'])[0]}: not with --temporal (its graph is fixed: "
+                             "emission in, per-frame guided filter for new pixels)")
+        path, what = export_temporal(args.out, overwrite=args.overwrite), "temporal step"
+    else:
+        method, spp, quality = args.method or "guided", 1.0 if args.spp is None else args.spp, args.quality or "balanced"
+        path = export_denoiser(method, args.out, spp=spp, quality=quality, sigma_position=args.sigma_position,
+                               emission=args.emission, overwrite=args.overwrite)
+        what = f"{method}, {spp} spp, {quality}"
     import onnx
 
-    inputs = [i.name for i in onnx.load(str(path)).graph.input]  # as written, not restated here
-    print(f"wrote {path} ({args.method}, {args.spp} spp, {args.quality}); inputs {', '.join(inputs)} "
+    graph = onnx.load(str(path)).graph  # names as written, not restated here
+    outputs = "" if not args.temporal else f"; outputs {', '.join(o.name for o in graph.output)}"
+    print(f"wrote {path} ({what}); inputs {', '.join(i.name for i in graph.input)}{outputs} "
           f"(B, C, H, W) float32, dynamic B/H/W")
     return 0
 
@@ -227,6 +320,38 @@ def _out_flags(p: argparse.ArgumentParser, what: str) -> None:
     p.add_argument("--overwrite", action="store_true")
 
 
+def _denoise_and_export_parsers(sub: argparse._SubParsersAction) -> None:
+    """The ``denoise`` and ``export`` sub-commands on ``sub``."""
+    p = sub.add_parser("denoise", help="denoise an EXR with AOVs (colour, albedo, normal; uses position, depth, "
+                       "emission when present)")
+    p.add_argument("input", nargs="+", help="multi-layer EXR: torchgi, Blender/Cycles, Mitsuba 3 or Arnold layer "
+                   "names; with --temporal the frames: a folder, a glob, name_####.exr, or the files in order")
+    p.add_argument("--method", choices=list(METHODS), default=None, help="Denoiser method (default guided)")
+    p.add_argument("--quality", choices=["fast", "balanced", "high"], default=None, help="(default balanced)")
+    p.add_argument("--radius", type=_positive_int, default=None, help="filter radius (default: from spp)")
+    _out_flags(p, "output EXR (layer 'color'); with --temporal a folder (one EXR per frame, summary.json)")
+    p.add_argument("--temporal", action="store_true", help="an animation: the TemporalDenoiser over the frames "
+                   "in order (needs depth and motion layers; resumes a folder it wrote)")
+    p.add_argument("--motion-convention", choices=list(MOTION_CONVENTIONS), default=None,
+                   help="the motion layer's convention (default: from its name: motion torchgi, Vector Cycles, "
+                   "motionvector Arnold)")
+    p.add_argument("--sanitize", action="store_true", help="replace NaN/Inf in the input by 0 (with a warning)")
+    p.add_argument("--max-memory-mb", type=float, help="most MB denoising adds beyond the input (tiles; guided)")
+    p.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar (--temporal)")
+    p.set_defaults(func=cmd_denoise)
+
+    p = sub.add_parser("export", help="export a Denoiser to ONNX (needs the onnx extra)")
+    p.add_argument("--method", choices=list(EXPORTABLE), default=None, help="Denoiser method (default guided)")
+    p.add_argument("--spp", type=float, default=None, help="samples per pixel the parameters are fixed for (default 1)")
+    p.add_argument("--quality", choices=["fast", "balanced", "high"], default=None, help="(default balanced)")
+    p.add_argument("--temporal", action="store_true", help="one frame of the TemporalDenoiser, its state as graph "
+                   "inputs and outputs (torchgi.temporal.DeployedTemporal)")
+    p.add_argument("--sigma-position", type=float, default=None, help="À-Trous σ_x, scene units squared")
+    p.add_argument("--no-emission", dest="emission", action="store_false", help="a graph without emission input")
+    _out_flags(p, "the .onnx file")
+    p.set_defaults(func=cmd_export)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="torchgi", description=torchgi.__doc__.splitlines()[0])
     parser.add_argument("--version", action="version", version=f"torchgi {torchgi.__version__}")
@@ -254,25 +379,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
     p.set_defaults(func=cmd_render)
 
-    p = sub.add_parser("denoise", help="denoise an EXR with AOVs (colour, albedo, normal; uses position, depth, "
-                       "emission when present)")
-    p.add_argument("input", help="multi-layer EXR: torchgi, Blender/Cycles, Mitsuba 3 or Arnold layer names")
-    p.add_argument("--method", choices=list(METHODS), default="guided")
-    p.add_argument("--quality", choices=["fast", "balanced", "high"], default="balanced")
-    p.add_argument("--radius", type=_positive_int, default=None, help="filter radius (default: from spp)")
-    _out_flags(p, "output EXR (layer 'color')")
-    p.add_argument("--sanitize", action="store_true", help="replace NaN/Inf in the input by 0 (with a warning)")
-    p.add_argument("--max-memory-mb", type=float, help="most MB denoising adds beyond the input (tiles; guided)")
-    p.set_defaults(func=cmd_denoise)
-
-    p = sub.add_parser("export", help="export a Denoiser to ONNX (needs the onnx extra)")
-    p.add_argument("--method", choices=list(EXPORTABLE), default="guided")
-    p.add_argument("--spp", type=float, default=1.0, help="samples per pixel the parameters are fixed for")
-    p.add_argument("--quality", choices=["fast", "balanced", "high"], default="balanced")
-    p.add_argument("--sigma-position", type=float, default=None, help="À-Trous σ_x, scene units squared")
-    p.add_argument("--no-emission", dest="emission", action="store_false", help="a graph without emission input")
-    _out_flags(p, "the .onnx file")
-    p.set_defaults(func=cmd_export)
+    _denoise_and_export_parsers(sub)
 
     p = sub.add_parser("datagen", help="noisy/reference EXR shards for training (resumable; local or Dask)")
     p.add_argument("config", help="data-generation YAML (configs/data_gen/*.yaml)")

@@ -14,7 +14,7 @@ from torch import nn
 
 from torchgi.core.check import check_shape, require
 
-__all__ = ["OrtDenoiser", "OrtSession", "export_denoiser", "export_onnx"]
+__all__ = ["OrtDenoiser", "OrtSession", "export_denoiser", "export_onnx", "export_temporal"]
 
 
 def export_onnx(
@@ -145,6 +145,32 @@ def export_denoiser(
     examples = [torch.rand(B, 3 if name != "depth" else 1, H, W, generator=g) for name in module.input_names]
     return export_onnx(module, examples, path, input_names=list(module.input_names), overwrite=overwrite,
                        optimize=method != "atrous")
+
+
+def export_temporal(path: str | os.PathLike, *, fresh: bool = True, overwrite: bool = False) -> Path:
+    """Export one frame of temporal denoising, :class:`torchgi.temporal.DeployedTemporal` (its
+    ``input_names`` and ``output_names``: the frame's layers and the state in, the image and the
+    next state out), to ONNX with dynamic B/H/W.
+
+    Args:
+        path: destination ``.onnx`` file; never overwritten unless ``overwrite``.
+        fresh: new pixels blended towards the per-frame Denoiser (``DeployedTemporal(fresh)``).
+
+    Example:
+        >>> p = export_temporal(os.path.join(tempfile.mkdtemp(), "t.onnx"))
+        >>> OrtSession(p).input_names[:6]
+        ['color', 'emission', 'albedo', 'normal', 'depth', 'motion']
+    """
+    from torchgi.temporal import DeployedTemporal
+
+    module = DeployedTemporal(fresh)
+    g = torch.Generator().manual_seed(0)
+    B, H, W = 2, 24, 32
+    channels = {"color": 3, "emission": 3, "albedo": 3, "normal": 3, "depth": 1, "motion": 2, "light": 3,
+                "history": 3, "moments": 2, "length": 1, "prev_normal": 3, "prev_depth": 1, "prev_surface": 1}
+    examples = [torch.rand(B, channels[name], H, W, generator=g) for name in module.input_names]
+    return export_onnx(module, examples, path, input_names=list(module.input_names),
+                       output_names=list(module.output_names), optimize=False, overwrite=overwrite)
 
 
 class OrtDenoiser:
