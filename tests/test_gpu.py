@@ -105,7 +105,8 @@ from torchgi import backends
 from torchgi.denoise import Denoiser
 gb = torchgi.render(torchgi.scenes.cornell(40).with_resolution(40, 36), spp=1, bounces=1, seed=3)
 full = {{"color": gb.color, "albedo": gb.albedo, "normal": gb.normal, "depth": gb.depth, "emission": gb.emission}}
-cases = [({{}}, full), ({{"subsample": 3}}, {{k: v for k, v in full.items() if k != "emission"}}),
+conductor = {{**full, "albedo": gb.albedo * torch.linspace(1, 8, 40)}}  # another renderer's "albedo" above 1
+cases = [({{}}, full), ({{"subsample": 2}}, conductor), ({{"subsample": 3}}, {{k: v for k, v in full.items() if k != "emission"}}),
          ({{"filter_direct": False, "subsample": 2}}, {{**full, "direct": gb.direct, "indirect": gb.indirect,
                                                       "hit": gb.hit}})]
 worst = 0.0

@@ -39,16 +39,18 @@ def _variants(gb):
     no_depth = {k: v for k, v in full.items() if k != "depth"}
     split = {"direct": gb.direct, "indirect": gb.indirect, **{k: v for k, v in full.items() if k != "color"},
              "hit": gb.hit}
+    conductor = {**full, "albedo": gb.albedo * torch.linspace(1, 8, gb.albedo.shape[-1])}  # "albedo" above 1
     return [
         ("default", {}, full), ("half", {"subsample": 2}, full), ("third", {"subsample": 3}, crop),
         ("odd", {}, crop), ("odd-half", {"subsample": 2}, crop), ("batch", {"subsample": 2}, two),
         ("no-emission", {}, no_emission), ("no-depth", {"radius": 3}, no_depth),
         ("split", {"filter_direct": False}, split), ("hit", {}, {**full, "hit": gb.hit}),
-        ("eps", {"eps": 1e-3, "radius": 2}, full),
+        ("eps", {"eps": 1e-3, "radius": 2}, full), ("conductor", {}, conductor),
+        ("conductor-half", {"subsample": 2}, {**conductor, "hit": gb.hit}),
     ]
 
 
-@pytest.mark.parametrize("case", range(11))
+@pytest.mark.parametrize("case", range(13))
 def test_compiled_pipeline_matches_the_float64_torch_code(render, case):
     name, params, inputs = _variants(render)[case]
     _compiled(torch.device("cpu"))

@@ -43,15 +43,16 @@ def surface_mask(hit: torch.Tensor | None, albedo: torch.Tensor) -> torch.Tensor
 
 
 def demodulator(albedo: torch.Tensor, surface: torch.Tensor) -> torch.Tensor:
-    """What light is divided by: the albedo (at least ``PIPELINE.albedo_floor``) on surfaces, 1 on
-    the background, which is filtered as it is.
+    """What light is divided by: the albedo (at least ``PIPELINE.albedo_floor``, at most
+    ``PIPELINE.albedo_ceiling``: another renderer's "albedo" above 1 is not a reflectance) on
+    surfaces, 1 on the background, which is filtered as it is.
 
     Example:
         >>> a = torch.tensor([[[[0.0, 0.5]]]])
         >>> demodulator(a, surface_mask(None, a)).tolist()
         [[[[1.0, 0.5]]]]
     """
-    return torch.where(surface, albedo.clamp_min(PIPELINE.albedo_floor),
+    return torch.where(surface, albedo.clamp(PIPELINE.albedo_floor, PIPELINE.albedo_ceiling),
                        torch.ones((), dtype=albedo.dtype, device=albedo.device))
 
 

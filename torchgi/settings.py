@@ -34,6 +34,9 @@ class PipelineSettings:
                                  "pixels a few samples hit along a silhouette are filtered with the rest")
     firefly_radius: int = _setting(8, 1, 64, "px", "the local level a firefly is compared with: a 17x17 box mean")
     albedo_floor: float = _setting(1e-3, 0.0, 1.0, "albedo", "light is divided by at least this (black surfaces)")
+    albedo_ceiling: float = _setting(1.0, 1e-3, 1e3, "albedo", "light is divided by at most this: a reflectance is at "
+                                     "most 1, while Mitsuba 3's albedo AOV of a rough conductor reaches 3-10 (tuning "
+                                     "scenes rendered by Mitsuba: lower error for every method, docs/calibration.md)")
     hole_radius: int = _setting(2, 1, 16, "px", "an exported Denoiser fills a NaN/Inf pixel from the finite pixels "
                                 "of this window (5x5)")
     rel_var_1spp: float = _setting(0.25, 0.0, math.inf, "relative variance",

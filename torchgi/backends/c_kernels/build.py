@@ -46,8 +46,8 @@ _SIGNATURES = {
     "torchgi_guide_stats": ([_P, _P, _P, _I, _I, *_BANDS], None),
     "torchgi_guide_edges": ([_I, _P, _P, _P, _P, _P, _I, _I, _F, *_BANDS], None),
     "torchgi_guide_pool": ([_I, _P, _P, _P, _P, _P, _P, _I, _I, _I, _P, *_BANDS], None),
-    "torchgi_lights": ([_P, _P, _P, _P, _P, _F, _I, _I, _F, _I, _P, *_BANDS], None),
-    "torchgi_prepare": ([_P, _P, _P, _P, _P, _F, _I, _I, _P, _F, _F, _P, _P, *_BANDS], None),
+    "torchgi_lights": ([_P, _P, _P, _P, _P, _F, _F, _I, _I, _F, _I, _P, *_BANDS], None),
+    "torchgi_prepare": ([_P, _P, _P, _P, _P, _F, _F, _I, _I, _P, _F, _F, _P, _P, *_BANDS], None),
     "torchgi_clamp": ([_P, _P, _F, _I, _I, _I, _P, *_BANDS], None),
     "torchgi_restore_coefficients": ([_I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _I, _I, _I, _I, _P, _F, _P, *_BANDS],
                                      None),
@@ -61,7 +61,7 @@ _SIGNATURES = {
     "torchgi_render_guides": ([_P, _P, _L, _P, _I], None),
     "torchgi_upsample_apply": ([_P, _I, _I, _P, _P, _P, _P, _I, _I, _P, *_BANDS], None),
     "torchgi_guided_finish": ([_P, _I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _I, _I, _I, _I, _P, _P, _P, _P, _P, _P, _F,
-                               _P, *_BANDS], None),
+                               _F, _P, *_BANDS], None),
 }
 # the library's interface version, written once: in the C source
 _VERSION = int(re.search(r"torchgi_native_version\(void\) \{ return (\d+); \}", _SOURCE.read_text()).group(1))

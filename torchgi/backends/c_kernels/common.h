@@ -22,6 +22,7 @@
 
 #define INLINE static inline __attribute__((always_inline))
 #define MAXF(a, b) ((a) > (b) ? (a) : (b))
+#define MINF(a, b) ((a) < (b) ? (a) : (b))
 
 
 /* v = 0 .. N-1 for a compile-time N <= 8, written out so that the loops fold into straight code */

@@ -148,24 +148,24 @@ static void guide_pool_rows(const guide_t *g, int H, int W, int s, float *low, d
 struct light_s {
     const float *color, *emission, *kept, *albedo;
     const uint8_t *hit;
-    float floor;
+    float floor, ceil;
     size_t HW;
     int W;
 };
 
-/* The demodulator of row y (3 x W floats): the albedo (at least floor) on surfaces, 1 elsewhere. */
+/* The demodulator of row y (3 x W floats): the albedo (in [floor, ceil]) on surfaces, 1 elsewhere. */
 static void demod_row(const light_t *L, int y, float *ad) {
     const size_t HW = L->HW, row = (size_t)y * L->W;
-    const float *a0 = L->albedo + row, *a1 = a0 + HW, *a2 = a1 + HW, f = L->floor;
+    const float *a0 = L->albedo + row, *a1 = a0 + HW, *a2 = a1 + HW, f = L->floor, c_ = L->ceil;
     const int W = L->W;
     for (int c = 0; c < 3; ++c) {
         const float *a = L->albedo + c * HW + row;
         float *d = ad + (size_t)c * W;
         if (L->hit) {
             const uint8_t *h = L->hit + row;
-            for (int x = 0; x < W; ++x) d[x] = h[x] ? MAXF(a[x], f) : 1.0f;
+            for (int x = 0; x < W; ++x) d[x] = h[x] ? MINF(MAXF(a[x], f), c_) : 1.0f;
         } else {
-            for (int x = 0; x < W; ++x) d[x] = (a0[x] > 0.0f) | (a1[x] > 0.0f) | (a2[x] > 0.0f) ? MAXF(a[x], f) : 1.0f;
+            for (int x = 0; x < W; ++x) d[x] = (a0[x] > 0.0f) | (a1[x] > 0.0f) | (a2[x] > 0.0f) ? MINF(MAXF(a[x], f), c_) : 1.0f;
         }
     }
 }
@@ -383,8 +383,8 @@ static void upsample_apply_rows(const float *coef, int n, int Cs, int s, int h, 
 
 /* The pipeline's entry points (see the section above). */
 static light_t make_light(const float *color, const float *emission, const float *kept, const float *albedo,
-                          const uint8_t *hit, float floor, int H, int W) {
-    const light_t L = {color, emission, kept, albedo, hit, floor, (size_t)H * W, W};
+                          const uint8_t *hit, float floor, float ceil, int H, int W) {
+    const light_t L = {color, emission, kept, albedo, hit, floor, ceil, (size_t)H * W, W};
     return L;
 }
 
@@ -416,16 +416,16 @@ void torchgi_guide_pool(int n, const float *g0, const float *g1, const float *g2
 }
 
 void torchgi_lights(const float *color, const float *emission, const float *kept, const float *albedo,
-                    const uint8_t *hit, float floor, int H, int W, float thr, int r, uint8_t *mask, int nt,
+                    const uint8_t *hit, float floor, float ceil, int H, int W, float thr, int r, uint8_t *mask, int nt,
                     void *scratch, long long stride) {
-    const light_t L = make_light(color, emission, kept, albedo, hit, floor, H, W);
+    const light_t L = make_light(color, emission, kept, albedo, hit, floor, ceil, H, W);
     OVER_BANDS(H, lights_rows(&L, H, thr, r, mask, (char *)scr + PART_BYTES, (double *)scr, y0, y1));
 }
 
 void torchgi_prepare(const float *color, const float *emission, const float *kept, const float *albedo,
-                     const uint8_t *hit, float floor, int H, int W, const uint8_t *mask, float level, float cap,
+                     const uint8_t *hit, float floor, float ceil, int H, int W, const uint8_t *mask, float level, float cap,
                      float *x, float *peak, int nt, void *scratch, long long stride) {
-    const light_t L = make_light(color, emission, kept, albedo, hit, floor, H, W);
+    const light_t L = make_light(color, emission, kept, albedo, hit, floor, ceil, H, W);
     OVER_BANDS(H, prepare_rows(&L, mask, level, cap, x, peak, (double *)scr, (float *)((char *)scr + PART_BYTES), y0,
                                y1));
 }
@@ -448,8 +448,8 @@ void torchgi_guided_finish(const float *coef, int n, int Cs, const float *g0, co
                            const float *g3, const float *scale, const float *goffset, const float *meanI,
                            const float *offset, int H, int W, int r, int s, float *out, const float *color,
                            const float *emission, const float *kept, const float *albedo, const uint8_t *hit,
-                           float floor, const uint8_t *mask, int nt, void *scratch, long long stride) {
-    const light_t L = make_light(color, emission, kept, albedo, hit, floor, H, W);
+                           float floor, float ceil, const uint8_t *mask, int nt, void *scratch, long long stride) {
+    const light_t L = make_light(color, emission, kept, albedo, hit, floor, ceil, H, W);
     const guide_t G = make_guide(n, g0, g1, g2, g3, scale, goffset);
     if (s == 1) {
         OVER_BANDS(H, apply_rows(coef, n, Cs, &G, meanI, offset, H, W, r, out, &L, mask, y0, y1, scr));

@@ -131,7 +131,7 @@ def restore(desc: RestoreOp) -> torch.Tensor:
         level = float(desc.level[b].reshape(()))
         light_in = [color[b].data_ptr(), _ptr(None if emission is None else emission[b]),
                     _ptr(None if kept is None else kept[b]), albedo[b].data_ptr(), _ptr(None if hit is None else hit[b]),
-                    floor]
+                    floor, float(PIPELINE.albedo_ceiling)]
         seen = _parts(lib.torchgi_lights, H, H * W, *light_in, H, W, PIPELINE.light * level, r_light,
                       mask.data_ptr(), doubles=1, extra_bytes=12 * W + 3 * (rows + 4 * r_light) * W + W)[0]
         lights = mask.data_ptr() if seen > 0 else None

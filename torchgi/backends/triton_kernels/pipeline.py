@@ -16,8 +16,8 @@ from torchgi.settings import PIPELINE
 if triton is not None:
 
     @triton.jit
-    def _demodulator(a_ptr, h_ptr, i, HW, m, floor, HAS_HIT: tl.constexpr):
-        # what light is divided by per channel: the albedo (at least floor) on surfaces, else 1
+    def _demodulator(a_ptr, h_ptr, i, HW, m, floor, ceil, HAS_HIT: tl.constexpr):
+        # what light is divided by per channel: the albedo (in [floor, ceil]) on surfaces, else 1
         a0 = tl.load(a_ptr + i, mask=m, other=0.0)
         a1 = tl.load(a_ptr + HW + i, mask=m, other=0.0)
         a2 = tl.load(a_ptr + 2 * HW + i, mask=m, other=0.0)
@@ -25,8 +25,9 @@ if triton is not None:
             on = tl.load(h_ptr + i, mask=m, other=0) != 0
         else:
             on = (a0 > 0) | (a1 > 0) | (a2 > 0)
-        return (tl.where(on, tl.maximum(a0, floor), 1.0), tl.where(on, tl.maximum(a1, floor), 1.0),
-                tl.where(on, tl.maximum(a2, floor), 1.0))
+        return (tl.where(on, tl.minimum(tl.maximum(a0, floor), ceil), 1.0),
+                tl.where(on, tl.minimum(tl.maximum(a1, floor), ceil), 1.0),
+                tl.where(on, tl.minimum(tl.maximum(a2, floor), ceil), 1.0))
 
     @triton.jit
     def _light_in(c_ptr, e_ptr, k_ptr, j, m, d, light, level, HAS_E: tl.constexpr, HAS_K: tl.constexpr):
@@ -42,7 +43,7 @@ if triton is not None:
         return v
 
     @triton.jit
-    def _pixels(a_ptr, h_ptr, l_ptr, HW, n_blk, floor, HAS_HIT: tl.constexpr, HAS_L: tl.constexpr,
+    def _pixels(a_ptr, h_ptr, l_ptr, HW, n_blk, floor, ceil, HAS_HIT: tl.constexpr, HAS_L: tl.constexpr,
                 BLOCK: tl.constexpr):
         # this program's image b, pixels i (mask m, offsets in 3- and 1-plane images), demodulator
         # and light-source mask
@@ -51,18 +52,19 @@ if triton is not None:
         i = blk * BLOCK + tl.arange(0, BLOCK)
         m = i < HW
         o3, o1 = b * 3 * HW + i, b * HW + i
-        d0, d1, d2 = _demodulator(a_ptr + b * 3 * HW, h_ptr + b * HW, i, HW, m, floor, HAS_HIT)
+        d0, d1, d2 = _demodulator(a_ptr + b * 3 * HW, h_ptr + b * HW, i, HW, m, floor, ceil, HAS_HIT)
         light = i < 0
         if HAS_L:
             light = tl.load(l_ptr + o1, mask=m, other=0) != 0
         return b, i, m, o3, o1, d0, d1, d2, light
 
     @triton.jit
-    def _prepare(c_ptr, e_ptr, k_ptr, a_ptr, h_ptr, l_ptr, lvl_ptr, x_ptr, pk_ptr, k_fire, floor, HW, n_blk,
+    def _prepare(c_ptr, e_ptr, k_ptr, a_ptr, h_ptr, l_ptr, lvl_ptr, x_ptr, pk_ptr, k_fire, floor, ceil, HW, n_blk,
                  HAS_E: tl.constexpr, HAS_K: tl.constexpr, HAS_HIT: tl.constexpr, HAS_L: tl.constexpr,
                  BLOCK: tl.constexpr):
         # the demodulated light x (3 planes) and its channel maximum capped at k level
-        b, _i, m, o3, o1, d0, d1, d2, light = _pixels(a_ptr, h_ptr, l_ptr, HW, n_blk, floor, HAS_HIT, HAS_L, BLOCK)
+        b, _i, m, o3, o1, d0, d1, d2, light = _pixels(a_ptr, h_ptr, l_ptr, HW, n_blk, floor, ceil, HAS_HIT, HAS_L,
+                                                      BLOCK)
         level = tl.load(lvl_ptr + b)
         x0 = _light_in(c_ptr, e_ptr, k_ptr, o3, m, d0, light, level, HAS_E, HAS_K)
         x1 = _light_in(c_ptr, e_ptr, k_ptr, o3 + HW, m, d1, light, level, HAS_E, HAS_K)
@@ -111,14 +113,15 @@ if triton is not None:
         return (1.0 - ly) * t + ly * u
 
     @triton.jit
-    def _finish(q_ptr, coef_ptr, g_ptr, mg_ptr, off_ptr, c_ptr, e_ptr, k_ptr, a_ptr, h_ptr, l_ptr, out_ptr, floor,
+    def _finish(q_ptr, coef_ptr, g_ptr, mg_ptr, off_ptr, c_ptr, e_ptr, k_ptr, a_ptr, h_ptr, l_ptr, out_ptr, floor, ceil,
                 H, W, h, w, inv_s, n_blk, N: tl.constexpr, UPSAMPLE: tl.constexpr, HAS_E: tl.constexpr,
                 HAS_K: tl.constexpr, HAS_HIT: tl.constexpr, HAS_L: tl.constexpr, BLOCK: tl.constexpr):
         # the filtered light q (3 planes) or, with UPSAMPLE, the guided filter applied from the
         # box-filtered coefficients at 1 / s resolution upsampled bilinearly by s (torch's
         # interpolate(scale_factor=s)); then remodulated
         HW = H * W
-        b, i, m, o3, _o1, d0, d1, d2, light = _pixels(a_ptr, h_ptr, l_ptr, HW, n_blk, floor, HAS_HIT, HAS_L, BLOCK)
+        b, i, m, o3, _o1, d0, d1, d2, light = _pixels(a_ptr, h_ptr, l_ptr, HW, n_blk, floor, ceil, HAS_HIT, HAS_L,
+                                                      BLOCK)
         if UPSAMPLE:
             y, x = i // W, i % W
             sy = tl.maximum((y.to(tl.float32) + 0.5) * inv_s - 0.5, 0.0)
@@ -178,7 +181,8 @@ def _restore(desc: RestoreOp) -> torch.Tensor:
     ptrs = [color, emission if emission is not None else color, kept if kept is not None else color, albedo,
             hit.view(torch.uint8) if hit is not None else lights, lights]
     k = float(desc.firefly)
-    _prepare[(n_blk * B,)](*ptrs, level, x, peak, k, float(PIPELINE.albedo_floor), HW, n_blk, **flags, BLOCK=filter_guided._PIX)
+    _prepare[(n_blk * B,)](*ptrs, level, x, peak, k, float(PIPELINE.albedo_floor),
+                           float(PIPELINE.albedo_ceiling), HW, n_blk, **flags, BLOCK=filter_guided._PIX)
     _clamp[(n_blk * B,)](x, _box(peak, PIPELINE.firefly_radius), k, HW, n_blk, BLOCK=filter_guided._PIX)
     mean_p = (x.mean((2, 3)) if desc.centre_src is None else desc.centre_src.to(dev, torch.float32)).expand(B, 3)
     mean_g = guide.mean((2, 3)) if desc.centre_guide is None else desc.centre_guide.to(dev, torch.float32)
@@ -193,7 +197,8 @@ def _restore(desc: RestoreOp) -> torch.Tensor:
         q, h, w = x, low_x.shape[-2], low_x.shape[-1]
         coef = _guided(low_g.contiguous(), low_x.contiguous(), mean_g, mean_p, mean_p, round(desc.radius / s), eps,
                        coefficients_only=True).contiguous()
-    _finish[(n_blk * B,)](q, coef, guide, mean_g, mean_p, *ptrs[:5], lights, out, float(PIPELINE.albedo_floor), H, W,
+    _finish[(n_blk * B,)](q, coef, guide, mean_g, mean_p, *ptrs[:5], lights, out, float(PIPELINE.albedo_floor),
+                          float(PIPELINE.albedo_ceiling), H, W,
                           h, w, 1.0 / s, n_blk, N=n, UPSAMPLE=s > 1, **flags, BLOCK=filter_guided._PIX)
     return out
 
