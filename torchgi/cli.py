@@ -234,14 +234,17 @@ def cmd_export(args: argparse.Namespace) -> int:
     if args.temporal:
         given = [f for f, v in (("--method", args.method), ("--spp", args.spp), ("--quality", args.quality),
                                 ("--sigma-position", args.sigma_position)) if v is not None]
+        given += ["--variance"] if args.variance else []
         if given or not args.emission:
             raise ValueError(f"{(given or ['--no-emission'])[0]}: not with --temporal (its graph is fixed: "
                              "emission in, per-frame guided filter for new pixels)")
         path, what = export_temporal(args.out, overwrite=args.overwrite), "temporal step"
     else:
         method, spp, quality = args.method or "guided", 1.0 if args.spp is None else args.spp, args.quality or "balanced"
+        if args.variance and spp < 2:
+            raise ValueError(f"--variance: the back-off needs --spp 2 or more, got {spp}")
         path = export_denoiser(method, args.out, spp=spp, quality=quality, sigma_position=args.sigma_position,
-                               emission=args.emission, overwrite=args.overwrite)
+                               emission=args.emission, variance=args.variance, overwrite=args.overwrite)
         what = f"{method}, {spp} spp, {quality}"
     import onnx
 
@@ -348,6 +351,8 @@ def _denoise_and_export_parsers(sub: argparse._SubParsersAction) -> None:
                    "inputs and outputs (torchgi.temporal.DeployedTemporal)")
     p.add_argument("--sigma-position", type=float, default=None, help="À-Trous σ_x, scene units squared")
     p.add_argument("--no-emission", dest="emission", action="store_false", help="a graph without emission input")
+    p.add_argument("--variance", action="store_true", help="a graph with a variance input that backs off toward "
+                   "the input as the eager Denoiser given one (needs --spp 2 or more)")
     _out_flags(p, "the .onnx file")
     p.set_defaults(func=cmd_export)
 

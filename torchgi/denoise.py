@@ -153,7 +153,7 @@ class Denoiser(torch.nn.Module):
         return DENOISERS.build(config)
 
     def deploy(self, *, spp: float | None = None, sigma_position: float | None = None, emission: bool = True,
-               frame: GBuffer | None = None) -> DeployedDenoiser:
+               frame: GBuffer | None = None, variance: bool | None = None) -> DeployedDenoiser:
         """Fix this Denoiser's parameters for ``spp`` samples per pixel (and, for "atrous", σ_x in
         scene units squared, required unless given at construction) and return the exportable module.
 
@@ -165,6 +165,10 @@ class Denoiser(torch.nn.Module):
             frame: a representative :class:`GBuffer`: the choices the eager call makes from its
                 data are made on it and fixed - the sample count its noise corresponds to (the
                 radius or À-Trous levels follow) and, for "guided", the half or full resolution.
+            variance: the graph takes the render's ``variance`` and backs off toward the input as
+                the eager call given one does (:func:`torchgi.light.back_off`, for the sample count
+                ``frame.spp`` or ``spp``, at least 2). None: as the eager call would on ``frame``
+                (True where it has a variance from 2 samples or more), False without a frame.
 
         Example:
             >>> Denoiser("guided").deploy(spp=4)
@@ -172,17 +176,26 @@ class Denoiser(torch.nn.Module):
         """
         if frame is not None and spp is not None:
             raise ValueError("spp, frame: give one of them (frame fixes the sample count from its data)")
+        samples = spp  # the render's sample count (the back-off's), not the one its noise corresponds to
         if frame is not None:
             surface = light.surface_mask(frame.hit, frame.albedo)
             spp = self._spp(frame, surface)
+            samples = light.samples(frame.spp)
+            if isinstance(samples, torch.Tensor):
+                samples = float(samples.mean())  # a graph fixes one count (adaptive renders: their mean)
+        if variance is None:
+            variance = frame is not None and frame.variance is not None and samples is not None and samples >= 2
+        if variance and (samples is None or samples < 2):
+            raise ValueError(f"variance: the back-off needs 2 samples per pixel or more; got {samples} (spp or frame.spp)")
         spp = 1.0 if spp is None else float(spp)
         p = self.filter_params
+        extra = {"samples": float(samples)} if variance else {}
         if self.method == "blend":
-            return deployed("blend", {"spp": max(spp, 1.0)}, default_net(), emission)
+            return deployed("blend", {"spp": max(spp, 1.0), **extra}, default_net(), emission, variance)
         if self.method == "pyramid":
-            return deployed("pyramid", {"spp": max(spp, 1.0)}, pyramid_net(), emission)
+            return deployed("pyramid", {"spp": max(spp, 1.0), **extra}, pyramid_net(), emission, variance)
         if self.method == "guided":
-            params = {"radius": self._radius(spp, GUIDED.radius), "eps": p.get("eps", GUIDED.eps)}
+            params = {"radius": self._radius(spp, GUIDED.radius), "eps": p.get("eps", GUIDED.eps), **extra}
             subsample = p.get("subsample", 1)
             if frame is not None:
                 spec, _ = self._guide_spec(frame)
@@ -196,11 +209,11 @@ class Denoiser(torch.nn.Module):
             params = {
                 "iterations": self._iterations(spp),
                 "sigma_normal": p.get("sigma_normal", ATROUS.sigma_normal), "sigma_position": sigma_x,
-                "sigma_color": p.get("sigma_color", ATROUS.deployed_sigma_color),
+                "sigma_color": p.get("sigma_color", ATROUS.deployed_sigma_color), **extra,
             }
         else:
             raise ValueError(f"method: only {', '.join(EXPORTABLE)} deploy to ONNX, not {self.method!r}")
-        return deployed(self.method, params, None, emission)
+        return deployed(self.method, params, None, emission, variance)
 
     def extra_repr(self) -> str:
         params = "".join(f", {k}={v!r}" for k, v in self.filter_params.items())

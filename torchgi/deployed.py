@@ -44,10 +44,12 @@ class DeployedDenoiser(torch.nn.Module):
 
     ``forward(color, emission, albedo, normal, depth)`` for "pyramid", "blend" and "guided" and
     ``forward(color, emission, albedo, normal, position)`` for "atrous", all ``(B, C, H, W)``
-    (:attr:`input_names`; :class:`DeployedDenoiserWithoutEmission` takes none): the
-    Denoiser's pipeline (:mod:`torchgi.denoise`'s docstring) with the fixed parameters; surfaces are the pixels
-    of non-zero albedo; it takes no variance, so it does not back off toward the input
-    (:func:`torchgi.light.back_off`). With an emission input (zeros when no light source is in
+    (:attr:`input_names`; :class:`DeployedDenoiserWithoutEmission` takes no emission), and with
+    ``variance`` a last input ``variance (B, 1|3, H, W)`` (of the colour's mean, as
+    ``GBuffer.variance``): the Denoiser's pipeline (:mod:`torchgi.denoise`'s docstring) with the
+    fixed parameters, backed off toward the input as the eager call given a variance
+    (:func:`torchgi.light.back_off`, for the fixed sample count ``params["samples"]`` >= 2);
+    surfaces are the pixels of non-zero albedo. With an emission input (zeros when no light source is in
     view) the light sources are those pixels, as in the eager call given one; without it they
     are found from the colour, as in the eager call given none. A pixel
     that is NaN/Inf in any input is a hole (:func:`_fill_holes`): the output is finite
@@ -57,26 +59,37 @@ class DeployedDenoiser(torch.nn.Module):
 
     emission = True  # the graph's inputs include an emission layer
 
-    def __init__(self, method: str, params: dict[str, Any], net: torch.nn.Module | None = None) -> None:
+    def __init__(self, method: str, params: dict[str, Any], net: torch.nn.Module | None = None,
+                 variance: bool = False) -> None:
         super().__init__()
         check_option(method, "method", EXPORTABLE)
         if (net is None) != (method in ("guided", "atrous")):
             raise ValueError("net: the learned methods ('pyramid', 'blend') need their network, the others none")
-        self.method, self.params, self.net = method, dict(params), net
+        if variance and not float(params.get("samples", 0)) >= 2:
+            raise ValueError(f"variance: the back-off needs a sample count of 2 or more, got {params.get('samples')}")
+        self.method, self.params, self.net, self.variance = method, dict(params), net, variance
 
     @property
     def input_names(self) -> tuple[str, ...]:
         last = "position" if self.method == "atrous" else "depth"
-        return ("color",) + (("emission",) if self.emission else ()) + ("albedo", "normal", last)
+        return (("color",) + (("emission",) if self.emission else ()) + ("albedo", "normal", last)
+                + (("variance",) if self.variance else ()))
 
-    def forward(self, color: torch.Tensor, emission: torch.Tensor, albedo: torch.Tensor, normal: torch.Tensor,
-                geometry: torch.Tensor) -> torch.Tensor:
-        return self._run(*_fill_holes([color, emission, albedo, normal, geometry]))
+    def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
+        """The denoised ``(B, 3, H, W)`` colour from the :attr:`input_names`, in that order."""
+        if len(inputs) != len(self.input_names):
+            raise ValueError(f"inputs: expected {', '.join(self.input_names)}, got {len(inputs)} tensors")
+        named = dict(zip(self.input_names, _fill_holes(list(inputs)), strict=True))
+        geometry = named["position" if self.method == "atrous" else "depth"]
+        return self._run(named["color"], named.get("emission"), named["albedo"], named["normal"], geometry,
+                         named.get("variance"))
 
     def _run(self, color: torch.Tensor, emission: torch.Tensor | None, albedo: torch.Tensor, normal: torch.Tensor,
-             geometry: torch.Tensor) -> torch.Tensor:
-        """The pipeline on hole-filled inputs (``emission`` None: light sources from the colour)."""
+             geometry: torch.Tensor, variance: torch.Tensor | None = None) -> torch.Tensor:
+        """The pipeline on hole-filled inputs (``emission`` None: light sources from the colour;
+        ``variance`` None: no back-off)."""
         surface = light.surface_mask(None, albedo)
+        scene_level = light.level(color, emission, None, albedo, surface)
 
         def filter_fn(x: torch.Tensor) -> torch.Tensor:
             if self.method == "pyramid":
@@ -91,16 +104,20 @@ class DeployedDenoiser(torch.nn.Module):
                           sigma_normal=self.params["sigma_normal"], sigma_position=self.params["sigma_position"],
                           sigma_color=self.params["sigma_color"])
 
-        return light.restore(color, emission, None, albedo, surface, filter_fn, FIREFLY[self.method], box)
+        out = light.restore(color, emission, None, albedo, surface, filter_fn, FIREFLY[self.method], box, scene_level)
+        if variance is None:
+            return out
+        emit = light.emitting(color, emission, albedo, surface, scene_level)
+        return light.back_off(out, color, variance, float(self.params["samples"]), emit, box)
 
     def extra_repr(self) -> str:
         return f"method={self.method!r}, " + ", ".join(f"{k}={v!r}" for k, v in self.params.items()) + (
-            "" if self.emission else ", emission=False")
+            "" if self.emission else ", emission=False") + (", variance=True" if self.variance else "")
 
 
 class DeployedDenoiserWithoutEmission(DeployedDenoiser):
     """:class:`DeployedDenoiser` for renders without an emission layer: ``forward(color, albedo,
-    normal, depth | position)``; the light sources are found from the colour, as the eager
+    normal, depth | position[, variance])``; the light sources are found from the colour, as the eager
     Denoiser does without one. Built by :meth:`torchgi.Denoiser.deploy` with ``emission=False``.
 
     Example:
@@ -111,21 +128,18 @@ class DeployedDenoiserWithoutEmission(DeployedDenoiser):
 
     emission = False
 
-    def forward(self, color: torch.Tensor, albedo: torch.Tensor, normal: torch.Tensor,  # type: ignore[override]
-                geometry: torch.Tensor) -> torch.Tensor:
-        color, albedo, normal, geometry = _fill_holes([color, albedo, normal, geometry])
-        return self._run(color, None, albedo, normal, geometry)
 
-
-def deployed(method: str, params: dict[str, Any], net: torch.nn.Module | None, emission: bool) -> DeployedDenoiser:
+def deployed(method: str, params: dict[str, Any], net: torch.nn.Module | None, emission: bool,
+             variance: bool = False) -> DeployedDenoiser:
     """The exportable module :meth:`torchgi.Denoiser.deploy` returns for ``method`` (one of
     :data:`EXPORTABLE`) with its fixed ``params`` and network: :class:`DeployedDenoiser`, or
-    :class:`DeployedDenoiserWithoutEmission` when ``emission`` is False.
+    :class:`DeployedDenoiserWithoutEmission` when ``emission`` is False; with ``variance`` a
+    variance input and the back-off (``params["samples"]``: the render's sample count, >= 2).
 
     Example:
         >>> deployed("guided", {"radius": 2, "eps": 1e-4}, None, emission=False)
         DeployedDenoiserWithoutEmission(method='guided', radius=2, eps=0.0001, emission=False)
     """
     if emission:
-        return DeployedDenoiser(method, params, net)
-    return DeployedDenoiserWithoutEmission(method, params, net)
+        return DeployedDenoiser(method, params, net, variance)
+    return DeployedDenoiserWithoutEmission(method, params, net, variance)

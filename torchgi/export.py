@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import inspect
 import os
 import tempfile
 from collections.abc import Sequence
@@ -72,12 +73,15 @@ def export_onnx(
             f"example_inputs: use distinct sizes for B, H and W (got B={sizes['B']}, H={sizes['H']}, "
             f"W={sizes['W']}) so none of them is tied to another in the exported graph"
         )
+    shapes = tuple(dynamic)
+    if any(p.kind is p.VAR_POSITIONAL for p in inspect.signature(module.forward).parameters.values()):
+        shapes = (shapes,)  # forward(*inputs): the exporter sees one argument, a tuple
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     os.close(fd)
     try:
         torch.onnx.export(
             module.eval(), tuple(example_inputs), tmp, input_names=list(input_names),
-            output_names=list(output_names), dynamic_shapes=tuple(dynamic), opset_version=opset, dynamo=True,
+            output_names=list(output_names), dynamic_shapes=shapes, opset_version=opset, dynamo=True,
             optimize=optimize, verbose=False,
         )
         os.replace(tmp, path)
@@ -119,6 +123,7 @@ def export_denoiser(
     sigma_position: float | None = None,
     emission: bool = True,
     frame: Any = None,
+    variance: bool | None = None,
     overwrite: bool = False,
     **filter_params: Any,
 ) -> Path:
@@ -128,8 +133,10 @@ def export_denoiser(
     The graph takes ``color``, ``emission`` (not with ``emission=False``: the light sources are
     then found from the colour, as the eager Denoiser does without an emission layer),
     ``albedo``, ``normal`` and ``depth`` (or ``position`` for À-Trous, with ``sigma_position``
-    in scene units squared), all ``(B, C, H, W)`` float32 with dynamic B/H/W, and returns the
-    denoised ``(B, 3, H, W)`` colour.
+    in scene units squared) and, with ``variance`` (:meth:`torchgi.Denoiser.deploy`: by default
+    where ``frame`` has a variance from 2 samples or more), ``variance`` (3 channels, or the
+    frame's count), all ``(B, C, H, W)`` float32 with dynamic B/H/W, and returns the denoised
+    ``(B, 3, H, W)`` colour.
 
     Example:
         >>> p = export_denoiser("guided", os.path.join(tempfile.mkdtemp(), "d.onnx"))
@@ -139,10 +146,11 @@ def export_denoiser(
     from torchgi.denoise import Denoiser
 
     module = Denoiser(method, quality, **filter_params).deploy(spp=spp, sigma_position=sigma_position,
-                                                               emission=emission, frame=frame)
+                                                               emission=emission, frame=frame, variance=variance)
     g = torch.Generator().manual_seed(0)
     B, H, W = 2, 24, 32
-    examples = [torch.rand(B, 3 if name != "depth" else 1, H, W, generator=g) for name in module.input_names]
+    channels = {"depth": 1, "variance": 3 if getattr(frame, "variance", None) is None else frame.variance.shape[1]}
+    examples = [torch.rand(B, channels.get(name, 3), H, W, generator=g) for name in module.input_names]
     return export_onnx(module, examples, path, input_names=list(module.input_names), overwrite=overwrite,
                        optimize=method != "atrous")
 
@@ -177,7 +185,7 @@ class OrtDenoiser:
     """An exported Denoiser in onnxruntime, called like :class:`torchgi.Denoiser`: with a
     GBuffer or with named tensors: those of :attr:`input_names` (an emission layer the graph
     was exported with must be given, one it was exported without is refused; nothing is
-    made up)."""
+    made up; a variance is used only by a graph exported with one, ``variance=True``)."""
 
     def __init__(self, path: str | os.PathLike, providers: Sequence[str] | None = None) -> None:
         self.session = OrtSession(path, providers)
