@@ -9,7 +9,8 @@ that it backs off toward the input as the eager call does) and with or without a
 run in onnxruntime on the render (without its emission layer for the second) and beside it,
 alternating, the eager default on the same inputs (the render with its variance). Each row:
 relMSE against the reference, the median ms of
-``--rounds`` alternating calls (``bench_pipeline.timed``: each round starts one method later), and
+``--rounds`` alternating calls (``bench_pipeline.timed``: each round starts one method later; each
+timed call follows an untimed call of the same method, as when one library runs alone), and
 onnxruntime's largest difference from the eager call over the eager
 output's largest value. Writes ``onnx.csv``, ``onnx.json``, ``onnx.md``. torch on 2 threads,
 onnxruntime with its default (one per core: 2 on the project's benchmark machine).
@@ -53,7 +54,7 @@ def run(args) -> list[dict]:
                     fns = {"eager": lambda d=d, g=same: d(g), "onnxruntime": lambda o=ort, g=same: o(g)}
                     outs = {k: f() for k, f in fns.items()}
                     eager = outs["eager"]
-                    for method, ms in timed(fns, args.rounds, "cpu").items():
+                    for method, ms in timed(fns, args.rounds, "cpu", settle=1).items():
                         out = outs[method]
                         rows.append({"scene": Path(name).name, "size": size, "spp": spp,
                                      "emission layer": emission, "method": method,

@@ -86,10 +86,12 @@ def methods(inputs: dict[str, torch.Tensor], device: str) -> dict:
     return fns
 
 
-def timed(fns: dict, rounds: int, device: str) -> dict[str, float]:
+def timed(fns: dict, rounds: int, device: str, settle: int = 0) -> dict[str, float]:
     """Median ms of each callable over ``rounds`` alternating rounds (after one warm-up call);
     each round starts one method later, so that every method follows every other equally often
-    (OIDN's worker threads keep spinning for a while after its call)."""
+    (OIDN's worker threads keep spinning for a while after its call). ``settle``: untimed calls
+    of a method just before its timed one, so that it is timed after itself, not after another
+    library whose threads still spin (onnxruntime's slow the next torch call down)."""
     sync = torch.cuda.synchronize if device == "cuda" else (lambda: None)
     times: dict[str, list[float]] = {k: [] for k in fns}
     for fn in fns.values():
@@ -98,6 +100,8 @@ def timed(fns: dict, rounds: int, device: str) -> dict[str, float]:
     for i in range(rounds):
         for name in names[i % len(names):] + names[: i % len(names)]:
             fn = fns[name]
+            for _ in range(settle):
+                fn()
             sync()
             t = time.perf_counter()
             fn()
