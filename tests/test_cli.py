@@ -194,6 +194,9 @@ def test_temporal_denoise_command_gives_the_python_call_bit_for_bit_and_resumes(
     assert "not a frame this command wrote" in capsys.readouterr().err
     assert (stranger / "seq_0001.exr").read_bytes() == (frames / "seq_0001.exr").read_bytes()
     assert main(args + ["--method", "guided"]) == 2 and "--method" in capsys.readouterr().err
+    other = _sequence_files(tmp_path / "other", 2)  # the same file names, other frames
+    assert main(["denoise", "--temporal", str(other), "--out", str(out), "--no-progress"]) == 2
+    assert "was denoised from" in capsys.readouterr().err
     assert main(["denoise", "--temporal", str(frames), "--out", str(frames)]) == 2
     assert "would replace it" in capsys.readouterr().err
 

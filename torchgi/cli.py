@@ -183,21 +183,25 @@ def _denoise_sequence(args: argparse.Namespace) -> int:
         raise ValueError(f"--out: the output of {clash} would replace it; choose another folder")
     settings = {"command": "torchgi denoise --temporal", "torchgi": torchgi.__version__, "sanitize": args.sanitize,
                 "motion_convention": args.motion_convention or "from each file's motion layer name"}
-    summary_path, written = folder / SUMMARY, set()
+    summary_path, written = folder / SUMMARY, {}
     if summary_path.exists() and not args.overwrite:
         try:
             earlier = json.loads(summary_path.read_text())
-            written = {r["output"] for r in earlier["frames"]}
+            written = {Path(r["output"]).name: r["input"] for r in earlier["frames"]}  # output name -> its input
         except (ValueError, KeyError, TypeError) as exc:
             raise ValueError(f"--out: {summary_path} is not a summary this command wrote; pass --overwrite or "
                              "choose another folder") from exc
         if earlier["settings"] != settings:
             raise ValueError(f"--out: {folder} holds frames denoised with other settings ({earlier['settings']}); "
                              "pass --overwrite or choose another folder")
-    foreign = next((o for o in outs if o.exists() and str(o) not in written), None)
-    if foreign is not None and not args.overwrite:
-        raise FileExistsError(f"--out: {foreign} exists and is not a frame this command wrote there; pass "
-                              "--overwrite or choose another folder")
+    for path, out_path in zip(paths, outs):
+        if out_path.exists() and not args.overwrite:
+            if out_path.name not in written:
+                raise FileExistsError(f"--out: {out_path} exists and is not a frame this command wrote there; "
+                                      "pass --overwrite or choose another folder")
+            if written[out_path.name] != str(path.resolve()):
+                raise ValueError(f"--out: {out_path} was denoised from {written[out_path.name]}, not {path}; pass "
+                                 "--overwrite or choose another folder")
     folder.mkdir(parents=True, exist_ok=True)
     den, rows = TemporalDenoiser(sanitize=args.sanitize), []
     with tqdm(total=len(paths), disable=not args.progress, unit="frame", desc="denoise") as bar:
@@ -210,7 +214,7 @@ def _denoise_sequence(args: argparse.Namespace) -> int:
             kept = out_path.exists() and not args.overwrite
             if not kept:
                 write_exr(out_path, {"color": out[0]}, overwrite=args.overwrite)
-            rows.append({"input": str(path), "output": str(out_path), "ms": round(ms, 3), "kept": kept})
+            rows.append({"input": str(path.resolve()), "output": str(out_path), "ms": round(ms, 3), "kept": kept})
             _write_json(summary_path, {"settings": settings, "frames": rows})
             bar.update()
     kept = sum(r["kept"] for r in rows)
