@@ -15,7 +15,8 @@ from frame ``--warmup`` on: mean relMSE, tRMAE and tPSNR (:func:`torchgi.metrics
 Time per frame (median over the frames after the first, 2 threads, this process) is measured on
 the same sequences re-rendered at ``--time-size``² (1 spp, no reference). Writes
 ``temporal.csv/json/md``, ``temporal_frames.csv``, ``temporal_<sequence>.png`` (error over
-frames) and ``temporal_<sequence>.gif`` (noisy | Denoiser | OIDN | OIDN (em.) | TemporalDenoiser | reference).
+frames) and ``temporal_<sequence>.gif`` (noisy | Denoiser | OIDN | OIDN (em.) | TemporalDenoiser |
+TemporalDenoiser with the learned pyramid as its spatial filter | reference).
 """
 
 from __future__ import annotations
@@ -82,6 +83,7 @@ def methods() -> dict:
     except ImportError:
         print("pyoidn not installed: no OIDN rows", file=sys.stderr)
     out["TemporalDenoiser"] = lambda: TemporalDenoiser()
+    out["TemporalDenoiser(spatial='pyramid')"] = lambda: TemporalDenoiser(spatial="pyramid")
     return out
 
 
@@ -95,7 +97,7 @@ def run_sequence(noisy: list, fns: dict) -> dict:
             t0 = time.perf_counter()
             frames_out.append(fn(gb))
             times.append((time.perf_counter() - t0) * 1e3)
-            if getattr(fn, "state", None) is not None:
+            if name == "TemporalDenoiser":  # the default's new pixels (every temporal method shares them)
                 new.append((fn.state.length == 1) & gb.hit)
         outs[name], ms[name] = torch.stack(frames_out), statistics.median(times[1:] or times)
     return {"outputs": outs, "ms": ms, "new": new}
@@ -149,8 +151,8 @@ def plot(name: str, per_frame: list[dict], out: Path) -> None:
 
 
 def animation(name: str, outs: dict, refs: torch.Tensor, out: Path) -> None:
-    """Every method (noisy, Denoiser, OIDN, TemporalDenoiser) and the reference side by side, tone
-    mapped, as a looping GIF."""
+    """Every method (noisy, Denoiser, OIDN, the TemporalDenoisers) and the reference side by side,
+    tone mapped, as a looping GIF."""
     import imageio.v3 as iio
 
     panels = [outs[m] for m in outs] + [refs]

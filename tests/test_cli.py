@@ -193,7 +193,14 @@ def test_temporal_denoise_command_gives_the_python_call_bit_for_bit_and_resumes(
     assert main(args[:4] + [str(stranger), "--no-progress"]) == 2
     assert "not a frame this command wrote" in capsys.readouterr().err
     assert (stranger / "seq_0001.exr").read_bytes() == (frames / "seq_0001.exr").read_bytes()
-    assert main(args + ["--method", "guided"]) == 2 and "--method" in capsys.readouterr().err
+    assert main(args + ["--method", "atrous"]) == 2 and "--method" in capsys.readouterr().err
+    assert main(args + ["--radius", "2"]) == 2 and "--radius" in capsys.readouterr().err
+    learned = tmp_path / "den_pyramid"  # the learned spatial filter, bit for bit too
+    assert main(args[:4] + [str(learned), "--no-progress", "--method", "pyramid"]) == 0
+    den = torchgi.TemporalDenoiser(spatial="pyramid")
+    for k in range(4):
+        want = den(torchgi.GBuffer.from_exr(frames / f"seq_{k:04d}.exr"))
+        assert torch.equal(read_aovs(learned / f"seq_{k:04d}.exr")["color"][None], want), k
     other = _sequence_files(tmp_path / "other", 2)  # the same file names, other frames
     assert main(["denoise", "--temporal", str(other), "--out", str(out), "--no-progress"]) == 2
     assert "was denoised from" in capsys.readouterr().err

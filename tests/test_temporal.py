@@ -344,6 +344,31 @@ def test_the_denoisers_take_the_same_inputs():
             den(**{**needed[0], "normals": gbs[0].normal})
 
 
+def test_a_learned_spatial_filter_is_told_the_frames_it_averages(monkeypatch):
+    """``TemporalDenoiser(spatial="pyramid")``: the learned Denoiser filters the accumulated light
+    and is given ``spp`` = the frames' samples x the frames each pixel averages: on a still camera
+    (every pixel kept) 1, 2, 3 frames in, at 2 spp per frame 2, 4, 6 (by hand: the running mean of
+    the first 1 / alpha frames); ``spatial`` outside guided, pyramid, blend is refused, named."""
+    from torchgi.render import render_sequence
+
+    scene = scenes.cornell(16)
+    seen = []
+    real = denoise.Denoiser._denoise
+
+    def spy(self, gb):
+        if self.method == "pyramid":
+            seen.append(gb.spp[gb.hit].unique().tolist())
+        return real(self, gb)
+
+    monkeypatch.setattr(denoise.Denoiser, "_denoise", spy)
+    den = TemporalDenoiser(spatial="pyramid")
+    for gb in render_sequence(scene, 3, spp=2, seed=5):
+        assert bool(den(gb).isfinite().all())
+    assert seen == [[2], [4], [6]]
+    with pytest.raises(ValueError, match="spatial"):
+        TemporalDenoiser(spatial="atrous")
+
+
 def test_same_result_on_every_device(device):
     gbs = _sequence(20, 3)
     den, ref_den = TemporalDenoiser(), TemporalDenoiser()

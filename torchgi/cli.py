@@ -167,12 +167,15 @@ def _denoise_sequence(args: argparse.Namespace) -> int:
 
     from torchgi.io import write_exr
     from torchgi.io.sequence import frame_paths
-    from torchgi.temporal import TemporalDenoiser
+    from torchgi.temporal import SPATIAL, TemporalDenoiser
 
-    for flag, value in (("--method", args.method), ("--quality", args.quality), ("--radius", args.radius),
-                        ("--max-memory-mb", args.max_memory_mb)):
+    for flag, value in (("--quality", args.quality), ("--radius", args.radius), ("--max-memory-mb", args.max_memory_mb)):
         if value is not None:
-            raise ValueError(f"{flag}: not with --temporal (the TemporalDenoiser's spatial filter is fixed)")
+            raise ValueError(f"{flag}: not with --temporal (the TemporalDenoiser's parameters are fixed)")
+    spatial = args.method or "guided"
+    if spatial not in SPATIAL:
+        raise ValueError(f"--method: the TemporalDenoiser's spatial filter is one of {', '.join(SPATIAL)}, "
+                         f"not {spatial!r}")
     paths = frame_paths(args.input)
     folder = Path(args.out)
     if folder.exists() and not folder.is_dir():
@@ -181,7 +184,8 @@ def _denoise_sequence(args: argparse.Namespace) -> int:
     clash = next((p for p, o in zip(paths, outs) if p.resolve() == o.resolve()), None)
     if clash is not None:
         raise ValueError(f"--out: the output of {clash} would replace it; choose another folder")
-    settings = {"command": "torchgi denoise --temporal", "torchgi": torchgi.__version__, "sanitize": args.sanitize,
+    settings = {"command": "torchgi denoise --temporal", "torchgi": torchgi.__version__, "spatial": spatial,
+                "sanitize": args.sanitize,
                 "motion_convention": args.motion_convention or "from each file's motion layer name"}
     summary_path, written = folder / SUMMARY, {}
     if summary_path.exists() and not args.overwrite:
@@ -203,7 +207,7 @@ def _denoise_sequence(args: argparse.Namespace) -> int:
                 raise ValueError(f"--out: {out_path} was denoised from {written[out_path.name]}, not {path}; pass "
                                  "--overwrite or choose another folder")
     folder.mkdir(parents=True, exist_ok=True)
-    den, rows = TemporalDenoiser(sanitize=args.sanitize), []
+    den, rows = TemporalDenoiser(spatial=spatial, sanitize=args.sanitize), []
     with tqdm(total=len(paths), disable=not args.progress, unit="frame", desc="denoise") as bar:
         for path, out_path in zip(paths, outs):
             gb = torchgi.GBuffer.from_exr(path, required=("color", "albedo", "normal", "depth", "motion"),
@@ -333,7 +337,8 @@ def _denoise_and_export_parsers(sub: argparse._SubParsersAction) -> None:
                        "emission when present)")
     p.add_argument("input", nargs="+", help="multi-layer EXR: torchgi, Blender/Cycles, Mitsuba 3 or Arnold layer "
                    "names; with --temporal the frames: a folder, a glob, name_####.exr, or the files in order")
-    p.add_argument("--method", choices=list(METHODS), default=None, help="Denoiser method (default guided)")
+    p.add_argument("--method", choices=list(METHODS), default=None, help="Denoiser method (default guided); with "
+                   "--temporal the spatial filter of the accumulated light: guided, pyramid or blend")
     p.add_argument("--quality", choices=["fast", "balanced", "high"], default=None, help="(default balanced)")
     p.add_argument("--radius", type=_positive_int, default=None, help="filter radius (default: from spp)")
     _out_flags(p, "output EXR (layer 'color'); with --temporal a folder (one EXR per frame, summary.json)")

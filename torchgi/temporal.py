@@ -40,13 +40,15 @@ import torch
 
 from torchgi import backends, light
 from torchgi.buffers import GBuffer
-from torchgi.core.check import finite_or_sanitized_all, is_recording
+from torchgi.core.check import check_option, finite_or_sanitized_all, is_recording
 from torchgi.core.errors import ShapeError
 from torchgi.denoise import Denoiser
 from torchgi.filters import box
 from torchgi.settings import GUIDED, PIPELINE, TEMPORAL
 
-__all__ = ["DeployedTemporal", "TemporalDenoiser", "TemporalState", "temporal_step"]
+__all__ = ["SPATIAL", "DeployedTemporal", "TemporalDenoiser", "TemporalState", "temporal_step"]
+
+SPATIAL = ("guided", "pyramid", "blend")  # the TemporalDenoiser's spatial filters
 
 
 @dataclasses.dataclass
@@ -116,6 +118,7 @@ def temporal_step(
     color: torch.Tensor, albedo: torch.Tensor, normal: torch.Tensor, depth: torch.Tensor, motion: torch.Tensor,
     state: TemporalState | None = None, *, emission: torch.Tensor | None = None, hit: torch.Tensor | None = None,
     spatial: Spatial | None = None, fresh: Spatial | None = None, fresh_share: float = 0.0,
+    spatial_spp: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, TemporalState]:
     """One frame of temporal denoising (module docstring), stateless: ``(output, next_state)``.
 
@@ -131,6 +134,9 @@ def temporal_step(
             normal, depth, hit``; None = ``Denoiser("guided", radius=TEMPORAL.radius, eps=TEMPORAL.eps,
             subsample=1)``.
         fresh: the filter where the history is short (called the same way), or None: none.
+        spatial_spp: ``(B,1,H,W)`` int samples per pixel of one frame; given, ``spatial`` is also
+            called with ``spp``: this times the frames the accumulated light averages per pixel
+            (what a learned spatial filter reads as its noise level). None: not passed.
         fresh_share: use ``fresh`` only when at least this share of the pixels is new (0: always).
             :class:`TemporalDenoiser` passes the per-frame Denoiser with share 0 below
             ``GUIDED.subsample_from`` px on the short side (where that filters at full resolution)
@@ -166,7 +172,10 @@ def temporal_step(
     var = torch.where(length >= t.variance_history, temporal_var, (m[:, 1:2] - m[:, :1].square()).clamp_min(0))
     inputs = {"color": acc * demod + emission, "emission": emission, "albedo": albedo, "normal": normal,
               "depth": depth, "hit": hit}
-    out = spatial(**inputs)
+    if spatial_spp is None:
+        out = spatial(**inputs)
+    else:
+        out = spatial(**inputs, spp=(spatial_spp * frames).round().clamp_min(1).to(torch.int64))
     if fresh is not None:
         out = _blend_fresh(out, length, inputs, fresh, fresh_share)
     # the output history (demodulated), within sqrt(clamp x the accumulated light's noise variance) of this frame's
@@ -203,6 +212,10 @@ class TemporalDenoiser(torch.nn.Module):
     consistency tests, pixel by pixel). A change of shape, dtype or device starts a new history.
 
     Args:
+        spatial: the filter of the accumulated light: ``"guided"`` (radius ``TEMPORAL.radius``, ε
+            ``TEMPORAL.eps``) or a learned Denoiser method, ``"pyramid"`` or ``"blend"``, told the
+            frames' samples times the frames each pixel's accumulated light averages
+            (docs/temporal.md: slower, more accurate on the tuning sequence).
         sanitize: NaN/Inf in ``color`` or ``emission`` raises :class:`~torchgi.core.NonFiniteError`
             naming it (False) or is replaced by 0 with a warning (True); the guides must be finite.
 
@@ -214,13 +227,15 @@ class TemporalDenoiser(torch.nn.Module):
         torch.Size([1, 3, 16, 16])
     """
 
-    def __init__(self, *, sanitize: bool = False) -> None:
+    def __init__(self, *, spatial: str = "guided", sanitize: bool = False) -> None:
 
         super().__init__()
-        self.sanitize = sanitize
+        check_option(spatial, "spatial", SPATIAL)
+        self.sanitize, self.spatial_method = sanitize, spatial
         self.state: TemporalState | None = None
         # kept between calls (its buffers); called on inputs checked once per frame
-        self.spatial = Denoiser("guided", radius=TEMPORAL.radius, eps=TEMPORAL.eps, subsample=1)
+        self.spatial = (Denoiser("guided", radius=TEMPORAL.radius, eps=TEMPORAL.eps, subsample=1)
+                        if spatial == "guided" else Denoiser(spatial))
         self.fresh = Denoiser("guided")
 
     def reset(self) -> None:
@@ -228,7 +243,7 @@ class TemporalDenoiser(torch.nn.Module):
         self.state = None
 
     def extra_repr(self) -> str:
-        return f"sanitize={self.sanitize}"
+        return f"spatial={self.spatial_method!r}, sanitize={self.sanitize}"
 
     def forward(self, gb: GBuffer | None = None, **tensors: torch.Tensor) -> torch.Tensor:
         gb = _check_inputs(GBuffer.from_inputs(gb, tensors, by="TemporalDenoiser"))
@@ -238,9 +253,12 @@ class TemporalDenoiser(torch.nn.Module):
                               or s.light.device != color.device):
             s = None
         share = 0.0 if min(color.shape[-2:]) < GUIDED.subsample_from else TEMPORAL.fresh_share
+        spp = None
+        if self.spatial_method != "guided":
+            spp = gb.spp if gb.spp is not None else torch.ones_like(gb.depth, dtype=torch.int64)
         out, self.state = temporal_step(color, gb.albedo, gb.normal, gb.depth, gb.motion, s, emission=emission,
                                         hit=gb.hit, spatial=_checked(self.spatial), fresh=_checked(self.fresh),
-                                        fresh_share=share)
+                                        fresh_share=share, spatial_spp=spp)
         return out
 
 
