@@ -134,15 +134,15 @@ def temporal_step(
             normal, depth, hit``; None = ``Denoiser("guided", radius=TEMPORAL.radius, eps=TEMPORAL.eps,
             subsample=1)``.
         fresh: the filter where the history is short (called the same way), or None: none.
-        spatial_spp: ``(B,1,H,W)`` int samples per pixel of one frame; given, ``spatial`` is also
-            called with ``spp``: this times the frames the accumulated light averages per pixel
-            (what a learned spatial filter reads as its noise level). None: not passed.
         fresh_share: use ``fresh`` only when at least this share of the pixels is new (0: always).
             :class:`TemporalDenoiser` passes the per-frame Denoiser with share 0 below
             ``GUIDED.subsample_from`` px on the short side (where that filters at full resolution)
             and ``TEMPORAL.fresh_share`` above it (a first frame, a cut: above 256 px the
             accumulated light's own filter measured better on new pixels amid old ones,
             docs/temporal.md).
+        spatial_spp: ``(B,1,H,W)`` int samples per pixel of one frame; given, ``spatial`` is also
+            called with ``spp``: this times the frames the accumulated light averages per pixel
+            (what a learned spatial filter reads as its noise level). None: not passed.
 
     Returns:
         The ``(B,3,H,W)`` denoised radiance (input dtype and device) and the state for the next frame.
