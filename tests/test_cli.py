@@ -147,7 +147,7 @@ def test_denoise_command_on_a_mitsuba_render(tmp_path, capsys):
 
 
 def _sequence_files(folder, frames: int = 4):
-    """A rendered camera sequence (the judged-free tuning Cornell slide, 24x20, 1 spp) as torchgi EXR files."""
+    """A rendered camera sequence (test_temporal's sliding Cornell box, 24x20, 1 spp) as torchgi EXR files."""
     import torchgi
     from tests.test_temporal import sliding_cornell
 

@@ -180,9 +180,7 @@ class Denoiser(torch.nn.Module):
         if frame is not None:
             surface = light.surface_mask(frame.hit, frame.albedo)
             spp = self._spp(frame, surface)
-            samples = light.samples(frame.spp)
-            if isinstance(samples, torch.Tensor):
-                samples = float(samples.mean())  # a graph fixes one count (adaptive renders: their mean)
+            samples = None if frame.spp is None else _mean_spp(frame.spp)  # one count (adaptive renders: their mean)
         if variance is None:
             variance = frame is not None and frame.variance is not None and samples is not None and samples >= 2
         if variance and (samples is None or samples < 2):

@@ -95,4 +95,4 @@ def from_torchgi_motion(motion: torch.Tensor, convention: str) -> torch.Tensor:
         >>> from_torchgi_motion(torch.tensor([[[1.0]], [[2.0]]]), "arnold").flatten().tolist()
         [-1.0, 2.0]
     """
-    return motion * _signs(motion, convention)
+    return to_torchgi_motion(motion, convention)
