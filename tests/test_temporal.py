@@ -42,12 +42,14 @@ def first_hits(scene, camera, xs: torch.Tensor, ys: torch.Tensor) -> torch.Tenso
 
 # ------------------------------------------------------------------------------ camera paths
 def test_camera_path_interpolates_keyframes_and_holds_outside():
-    cam = scenes.cornell(8).camera
+    scene = scenes.cornell(8)
+    cam = scene.camera
     path = CameraPath((1.0, 3.0), ((0, 0, -5), (4, 2, -5)), ((0, 0, 0), (0, 2, 0)), (40.0, 60.0))
     mid = path.at(cam, 1.5)  # a quarter of the way
     assert mid.position == (1.0, 0.5, -5.0) and mid.look_at == (0.0, 0.5, 0.0) and mid.fov == 45.0
     assert path.at(cam, 0.0).position == (0.0, 0.0, -5.0) and path.at(cam, 9.0).position == (4.0, 2.0, -5.0)
-    assert path.times_of(3) == [1.0, 2.0, 3.0] and path.times_of(1) == [1.0]
+    scene.path = path
+    assert scene.times_of(3) == [1.0, 2.0, 3.0] and scene.times_of(1) == [1.0]
     with pytest.raises(ConfigError, match="increase"):
         CameraPath((0.0, 0.0), ((0, 0, 1),) * 2, ((0, 0, 0),) * 2, (40.0, 40.0))
 

@@ -388,7 +388,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--resolution", type=_positive_int, nargs=2, metavar=("W", "H"), help="override the camera's")
     p.add_argument("--workers", type=_positive_int, default=None, help="tracer threads or processes (default: all)")
-    p.add_argument("--frames", type=_positive_int, help="N frames of camera.path: <out>_<frame:04d>.exr, motion layer")
+    p.add_argument("--frames", type=_positive_int, help="N frames of the camera's and meshes' paths: <out>_<frame:04d>.exr, motion layer")
     _out_flags(p, "output EXR")
     p.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
     p.set_defaults(func=cmd_render)

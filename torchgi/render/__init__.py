@@ -14,7 +14,7 @@ from typing import Any
 
 from torchgi.render import scenes
 from torchgi.render.engine import render, render_guide_rays, render_guides, render_sequence
-from torchgi.render.scene import Camera, CameraPath, Material, Mesh, PointLight, Scene, Sky
+from torchgi.render.scene import Camera, CameraPath, Material, Mesh, ObjectPath, PointLight, Scene, Sky
 from torchgi.render.scene_files import load_scene, mesh_root
 
 __all__ = [
@@ -22,6 +22,7 @@ __all__ = [
     "CameraPath",
     "Material",
     "Mesh",
+    "ObjectPath",
     "PointLight",
     "Scene",
     "Sky",

@@ -85,9 +85,10 @@ def _project(camera: Camera, d: torch.Tensor) -> tuple[torch.Tensor, torch.Tenso
 
 
 def motion_vectors(camera: Camera, previous: Camera | None, position: torch.Tensor, hit: torch.Tensor) -> torch.Tensor:
-    """Backward screen-space motion ``(B, 2, H, W)`` in pixels (x right, y down) for a still scene.
+    """Backward screen-space motion ``(B, 2, H, W)`` in pixels (x right, y down).
 
-    The first-hit point seen at pixel centre ``(x+0.5, y+0.5)`` of ``camera`` projects into
+    The first-hit point seen at pixel centre ``(x+0.5, y+0.5)`` of ``camera``, at its position
+    ``position`` in the previous frame (the hit itself for still geometry), projects into
     ``previous`` at ``(x+0.5+m_x, y+0.5+m_y)``; where the centre ray hit nothing, the ray's
     direction is projected (the camera's rotation alone). A point behind the previous camera
     gets a motion that leaves the image by its width and height (history cannot hold it).
@@ -95,7 +96,9 @@ def motion_vectors(camera: Camera, previous: Camera | None, position: torch.Tens
 
     Args:
         camera, previous: this frame's and the previous frame's camera (same resolution).
-        position: ``(B, 3, H, W)`` world-space first-hit positions of this frame.
+        position: ``(B, 3, H, W)`` world-space first-hit points of this frame where they were at
+            the previous frame's time (``torchgi.render.engine.render_sequence`` carries moving
+            meshes' points back).
         hit: ``(B, 1, H, W)`` bool, where the centre ray hit geometry.
 
     Returns:

@@ -31,7 +31,7 @@ from torchgi import backends
 from torchgi.buffers import GBuffer
 from torchgi.core.check import check_int, check_option
 from torchgi.core.errors import DeviceError, DTypeError, RangeError, ShapeError
-from torchgi.render.camera import motion_vectors
+from torchgi.render.camera import camera_rays, motion_vectors
 from torchgi.render.film import BLOCK
 from torchgi.render.integrators.common import CAMERA_DIMS, SKIPS, guides
 from torchgi.render.sampler import sample_keys, uniform
@@ -420,11 +420,13 @@ def render_sequence(
     seed: int = 0,
     **render_args: Any,
 ) -> Iterator[GBuffer]:
-    """Render the frames of a camera animation (``scene.path``, YAML ``camera.path``), one by one.
+    """Render the frames of an animation (the camera's ``scene.path``, YAML ``camera.path``, and
+    the meshes' ``path``), one by one.
 
-    Frame ``k`` is at time ``t0 + k (t1 - t0) / (frames - 1)`` of the path's keyframes, rendered by
-    :func:`render` with seed ``frame_seed(seed, k)``; the scene's BVH is built once. A scene
-    without a path gives ``frames`` renders of its still camera (noise differs, motion is 0).
+    Frame ``k`` is at time ``t0 + k (t1 - t0) / (frames - 1)`` over every path's keyframes
+    (:meth:`Scene.times_of`), rendered by :func:`render` with seed ``frame_seed(seed, k)``; the
+    BVH of still geometry is built once, that of moving meshes once per frame. A still scene
+    gives ``frames`` renders of its still camera (noise differs, motion is 0).
 
     Args:
         scene: a :class:`Scene`, a YAML path or a built-in name.
@@ -434,7 +436,9 @@ def render_sequence(
     Yields:
         One GBuffer per frame, :func:`render`'s fields plus ``motion (B,2,H,W)``: the backward
         screen-space motion in pixels (:func:`torchgi.render.camera.motion_vectors`; 0 in the
-        first frame).
+        first frame). On a moving mesh, the pixel-centre hit is carried back through the mesh's
+        motion to where that point of the mesh was in the previous frame, then projected by the
+        previous camera.
 
     Example:
         >>> from torchgi.render import scenes
@@ -445,13 +449,35 @@ def render_sequence(
         scene = load_scene(scene)
     check_int(frames, "frames", 1)
     _check_seed(seed)
-    times = scene.path.times_of(frames) if scene.path is not None else [0.0] * frames
-    previous = None
+    times = scene.times_of(frames)
+    previous: Scene | None = None
     for k, time in enumerate(times):
         frame = scene.at(time)
         gb = render(frame, spp, bounces, frame_seed(seed, k), **render_args)
-        yield gb.replace(motion=motion_vectors(frame.camera, previous, gb.position, gb.hit))
-        previous = frame.camera
+        points = gb.position
+        if previous is not None and scene.moving:
+            points = _carried_back(frame, previous.time, gb.position, gb.hit)
+        yield gb.replace(motion=motion_vectors(frame.camera, None if previous is None else previous.camera, points,
+                                               gb.hit))
+        previous = frame
+
+
+def _carried_back(frame: Scene, before: float | None, position: torch.Tensor, hit: torch.Tensor) -> torch.Tensor:
+    """The first-hit points ``position (B, 3, H, W)`` of ``frame`` (a scene at its :attr:`Scene.time`)
+    where they were at time ``before``: a point on a moving mesh through ``M(before) M(now)^-1``
+    of its path, other points unchanged. The mesh of each pixel is that of its centre ray's hit."""
+    width, height = frame.camera.resolution
+    arrays = frame.arrays()
+    origin, direction = camera_rays(frame.camera, torch.arange(width * height), None)
+    _, prim = _context(arrays, frame.camera, 0, 0).accel.intersect(origin, direction)
+    owner = torch.where(prim >= 0, torch.from_numpy(arrays.mesh)[prim.clamp(min=0)], -1).reshape(1, 1, height, width)
+    out = position.double()
+    for i in frame.moving:
+        mesh = frame.meshes[i]
+        m = torch.from_numpy(mesh.matrix(before) @ np.linalg.inv(mesh.matrix(frame.time)))
+        moved = torch.einsum("ij,bjhw->bihw", m[:3, :3], out) + m[:3, 3].reshape(1, 3, 1, 1)
+        out = torch.where((owner == i) & hit, moved, out)
+    return out
 
 
 def _check_render_args(

@@ -81,6 +81,7 @@ def to_mitsuba(scene: Scene, directory: str | os.PathLike[str], *, bounces: int 
         },
     }
     for i, mesh in enumerate(scene.meshes):
+        mesh = mesh.posed(scene.time)
         path = os.path.join(os.fspath(directory), f"mesh_{i}.ply")
         if os.path.exists(path):
             raise FileExistsError(f"directory: {path} exists; pass an empty directory")

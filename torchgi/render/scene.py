@@ -31,6 +31,7 @@ __all__ = [
     "CameraPath",
     "Material",
     "Mesh",
+    "ObjectPath",
     "PointLight",
     "Scene",
     "SceneArrays",
@@ -118,6 +119,26 @@ class Camera:
         return dataclasses.replace(self, resolution=(width, height))
 
 
+def _segment(times: Sequence[float], time: float) -> tuple[int, int, float]:
+    """The keyframes ``i, j`` around ``time`` and the weight ``w`` of ``j`` (linear between
+    keyframes, held outside them)."""
+    t = np.asarray(times)
+    i = int(np.clip(np.searchsorted(t, time, side="right") - 1, 0, len(t) - 1))
+    j = min(i + 1, len(t) - 1)
+    return i, j, 0.0 if j == i else float(np.clip((time - t[i]) / (t[j] - t[i]), 0.0, 1.0))
+
+
+def _lerp(a: Any, b: Any, w: float) -> tuple[float, ...]:
+    return tuple(float(x) for x in (1 - w) * np.asarray(a, dtype=np.float64) + w * np.asarray(b, dtype=np.float64))
+
+
+def _check_times(times: Sequence[Any], key: str) -> tuple[float, ...]:
+    out = tuple(_number(t, f"{key}[{i}].time") for i, t in enumerate(times))
+    if any(b <= a for a, b in itertools.pairwise(out)):
+        raise ConfigError(f"{key}: keyframe times must increase, got {list(out)}")
+    return out
+
+
 @dataclasses.dataclass(frozen=True)
 class CameraPath:
     """Camera keyframes: ``position``, ``look_at`` and ``fov`` at increasing ``times`` (seconds),
@@ -140,10 +161,7 @@ class CameraPath:
         if n == 0 or not len(self.positions) == len(self.look_ats) == len(self.fovs) == n:
             raise ConfigError(f"camera.path: expected one or more keyframes with time, position and look_at "
                               f"each, got {n} time(s)")
-        times = tuple(_number(t, f"camera.path[{i}].time") for i, t in enumerate(self.times))
-        if any(b <= a for a, b in itertools.pairwise(times)):
-            raise ConfigError(f"camera.path: keyframe times must increase, got {list(times)}")
-        object.__setattr__(self, "times", times)
+        object.__setattr__(self, "times", _check_times(self.times, "camera.path"))
         object.__setattr__(self, "positions", tuple(_vec3(p, f"camera.path[{i}].position")
                                                     for i, p in enumerate(self.positions)))
         object.__setattr__(self, "look_ats", tuple(_vec3(p, f"camera.path[{i}].look_at")
@@ -158,22 +176,50 @@ class CameraPath:
 
     def at(self, camera: Camera, time: float) -> Camera:
         """``camera`` moved to the path's pose at ``time`` (seconds)."""
-        t = np.asarray(self.times)
-        i = int(np.clip(np.searchsorted(t, time, side="right") - 1, 0, len(t) - 1))
-        j = min(i + 1, len(t) - 1)
-        w = 0.0 if j == i else float(np.clip((time - t[i]) / (t[j] - t[i]), 0.0, 1.0))
-
-        def lerp(a: Any, b: Any) -> Any:
-            return tuple(float(x) for x in (1 - w) * np.asarray(a, dtype=np.float64) + w * np.asarray(b))
-
+        i, j, w = _segment(self.times, time)
         fov = (1 - w) * self.fovs[i] + w * self.fovs[j]
-        return dataclasses.replace(camera, position=lerp(self.positions[i], self.positions[j]),
-                                   look_at=lerp(self.look_ats[i], self.look_ats[j]), fov=fov)
+        return dataclasses.replace(camera, position=_lerp(self.positions[i], self.positions[j], w),
+                                   look_at=_lerp(self.look_ats[i], self.look_ats[j], w), fov=fov)
 
-    def times_of(self, frames: int) -> list[float]:
-        """The times of ``frames`` frames spread evenly from the first to the last keyframe."""
-        a, b = self.duration
-        return [a] if frames == 1 else [a + (b - a) * k / (frames - 1) for k in range(frames)]
+
+@dataclasses.dataclass(frozen=True)
+class ObjectPath:
+    """A mesh's keyframed motion: ``scales``, ``rotates`` (Euler degrees about x, then y, then z)
+    and ``translates`` at increasing ``times`` (seconds), each linearly interpolated between
+    keyframes and held outside them, composed as :func:`transform_matrix` does and applied after
+    the mesh's own ``transform``. Lights move with it when the mesh emits.
+
+    Example:
+        >>> path = ObjectPath((0.0, 2.0), ((1, 1, 1),) * 2, ((0, 0, 0), (0, 90, 0)), ((0, 0, 0), (4, 0, 0)))
+        >>> np.round(path.matrix(1.0) @ [1, 0, 0, 1], 6).tolist()   # half way: 45 degrees, 2 along x
+        [2.707107, 0.0, -0.707107, 1.0]
+    """
+
+    times: tuple[float, ...]
+    scales: tuple[tuple[float, float, float], ...]
+    rotates: tuple[tuple[float, float, float], ...]
+    translates: tuple[tuple[float, float, float], ...]
+    key: str = "path"  # the scene-file key, for messages
+
+    def __post_init__(self) -> None:
+        n = len(self.times)
+        if n == 0 or not len(self.scales) == len(self.rotates) == len(self.translates) == n:
+            raise ConfigError(f"{self.key}: expected one or more keyframes, each with a time, got {n} time(s)")
+        object.__setattr__(self, "times", _check_times(self.times, self.key))
+        for name in ("scales", "rotates", "translates"):
+            object.__setattr__(self, name, tuple(_vec3(v, f"{self.key}[{i}].{name[:-1]}")
+                                                 for i, v in enumerate(getattr(self, name))))
+
+    def matrix(self, time: float | None) -> np.ndarray:
+        """The 4x4 float64 transform at ``time`` (None: the first keyframe's)."""
+        i, j, w = _segment(self.times, self.times[0] if time is None else time)
+        return transform_matrix(_lerp(self.scales[i], self.scales[j], w), _lerp(self.rotates[i], self.rotates[j], w),
+                                _lerp(self.translates[i], self.translates[j], w))
+
+
+def _times_of(duration: tuple[float, float], frames: int) -> list[float]:
+    a, b = duration
+    return [a] if frames == 1 else [a + (b - a) * k / (frames - 1) for k in range(frames)]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -275,12 +321,14 @@ class Mesh:
         faces: ``(F, 3)`` int vertex indices (counter-clockwise = front).
         material: its :class:`Material`.
         name: a label used in messages.
+        path: its keyframed motion (:class:`ObjectPath`, applied to ``vertices``), None = still.
     """
 
     vertices: np.ndarray
     faces: np.ndarray
     material: Material
     name: str = "mesh"
+    path: ObjectPath | None = None
 
     def __post_init__(self) -> None:
         v = np.asarray(self.vertices, dtype=np.float64)
@@ -302,7 +350,15 @@ class Mesh:
         the faces' front sides by reversing their winding."""
         v = self.vertices @ matrix[:3, :3].T + matrix[:3, 3]
         faces = self.faces[:, ::-1] if np.linalg.det(matrix[:3, :3]) < 0 else self.faces
-        return Mesh(v, faces, self.material, self.name)
+        return Mesh(v, faces, self.material, self.name, self.path)
+
+    def matrix(self, time: float | None) -> np.ndarray:
+        """The 4x4 transform of its :attr:`path` at ``time`` (identity for a still mesh)."""
+        return np.eye(4) if self.path is None else self.path.matrix(time)
+
+    def posed(self, time: float | None) -> Mesh:
+        """The still mesh in its pose at ``time`` (None: the first keyframe's)."""
+        return self if self.path is None else dataclasses.replace(self.transformed(self.matrix(time)), path=None)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -315,7 +371,8 @@ class SceneArrays:
     probability ``light_prob (L,)`` (area x emitted luminance), ``light_pdf (T,)`` is the area
     density of light sampling on each triangle (0 off lights). ``points`` ``(P,3)`` and
     ``intensities (P,3)`` are the point lights; ``sky (3,)`` is None without a sky.
-    ``scale`` is the scene's extent (for ray offsets); ``skipped`` counts zero-area triangles.
+    ``scale`` is the scene's extent (for ray offsets); ``skipped`` counts zero-area triangles;
+    ``mesh (T,)`` is each triangle's index in :attr:`Scene.meshes`.
     """
 
     triangles: np.ndarray
@@ -331,6 +388,7 @@ class SceneArrays:
     points: np.ndarray
     intensities: np.ndarray
     sky: np.ndarray | None
+    mesh: np.ndarray
     scale: float
     skipped: int
     key: str  # SHA-256 of the arrays: what the tracers' caches are keyed by
@@ -355,6 +413,7 @@ class Scene:
     lights: list[Any] = dataclasses.field(default_factory=list)
     name: str = "scene"
     path: CameraPath | None = None  # camera animation (render_sequence), None = a still camera
+    time: float | None = None  # the moving meshes' pose (Mesh.path); None = each one's first keyframe
 
     def __post_init__(self) -> None:
         if not self.meshes:
@@ -363,17 +422,44 @@ class Scene:
 
     def with_camera(self, camera: Camera) -> Scene:
         """The same scene (its tables and BVH shared, not rebuilt) seen by ``camera``."""
-        out = Scene(camera, self.meshes, self.lights, self.name, self.path)
+        out = Scene(camera, self.meshes, self.lights, self.name, self.path, self.time)
         out._arrays = self._arrays
         return out
+
+    @property
+    def moving(self) -> list[int]:
+        """The indices of the meshes with a :attr:`Mesh.path`."""
+        return [i for i, m in enumerate(self.meshes) if m.path is not None]
+
+    @property
+    def duration(self) -> tuple[float, float] | None:
+        """The first and last keyframe time over the camera's and the meshes' paths (None: nothing moves)."""
+        paths = [p for p in [self.path, *(m.path for m in self.meshes)] if p is not None]
+        if not paths:
+            return None
+        return min(p.times[0] for p in paths), max(p.times[-1] for p in paths)
+
+    def times_of(self, frames: int) -> list[float]:
+        """The times of ``frames`` frames spread evenly over :attr:`duration` (0 for a still scene).
+
+        Example:
+            >>> from torchgi.render import scenes
+            >>> scenes.cornell(8).times_of(3)
+            [0.0, 0.0, 0.0]
+        """
+        return [0.0] * frames if self.duration is None else _times_of(self.duration, frames)
 
     def with_resolution(self, width: int, height: int) -> Scene:
         """The same scene seen by the same camera at another resolution."""
         return self.with_camera(self.camera.with_resolution(width, height))
 
     def at(self, time: float) -> Scene:
-        """The scene with its camera at ``time`` on :attr:`path` (the camera itself without one)."""
-        return self if self.path is None else self.with_camera(self.path.at(self.camera, time))
+        """The scene at ``time``: its camera on :attr:`path` (the camera itself without one), its
+        moving meshes posed (:attr:`time`); still geometry shares the tables and BVH."""
+        out = self if self.path is None else self.with_camera(self.path.at(self.camera, time))
+        if self.moving:
+            out = Scene(out.camera, self.meshes, self.lights, self.name, self.path, time)
+        return out
 
     def arrays(self) -> SceneArrays:
         """The flattened tables (built once, then cached); warns once about zero-area triangles."""
@@ -391,7 +477,9 @@ def _flatten(scene: Scene) -> SceneArrays:
     index: dict[Material, int] = {}
     tris, mats = [], []
     skipped = 0
-    for mesh in scene.meshes:
+    owner = []
+    for m, mesh in enumerate(scene.meshes):
+        mesh = mesh.posed(scene.time)
         t = mesh.vertices[mesh.faces]  # (F, 3, 3) float64
         area2 = np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1)
         keep = area2 > 0
@@ -401,6 +489,7 @@ def _flatten(scene: Scene) -> SceneArrays:
             materials.append(mesh.material)
         tris.append(t[keep])
         mats.append(np.full(int(keep.sum()), index[mesh.material], dtype=np.int64))
+        owner.append(np.full(int(keep.sum()), m, dtype=np.int64))
     triangles = np.concatenate(tris)
     if len(triangles) == 0:
         raise ConfigError("meshes: the scene has no triangle with a non-zero area")
@@ -437,6 +526,7 @@ def _flatten(scene: Scene) -> SceneArrays:
         "points": np.array([p.position for p in points], dtype=f32).reshape(-1, 3),
         "intensities": np.array([p.intensity for p in points], dtype=f32).reshape(-1, 3),
         "sky": np.array(skies[0].radiance, dtype=f32) if skies and max(skies[0].radiance) > 0 else None,
+        "mesh": np.concatenate(owner),
     }
     # the tracers' caches are keyed by content: a scene object's id is reused after it is freed
     digest = hashlib.sha256()

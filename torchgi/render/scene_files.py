@@ -1,5 +1,5 @@
 """Scene files (DESIGN §2): YAML with a camera (and its ``path`` of keyframes), meshes with their
-materials and transforms, and lights, built into a :class:`~torchgi.render.scene.Scene`. A mesh
+materials, transforms and ``path`` of keyframed transforms (moving objects), and lights, built into a :class:`~torchgi.render.scene.Scene`. A mesh
 names its file relative to the scene file (``file:``, the project's own meshes) or relative to
 one mesh root (``mesh:``, the shared meshes made by others: ``$TORCHGI_MESHES``, by default
 ``shared/data/meshes`` beside the checkout; :func:`mesh_root`).
@@ -7,6 +7,7 @@ one mesh root (``mesh:``, the shared meshes made by others: ``$TORCHGI_MESHES``,
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from collections.abc import Mapping
 from pathlib import Path
@@ -18,15 +19,26 @@ from torchgi.core.errors import ConfigError
 from torchgi.core.registry import Registry
 from torchgi.io.mesh import read_mesh
 from torchgi.render import scenes
-from torchgi.render.scene import LIGHTS, MATERIALS, Camera, CameraPath, Mesh, Scene, _no_unknown_keys, transform_matrix
+from torchgi.render.scene import (
+    LIGHTS,
+    MATERIALS,
+    Camera,
+    CameraPath,
+    Mesh,
+    ObjectPath,
+    Scene,
+    _no_unknown_keys,
+    transform_matrix,
+)
 
 __all__ = ["load_scene", "mesh_root", "scene_from_dict"]
 
 _TOP_KEYS = ("camera", "meshes", "lights")
 _CAMERA_KEYS = ("position", "look_at", "up", "fov", "fov_axis", "resolution", "path")
 _KEYFRAME_KEYS = ("time", "position", "look_at", "fov")
-_MESH_KEYS = ("file", "mesh", "material", "transform", "name")
+_MESH_KEYS = ("file", "mesh", "material", "transform", "path", "name")
 _TRANSFORM_KEYS = ("scale", "rotate", "translate")
+_MESH_KEYFRAME_KEYS = ("time", *_TRANSFORM_KEYS)
 
 
 def mesh_root() -> Path:
@@ -123,6 +135,8 @@ def scene_from_dict(cfg: Mapping[str, Any], root: str = ".", name: str = "scene"
         if "transform" in m:
             _no_unknown_keys(m["transform"], f"{key}.transform", _TRANSFORM_KEYS)
             mesh = mesh.transformed(transform_matrix(**m["transform"]))
+        if "path" in m:
+            mesh = dataclasses.replace(mesh, path=_object_path(m["path"], f"{key}.path"))
         meshes.append(mesh)
     lights_cfg = cfg.get("lights") or []
     if not isinstance(lights_cfg, list):
@@ -142,6 +156,19 @@ def _camera_path(cfg: Any, fov: float) -> CameraPath:
                 raise ConfigError(f"camera.path[{i}].{required}: required")
     return CameraPath(tuple(k["time"] for k in cfg), tuple(k["position"] for k in cfg),
                       tuple(k["look_at"] for k in cfg), tuple(k.get("fov", fov) for k in cfg))
+
+
+def _object_path(cfg: Any, key: str) -> ObjectPath:
+    """A mesh's ``path``: a list of ``{time, scale, rotate, translate}`` keyframes (scale 1,
+    rotate and translate 0 where left out), applied after its ``transform``."""
+    if not isinstance(cfg, list) or not cfg:
+        raise ConfigError(f"{key}: expected a non-empty list of keyframes, got {cfg!r}")
+    for i, k in enumerate(cfg):
+        _no_unknown_keys(k, f"{key}[{i}]", _MESH_KEYFRAME_KEYS)
+        if "time" not in k:
+            raise ConfigError(f"{key}[{i}].time: required")
+    return ObjectPath(tuple(k["time"] for k in cfg), tuple(k.get("scale", 1.0) for k in cfg),
+                      tuple(k.get("rotate", 0.0) for k in cfg), tuple(k.get("translate", 0.0) for k in cfg), key)
 
 
 def load_scene(path: str | os.PathLike[str]) -> Scene:
