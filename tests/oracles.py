@@ -6,6 +6,8 @@ import math
 
 import torch
 
+from torchgi.render.camera import camera_rays
+
 
 def box_oracle(x: torch.Tensor, r: int) -> torch.Tensor:
     """Count-normalised (2r+1)² mean in float64 by prefix sums, one axis at a time, each window's
@@ -261,3 +263,67 @@ def mean_z(a, b):
     se = (ma.var() / len(ma) + mb.var() / len(mb)).sqrt()
     d = (ma.mean() - mb.mean()).abs()
     return float(d / se) if se > 0 else (0.0 if d <= 1e-7 * ma.mean().abs() + 1e-12 else float("inf"))
+
+
+# ------------------------------------------------------------------------------ motion of moving geometry
+def _barycentric(tri: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
+    """Barycentric (b1, b2) of points ``p (N, 3)`` in the planes of triangles ``tri (N, 3, 3)``, float64."""
+    e1, e2, d = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], p - tri[:, 0]
+    g = torch.stack([torch.stack([(e1 * e1).sum(1), (e1 * e2).sum(1)], 1),
+                     torch.stack([(e1 * e2).sum(1), (e2 * e2).sum(1)], 1)], 1)
+    return torch.linalg.solve(g, torch.stack([(d * e1).sum(1), (d * e2).sum(1)], 1))
+
+
+def _plane_hit(camera, y: torch.Tensor, tri: torch.Tensor) -> torch.Tensor:
+    """Barycentric coordinates where the camera rays through image points ``y (N, 2)`` (pixels,
+    x right, y down) meet the planes of ``tri``: the renderer's own ray generation."""
+    origin, d = camera_rays(camera, torch.zeros(len(y), dtype=torch.int64), y.T.float())
+    o, d = origin.double()[:, 0], d.double().T
+    n = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    t = ((tri[:, 0] - o) * n).sum(1) / (d * n).sum(1)
+    return _barycentric(tri, o + d * t[:, None])
+
+
+def where_rendered(camera, tri: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """The image point ``(N, 2)`` of ``camera`` whose ray meets triangle ``tri`` at barycentric
+    ``target``, by Newton's method on ray casting (finite-difference Jacobian)."""
+    y = torch.full((len(tri), 2), 0.5, dtype=torch.float64) * torch.tensor(camera.resolution, dtype=torch.float64)
+    h = 1e-2
+    for _ in range(8):
+        b = _plane_hit(camera, y, tri)
+        jx = (_plane_hit(camera, y + torch.tensor([h, 0.0]), tri) - b) / h
+        jy = (_plane_hit(camera, y + torch.tensor([0.0, h]), tri) - b) / h
+        step = torch.linalg.solve(torch.stack([jx, jy], 2), (target - b)[..., None])[..., 0]
+        y = y + step.clamp(-4 * max(camera.resolution), 4 * max(camera.resolution))
+    return y
+
+
+def motion_oracle(now, before) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The backward motion ``(2, H, W)`` float64 of scene ``now`` (posed at its time) into scene
+    ``before`` found by ray casting, not by projection: each pixel centre's first-hit triangle and
+    barycentric point, then the image point of ``before``'s camera whose ray meets that triangle
+    (posed as ``before`` poses it) at that point (:func:`where_rendered`). Also ``visible (H, W)``:
+    a hit inside ``before``'s image whose ray there meets the same triangle first, and
+    ``moving (H, W)``: a hit on a mesh with a path."""
+    from torchgi.render.accel import Accel
+
+    W, H = now.camera.resolution
+    a_now, a_before = now.arrays(), before.arrays()
+    origin, d = camera_rays(now.camera, torch.arange(W * H), None)
+    t, prim = Accel(a_now.triangles).intersect(origin, d)
+    hit = prim >= 0
+    p = (origin + d * t).T.double()[hit]
+    target = _barycentric(torch.from_numpy(a_now.triangles).double()[prim[hit]], p)
+    y = where_rendered(before.camera, torch.from_numpy(a_before.triangles).double()[prim[hit]], target)
+    inside = (y[:, 0] >= 0) & (y[:, 0] < W) & (y[:, 1] >= 0) & (y[:, 1] < H)
+    o2, d2 = camera_rays(before.camera, torch.zeros(len(y), dtype=torch.int64), y.T.float())
+    _, prim2 = Accel(a_before.triangles).intersect(o2, d2)
+    pix = torch.arange(W * H)[hit]
+    centre = torch.stack([pix % W, pix // W], 1).double() + 0.5
+    ref = torch.zeros(2, W * H, dtype=torch.float64)
+    ref[:, hit] = (y - centre).T
+    visible = torch.zeros(W * H, dtype=torch.bool)
+    visible[hit] = inside & (prim2 == prim[hit])
+    moving = torch.zeros(W * H, dtype=torch.bool)
+    moving[hit] = torch.isin(torch.from_numpy(a_now.mesh)[prim[hit]], torch.tensor(now.moving, dtype=torch.int64))
+    return ref.reshape(2, H, W), visible.reshape(H, W), moving.reshape(H, W)
