@@ -128,6 +128,12 @@ class TemporalSettings:
                                    "exponential average of the filtered output (temporal anti-flicker)")
     clamp: float = _setting(0.1, 0.0, math.inf, "x noise variance",
                             "the output history is clamped to this share of the accumulated light's noise variance")
+    change_radius: int = _setting(4, 0, 64, "px", "the light's change is measured in windows of this radius (9x9)")
+    change_scale: int = _setting(4, 1, 64, "x change_radius",
+                                 "and of this many times the radius (33x33: slow changes; tuning sequences)")
+    change_threshold: float = _setting(4.0, 0.0, math.inf, "noise sigmas",
+                                       "the history is dropped where this frame's window mean leaves the history's by "
+                                       "more than this (fully one sigma further; tuning sequences); 0 = off")
 
 
 PIPELINE = PipelineSettings()

@@ -12,7 +12,11 @@ Each frame, on the light demodulated by albedo (``(color - emission) / albedo`` 
 3. **Accumulation**: exponential averages, with weight ``max(1 / length, TEMPORAL.alpha)`` for
    the new frame, of the light and of its luminance moments; the history length is capped at
    ``TEMPORAL.max_history``. Variance: from the moments once ``TEMPORAL.variance_history``
-   frames are in, else the spatial estimate of the current frame's ``7x7`` window.
+   frames are in, else the spatial estimate of the current frame's ``7x7`` window. **Where the
+   light changed** (moving shadows and highlights, a moving light: what the motion cannot
+   explain) the history is dropped: this frame's mean luminance in ``9x9`` and ``33x33`` windows
+   (``TEMPORAL.change_radius``, ``change_scale``) against the accumulated light's, beyond
+   ``TEMPORAL.change_threshold`` sigmas of the window mean's noise.
 4. **Spatial filter**: the guided Denoiser pipeline (normal + depth guide, light sources passed
    untouched) on the accumulated light, at ``TEMPORAL.radius`` and ``TEMPORAL.eps``: the light
    averages several frames, so a narrower, sharper filter than the per-frame Denoiser's. In
@@ -114,6 +118,44 @@ def _blend_fresh(out: torch.Tensor, length: torch.Tensor, inputs: dict[str, torc
     return out
 
 
+def _extent(n: int, r: int, like: torch.Tensor) -> torch.Tensor:
+    """``(n,)`` the number of pixels a window of radius ``r`` covers along an axis of ``n`` (clipped at the edges)."""
+    i = torch.arange(n, device=like.device)
+    return ((i + r).clamp(max=n - 1) - (i - r).clamp(min=0) + 1).to(like.dtype)
+
+
+def _drop_changed(x: torch.Tensor, bound: torch.Tensor, lum: torch.Tensor, m: torch.Tensor, acc: torch.Tensor,
+                  moments: torch.Tensor, length: torch.Tensor, frames: torch.Tensor, hist_length: torch.Tensor,
+                  ) -> tuple[torch.Tensor, ...]:
+    """Where the light changed (a moving shadow or highlight, a moving light), the history is
+    dropped: the mean luminance of this frame in a ``(2 TEMPORAL.change_radius + 1)²`` window is
+    compared with that of the accumulated light, and again in windows ``TEMPORAL.change_scale``
+    times wider (slow changes over large areas: a moving light); beyond
+    ``TEMPORAL.change_threshold`` times the window mean's noise (this frame's ``7x7`` spatial
+    variance over the window's pixels), the accumulation restarts from this frame (fully one
+    sigma beyond the threshold, linear between), and the history length with it (the output
+    history keeps its weight: less flicker on the tuning sequences). Returns the light, moments, length,
+    temporal variance and frames averaged, updated."""
+    t = TEMPORAL
+    luma = torch.tensor(backends.base.LUMA, dtype=x.dtype, device=x.device).view(1, 3, 1, 1)
+    planes = torch.cat([lum, (acc * luma).sum(1, keepdim=True), (m[:, 1:2] - m[:, :1].square()).clamp_min(0)], 1)
+    drop = torch.zeros_like(lum)
+    H, W = x.shape[-2:]
+    for r in (t.change_radius, t.change_radius * t.change_scale):
+        now, before, var = box(planes, r).split(1, 1)
+        sigma = torch.sqrt(var / (_extent(H, r, x)[:, None] * _extent(W, r, x)))  # over the pixels in the window
+        beyond = ((now - before).abs() - t.change_threshold * sigma) / sigma.clamp_min(torch.finfo(x.dtype).tiny)
+        drop = torch.maximum(drop, beyond.clamp(0, 1))  # without noise (sigma 0) any change drops
+    drop = drop * (hist_length > 0)
+    peak = x.amax(1, keepdim=True)
+    xb = torch.where(peak > bound, x * (bound / torch.where(peak > bound, peak, 1.0)), x)
+    acc = acc + drop * (xb - acc)
+    moments = moments + drop * (torch.cat([lum, lum * lum], 1) - moments)
+    length = length + drop * (1 - length)
+    frames = frames + drop * (1 - frames)
+    return acc, moments, length, (moments[:, 1:2] - moments[:, :1].square()).clamp_min(0), frames
+
+
 def temporal_step(
     color: torch.Tensor, albedo: torch.Tensor, normal: torch.Tensor, depth: torch.Tensor, motion: torch.Tensor,
     state: TemporalState | None = None, *, emission: torch.Tensor | None = None, hit: torch.Tensor | None = None,
@@ -169,6 +211,10 @@ def temporal_step(
                                               t.max_history, t.normal_tolerance, t.depth_tolerance))
     acc, hist_out, moments, length, hist_length, temporal_var, frames, lum = step.split([3, 3, 2, 1, 1, 1, 1, 1], 1)
     m = box(torch.cat([lum, lum * lum], 1), t.variance_radius)
+    kept = length  # the output history's weight follows the history before any drop (less flicker)
+    if t.change_threshold > 0:
+        acc, moments, length, temporal_var, frames = _drop_changed(x, bound, lum, m, acc, moments, length, frames,
+                                                                   hist_length)
     var = torch.where(length >= t.variance_history, temporal_var, (m[:, 1:2] - m[:, :1].square()).clamp_min(0))
     inputs = {"color": acc * demod + emission, "emission": emission, "albedo": albedo, "normal": normal,
               "depth": depth, "hit": hit}
@@ -182,9 +228,9 @@ def temporal_step(
     lit = (out - emission) / demod
     sigma = torch.sqrt(t.clamp * box(var / frames, 1).clamp_min(0))  # the box's sums can cancel below 0
     h = torch.maximum(torch.minimum(hist_out, lit + sigma), lit - sigma)
-    beta = torch.maximum(1.0 / length, torch.full((), t.output_alpha, dtype=x.dtype, device=x.device))
+    beta = torch.maximum(1.0 / kept, torch.full((), t.output_alpha, dtype=x.dtype, device=x.device))
     lit = torch.where(hist_length > 0, h + beta * (lit - h), lit)
-    nxt = TemporalState(acc, lit, moments, length, normal, depth, surface.to(x.dtype))
+    nxt = TemporalState(acc, lit, moments, torch.round(length), normal, depth, surface.to(x.dtype))
     return lit * demod + emission, nxt
 
 

@@ -29,7 +29,7 @@ from torchgi.core.dtypes import compute_dtype
 from torchgi.core.errors import OptionError
 
 __all__ = [
-    "NAMES", "ORDER", "ATrousOp", "AccumulateOp", "AllocateOp", "BackOffOp", "BoxOp", "EdgeShareOp", "GuideRaysOp",
+    "LUMA", "NAMES", "ORDER", "ATrousOp", "AccumulateOp", "AllocateOp", "BackOffOp", "BoxOp", "EdgeShareOp", "GuideRaysOp",
     "GuideSpec", "GuideStatsOp", "GuidedOp", "ImportanceOp", "PathOp", "RestoreOp", "TraceSetup", "UpsampleApplyOp", "box_mean", "chunks",
     "eager", "embree_started", "enabled", "float32_eager", "mark_embree_started", "run",
     "select", "status", "use",
@@ -266,6 +266,9 @@ class BackOffOp:
 
     def tensors(self) -> tuple[torch.Tensor | None, ...]:
         return (self.out, self.color, self.variance)
+
+
+LUMA = (0.2126, 0.7152, 0.0722)  # the luminance AccumulateOp returns and moments are of (Rec. 709 weights)
 
 
 @dataclass(eq=False, slots=True)

@@ -5,10 +5,9 @@ from __future__ import annotations
 import torch
 
 from torchgi.backends.base import (
+    LUMA,
     AccumulateOp,
 )
-
-_LUMA = (0.2126, 0.7152, 0.0722)
 
 
 def accumulate(desc: AccumulateOp) -> torch.Tensor:
@@ -56,7 +55,7 @@ def accumulate(desc: AccumulateOp) -> torch.Tensor:
     over = peak > d.bound
     x = torch.where(over, d.x * (d.bound / torch.where(over, peak, 1.0)), d.x)
     light = hist[:, :3] + a * (x - hist[:, :3])
-    lum = (x * torch.tensor(_LUMA, dtype=dt, device=dev).view(1, 3, 1, 1)).sum(1, keepdim=True)
+    lum = (x * torch.tensor(LUMA, dtype=dt, device=dev).view(1, 3, 1, 1)).sum(1, keepdim=True)
     moments = hist[:, 6:8] + a * (torch.cat([lum, lum * lum], 1) - hist[:, 6:8])
     var = (moments[:, 1:2] - moments[:, :1].square()).clamp_min(0)
     # frames averaged: 1/length while the weights are equal, (2 - α)/α once the average is exponential
