@@ -101,3 +101,23 @@ def test_mesh_path_errors_name_the_key():
     for c, want in zip(bad, wants):
         with pytest.raises(ConfigError, match=want):
             scene_from_dict(c, str(ROOT))
+
+
+def test_a_point_light_moves_along_its_path_into_the_render():
+    """A point light's ``path`` moves its position (hand-computed: half way between its keys at
+    t = 0.5); the frame at 0.5 renders exactly as the scene with a still light put there by hand,
+    and differs from the first frame's light. A sky cannot move (the error names the key)."""
+    cfg = moving_scene()
+    cfg["lights"] = [{"type": "point", "position": [0, 2.5, 1], "intensity": 6,
+                      "path": [{"time": 0, "translate": [-1, 0, 0]}, {"time": 1, "translate": [1, 0.5, 0]}]}]
+    scene = scene_from_dict(cfg, str(ROOT))
+    assert scene.at(0.5).arrays().points.tolist() == [[0.0, 2.75, 1.0]]
+    still = {**cfg, "lights": [{"type": "point", "position": [0, 2.75, 1], "intensity": 6}]}  # the meshes as before
+    half = torchgi.render(scene.at(0.5), spp=2, bounces=0, seed=4)
+    by_hand = torchgi.render(scene_from_dict(still, str(ROOT)).at(0.5), spp=2, bounces=0, seed=4)
+    assert torch.equal(half.color, by_hand.color)
+    assert not torch.equal(torchgi.render(scene.at(0.0), spp=2, bounces=0, seed=4).direct, half.direct)
+    cfg["lights"] = [{"type": "sky", "radiance": 1, "path": [{"time": 0}]}]
+    with pytest.raises(ConfigError, match=r"lights\[0\]\.path: only a point light moves"):
+        scene_from_dict(cfg, str(ROOT))
+

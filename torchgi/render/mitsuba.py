@@ -92,6 +92,7 @@ def to_mitsuba(scene: Scene, directory: str | os.PathLike[str], *, bounces: int 
         out[f"mesh_{i}"] = entry
     for i, light in enumerate(scene.lights):
         if isinstance(light, PointLight):
+            light = light.posed(scene.time)
             out[f"light_{i}"] = {"type": "point", "position": list(light.position), "intensity": _rgb(light.intensity)}
         elif isinstance(light, Sky):
             out[f"light_{i}"] = {"type": "constant", "radiance": _rgb(light.radiance)}

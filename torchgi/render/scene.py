@@ -265,10 +265,25 @@ def glossy(albedo: Any = (0.8, 0.8, 0.8), roughness: float = 0.2, emission: Any 
 
 @dataclasses.dataclass(frozen=True)
 class PointLight:
-    """An isotropic point light: ``intensity`` in radiance units x area (W/sr per channel)."""
+    """An isotropic point light: ``intensity`` in radiance units x area (W/sr per channel);
+    ``path`` moves its ``position`` as a mesh's path moves its vertices (None: still)."""
 
     position: tuple[float, float, float]
     intensity: tuple[float, float, float]
+    path: ObjectPath | None = None
+
+    def posed(self, time: float | None) -> PointLight:
+        """The still light at its position at ``time`` (None: the first keyframe's).
+
+        Example:
+            >>> p = ObjectPath((0.0, 1.0), ((1, 1, 1),) * 2, ((0, 0, 0),) * 2, ((0, 0, 0), (2, 0, 0)))
+            >>> PointLight((0, 3, 0), (1, 1, 1), p).posed(0.5).position
+            (1.0, 3.0, 0.0)
+        """
+        if self.path is None:
+            return self
+        m = self.path.matrix(time)
+        return PointLight(tuple(float(v) for v in m[:3, :3] @ np.asarray(self.position) + m[:3, 3]), self.intensity)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -433,8 +448,10 @@ class Scene:
 
     @property
     def duration(self) -> tuple[float, float] | None:
-        """The first and last keyframe time over the camera's and the meshes' paths (None: nothing moves)."""
-        paths = [p for p in [self.path, *(m.path for m in self.meshes)] if p is not None]
+        """The first and last keyframe time over the camera's, the meshes' and the point lights'
+        paths (None: nothing moves)."""
+        paths = [p for p in [self.path, *(m.path for m in self.meshes), *(getattr(li, "path", None)
+                                                                        for li in self.lights)] if p is not None]
         if not paths:
             return None
         return min(p.times[0] for p in paths), max(p.times[-1] for p in paths)
@@ -455,9 +472,10 @@ class Scene:
 
     def at(self, time: float) -> Scene:
         """The scene at ``time``: its camera on :attr:`path` (the camera itself without one), its
-        moving meshes posed (:attr:`time`); still geometry shares the tables and BVH."""
+        moving meshes and point lights posed (:attr:`time`); a scene where only the camera moves
+        shares the tables and BVH."""
         out = self if self.path is None else self.with_camera(self.path.at(self.camera, time))
-        if self.moving:
+        if self.moving or any(getattr(li, "path", None) is not None for li in self.lights):
             out = Scene(out.camera, self.meshes, self.lights, self.name, self.path, time)
         return out
 
@@ -505,7 +523,7 @@ def _flatten(scene: Scene) -> SceneArrays:
     light_prob = power[light_tris] / power[light_tris].sum() if len(light_tris) else np.zeros(0)
     light_pdf = np.zeros(len(triangles))
     light_pdf[light_tris] = light_prob / area[light_tris]
-    points = [light for light in scene.lights if isinstance(light, PointLight)]
+    points = [light.posed(scene.time) for light in scene.lights if isinstance(light, PointLight)]
     skies = [light for light in scene.lights if isinstance(light, Sky)]
     if len(skies) > 1:
         raise ConfigError("lights: at most one sky")

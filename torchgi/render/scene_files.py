@@ -1,5 +1,6 @@
 """Scene files (DESIGN §2): YAML with a camera (and its ``path`` of keyframes), meshes with their
-materials, transforms and ``path`` of keyframed transforms (moving objects), and lights, built into a :class:`~torchgi.render.scene.Scene`. A mesh
+materials, transforms and ``path`` of keyframed transforms (moving objects), and lights (a point
+light may have a ``path`` too), built into a :class:`~torchgi.render.scene.Scene`. A mesh
 names its file relative to the scene file (``file:``, the project's own meshes) or relative to
 one mesh root (``mesh:``, the shared meshes made by others: ``$TORCHGI_MESHES``, by default
 ``shared/data/meshes`` beside the checkout; :func:`mesh_root`).
@@ -26,6 +27,7 @@ from torchgi.render.scene import (
     CameraPath,
     Mesh,
     ObjectPath,
+    PointLight,
     Scene,
     _no_unknown_keys,
     transform_matrix,
@@ -141,8 +143,19 @@ def scene_from_dict(cfg: Mapping[str, Any], root: str = ".", name: str = "scene"
     lights_cfg = cfg.get("lights") or []
     if not isinstance(lights_cfg, list):
         raise ConfigError("lights: expected a list")
-    lights = [_build(LIGHTS, light, f"lights[{i}]") for i, light in enumerate(lights_cfg)]
+    lights = [_light(light, f"lights[{i}]") for i, light in enumerate(lights_cfg)]
     return Scene(camera, meshes, lights, name, path)
+
+
+def _light(cfg: Any, key: str) -> Any:
+    """A light entry; a point light may have a ``path`` (as a mesh's: it moves its position)."""
+    if not isinstance(cfg, Mapping) or "path" not in cfg:
+        return _build(LIGHTS, cfg, key)
+    light = _build(LIGHTS, {k: v for k, v in cfg.items() if k != "path"}, key)
+    if not isinstance(light, PointLight):
+        raise ConfigError(f"{key}.path: only a point light moves (an emissive mesh with a path is a moving area "
+                          f"light); this one is {cfg.get('type')!r}")
+    return dataclasses.replace(light, path=_object_path(cfg["path"], f"{key}.path"))
 
 
 def _camera_path(cfg: Any, fov: float) -> CameraPath:
