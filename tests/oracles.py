@@ -284,18 +284,22 @@ def _plane_hit(camera, y: torch.Tensor, tri: torch.Tensor) -> torch.Tensor:
     return _barycentric(tri, o + d * t[:, None])
 
 
-def where_rendered(camera, tri: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+def where_rendered(camera, tri: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """The image point ``(N, 2)`` of ``camera`` whose ray meets triangle ``tri`` at barycentric
-    ``target``, by Newton's method on ray casting (finite-difference Jacobian)."""
+    ``target``, by Newton's method on ray casting (finite-difference Jacobian, pseudo-inverse:
+    a triangle seen edge on has none), and whether it converged (the last step below 1e-4 px;
+    not: edge on, behind the camera)."""
     y = torch.full((len(tri), 2), 0.5, dtype=torch.float64) * torch.tensor(camera.resolution, dtype=torch.float64)
     h = 1e-2
-    for _ in range(8):
+    for _ in range(10):
         b = _plane_hit(camera, y, tri)
         jx = (_plane_hit(camera, y + torch.tensor([h, 0.0]), tri) - b) / h
         jy = (_plane_hit(camera, y + torch.tensor([0.0, h]), tri) - b) / h
-        step = torch.linalg.solve(torch.stack([jx, jy], 2), (target - b)[..., None])[..., 0]
-        y = y + step.clamp(-4 * max(camera.resolution), 4 * max(camera.resolution))
-    return y
+        J = torch.nan_to_num(torch.stack([jx, jy], 2), nan=0.0, posinf=0.0, neginf=0.0)
+        step = (torch.linalg.pinv(J) @ torch.nan_to_num(target - b)[..., None])[..., 0]
+        step = step.clamp(-4 * max(camera.resolution), 4 * max(camera.resolution))
+        y = y + step
+    return y, (step.abs().amax(1) < 1e-4) & torch.isfinite(y).all(1)
 
 
 def motion_oracle(now, before) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -303,7 +307,8 @@ def motion_oracle(now, before) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor
     ``before`` found by ray casting, not by projection: each pixel centre's first-hit triangle and
     barycentric point, then the image point of ``before``'s camera whose ray meets that triangle
     (posed as ``before`` poses it) at that point (:func:`where_rendered`). Also ``visible (H, W)``:
-    a hit inside ``before``'s image whose ray there meets the same triangle first, and
+    a hit found (Newton converged) inside ``before``'s image whose ray there meets the same
+    triangle first, and
     ``moving (H, W)``: a hit on a mesh with a path."""
     from torchgi.render.accel import Accel
 
@@ -314,8 +319,9 @@ def motion_oracle(now, before) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor
     hit = prim >= 0
     p = (origin + d * t).T.double()[hit]
     target = _barycentric(torch.from_numpy(a_now.triangles).double()[prim[hit]], p)
-    y = where_rendered(before.camera, torch.from_numpy(a_before.triangles).double()[prim[hit]], target)
-    inside = (y[:, 0] >= 0) & (y[:, 0] < W) & (y[:, 1] >= 0) & (y[:, 1] < H)
+    y, converged = where_rendered(before.camera, torch.from_numpy(a_before.triangles).double()[prim[hit]], target)
+    y = torch.where(converged[:, None], y, -1.0)
+    inside = converged & (y[:, 0] >= 0) & (y[:, 0] < W) & (y[:, 1] >= 0) & (y[:, 1] < H)
     o2, d2 = camera_rays(before.camera, torch.zeros(len(y), dtype=torch.int64), y.T.float())
     _, prim2 = Accel(a_before.triangles).intersect(o2, d2)
     pix = torch.arange(W * H)[hit]
