@@ -113,8 +113,10 @@ def test_the_renderers_motion_is_the_hand_computed_displacement(sequence):
 def test_other_renderers_sequences_denoise_as_torchgis_own(sequence, tmp_path, convention):
     """A Cycles- and an Arnold-convention sequence of the same frames, denoised by ``torchgi
     denoise --temporal``: the files read back hold torchgi's motion, the outputs are those of
-    the torchgi-convention files bit for bit, and within float32 rounding of the motion of those
-    of torchgi's own render; with the wrong convention forced by ``--motion-convention`` the
+    the torchgi-convention files bit for bit, and near those of torchgi's own render (its motion
+    layer differs from the hand-computed one by up to 2e-3 px; the light-change test's threshold
+    passes that on: at most 1.5e-3 of the largest value; relMSE against the reference the same
+    to 1e-6 relative, asserted to 1e-3); with the wrong convention forced by ``--motion-convention`` the
     error against a 256 spp reference is visibly higher."""
     scene, frames, refs = sequence
     mine = _write(tmp_path / "torchgi", frames, scene, "torchgi")
@@ -129,7 +131,8 @@ def test_other_renderers_sequences_denoise_as_torchgis_own(sequence, tmp_path, c
     own = _denoise(_write(tmp_path / "own", frames, scene, None), tmp_path / "den_own")
     assert all(bool(o.isfinite().all()) for o in own)  # NaN once: a box of variances that cancelled below 0
     for a, b in zip(got[1:], own[1:], strict=True):
-        assert float((a - b).abs().max() / b.abs().max()) < 1e-3
+        assert float((a - b).abs().max() / b.abs().max()) < 3e-3
+    assert abs(_error(own, refs) / _error(got, refs) - 1) < 1e-3
     wrong = _denoise(theirs, tmp_path / "den_wrong", "--motion-convention", "torchgi")
     right_error, wrong_error = _error(got, refs), _error(wrong, refs)
     assert wrong_error > 1.3 * right_error, (right_error, wrong_error)
