@@ -217,11 +217,6 @@ class ObjectPath:
                                 _lerp(self.translates[i], self.translates[j], w))
 
 
-def _times_of(duration: tuple[float, float], frames: int) -> list[float]:
-    a, b = duration
-    return [a] if frames == 1 else [a + (b - a) * k / (frames - 1) for k in range(frames)]
-
-
 @dataclasses.dataclass(frozen=True)
 class Material:
     """A two-sided BSDF with optional one-sided emission.
@@ -464,7 +459,10 @@ class Scene:
             >>> scenes.cornell(8).times_of(3)
             [0.0, 0.0, 0.0]
         """
-        return [0.0] * frames if self.duration is None else _times_of(self.duration, frames)
+        if self.duration is None:
+            return [0.0] * frames
+        a, b = self.duration
+        return [a] if frames == 1 else [a + (b - a) * k / (frames - 1) for k in range(frames)]
 
     def with_resolution(self, width: int, height: int) -> Scene:
         """The same scene seen by the same camera at another resolution."""
