@@ -26,7 +26,7 @@ from torchgi.settings import PIPELINE
 
 __all__ = [
     "BoxFn", "back_off", "centre", "clamp_fireflies", "demodulator", "emitting", "every4", "filter_light",
-    "firefly_bound", "level", "light_sources", "median_level", "restore", "samples", "surface_mask",
+    "firefly_bound", "level", "light_sources", "median_level", "restore", "samples", "scaled_to", "surface_mask",
 ]
 
 BoxFn = Callable[[torch.Tensor, int], torch.Tensor]  # box(x (B,C,H,W), r) -> the (2r+1)² mean, same shape
@@ -133,7 +133,17 @@ def clamp_fireflies(x: torch.Tensor, scene_level: torch.Tensor, k: float, box: B
         True
     """
     peak = x.amax(1, keepdim=True)
-    bound = firefly_bound(peak, scene_level, k, box)
+    return scaled_to(x, peak, firefly_bound(peak, scene_level, k, box))
+
+
+def scaled_to(x: torch.Tensor, peak: torch.Tensor, bound: torch.Tensor) -> torch.Tensor:
+    """``x (B,C,H,W)`` scaled down, hue kept, where its channel maximum ``peak (B,1,H,W)`` exceeds
+    ``bound (B,1,H,W)``; unchanged elsewhere.
+
+    Example:
+        >>> scaled_to(torch.tensor([[[[4.0]], [[2.0]]]]), torch.tensor([[[[4.0]]]]), torch.tensor([[[[1.0]]]])).flatten()
+        tensor([1.0000, 0.5000])
+    """
     over = peak > bound  # so peak > 0 wherever it divides
     return torch.where(over, x * (bound / torch.where(over, peak, 1.0)), x)
 

@@ -124,7 +124,7 @@ def _extent(n: int, r: int, like: torch.Tensor) -> torch.Tensor:
     return ((i + r).clamp(max=n - 1) - (i - r).clamp(min=0) + 1).to(like.dtype)
 
 
-def _drop_changed(x: torch.Tensor, bound: torch.Tensor, lum: torch.Tensor, m: torch.Tensor, acc: torch.Tensor,
+def _drop_changed(x: torch.Tensor, bound: torch.Tensor, lum: torch.Tensor, spatial_var: torch.Tensor, acc: torch.Tensor,
                   moments: torch.Tensor, length: torch.Tensor, frames: torch.Tensor, hist_length: torch.Tensor,
                   ) -> tuple[torch.Tensor, ...]:
     """Where the light changed (a moving shadow or highlight, a moving light), the history is
@@ -138,7 +138,7 @@ def _drop_changed(x: torch.Tensor, bound: torch.Tensor, lum: torch.Tensor, m: to
     temporal variance and frames averaged, updated."""
     t = TEMPORAL
     luma = torch.tensor(backends.base.LUMA, dtype=x.dtype, device=x.device).view(1, 3, 1, 1)
-    planes = torch.cat([lum, (acc * luma).sum(1, keepdim=True), (m[:, 1:2] - m[:, :1].square()).clamp_min(0)], 1)
+    planes = torch.cat([lum, (acc * luma).sum(1, keepdim=True), spatial_var], 1)
     drop = torch.zeros_like(lum)
     H, W = x.shape[-2:]
     for r in (t.change_radius, t.change_radius * t.change_scale):
@@ -147,9 +147,7 @@ def _drop_changed(x: torch.Tensor, bound: torch.Tensor, lum: torch.Tensor, m: to
         beyond = ((now - before).abs() - t.change_threshold * sigma) / sigma.clamp_min(torch.finfo(x.dtype).tiny)
         drop = torch.maximum(drop, beyond.clamp(0, 1))  # without noise (sigma 0) any change drops
     drop = drop * (hist_length > 0)
-    peak = x.amax(1, keepdim=True)
-    xb = torch.where(peak > bound, x * (bound / torch.where(peak > bound, peak, 1.0)), x)
-    acc = acc + drop * (xb - acc)
+    acc = acc + drop * (light.scaled_to(x, x.amax(1, keepdim=True), bound) - acc)
     moments = moments + drop * (torch.cat([lum, lum * lum], 1) - moments)
     length = length + drop * (1 - length)
     frames = frames + drop * (1 - frames)
@@ -211,11 +209,12 @@ def temporal_step(
                                               t.max_history, t.normal_tolerance, t.depth_tolerance))
     acc, hist_out, moments, length, hist_length, temporal_var, frames, lum = step.split([3, 3, 2, 1, 1, 1, 1, 1], 1)
     m = box(torch.cat([lum, lum * lum], 1), t.variance_radius)
+    spatial_var = (m[:, 1:2] - m[:, :1].square()).clamp_min(0)
     kept = length  # the output history's weight follows the history before any drop (less flicker)
     if t.change_threshold > 0:
-        acc, moments, length, temporal_var, frames = _drop_changed(x, bound, lum, m, acc, moments, length, frames,
+        acc, moments, length, temporal_var, frames = _drop_changed(x, bound, lum, spatial_var, acc, moments, length, frames,
                                                                    hist_length)
-    var = torch.where(length >= t.variance_history, temporal_var, (m[:, 1:2] - m[:, :1].square()).clamp_min(0))
+    var = torch.where(length >= t.variance_history, temporal_var, spatial_var)
     inputs = {"color": acc * demod + emission, "emission": emission, "albedo": albedo, "normal": normal,
               "depth": depth, "hit": hit}
     if spatial_spp is None:
