@@ -19,6 +19,11 @@ remodulated. Around the filter:
   filter's residual exceeds that noise (:func:`torchgi.light.back_off`): the filter's bias is not
   left in where more samples made the input better than it, so the error falls as samples rise.
   Without a variance (1 spp, or none given) the filter's output is returned as it is.
+* Method "guided" with that variance from ``GUIDED.choose_from_spp`` (4) samples on average, at
+  full resolution and no ``radius`` given: the filter runs at half, once and twice its radius and
+  each pixel takes a blend of the three weighted by their estimated error
+  (:func:`torchgi.light.choose`) before the back-off: narrow at edges and glossy highlights, wide
+  on smooth light (about 3x the filter's time).
 
 Parameters that depend on the noise level are chosen from the measured variance when every
 surface pixel has one (>= 2 samples), else from ``spp``: the guided filter's and the bilateral's
@@ -200,6 +205,9 @@ class Denoiser(torch.nn.Module):
                 subsample = self._subsample(spec, *frame.color.shape[-2:], frame.spp)
             if subsample > 1:
                 params["subsample"] = subsample
+            elif variance and "radius" not in p and samples >= GUIDED.choose_from_spp:  # as the eager _radii
+                r = params["radius"]
+                params["radii"] = (max(1, r // 2), r, 2 * r)
         elif self.method == "atrous":
             sigma_x = p.get("sigma_position", sigma_position)
             if sigma_x is None:
@@ -260,25 +268,37 @@ class Denoiser(torch.nn.Module):
         H, W = gb.color.shape[-2:]
         level = light.level(gb.color, gb.emission, kept, gb.albedo, surface)
         radius, s = self._radius(self._spp(gb, surface), GUIDED.radius), self._subsample(spec, H, W, gb.spp)
+        radii = self._radii(radius, s, gb)
 
         def op(rows: slice = slice(None), cols: slice = slice(None), workspace: dict | None = None) -> torch.Tensor:
             def cut(t: torch.Tensor | None) -> torch.Tensor | None:
                 return None if t is None else t[..., rows, cols]
 
             tile = backends.GuideSpec(cut(spec.normal), cut(spec.depth), spec.channels, spec.scale, spec.offset)
-            out = backends.run(backends.RestoreOp(cut(gb.color), cut(gb.emission), cut(kept), cut(gb.albedo),
-                                                  cut(gb.hit), tile, level, radius,
-                                                  self.filter_params.get("eps", GUIDED.eps), s, GUIDED.firefly,
-                                                  workspace, centres[0], centres[1]))
-            return _back_off(out, gb, surface, level, rows, cols)
+            outs = [backends.run(backends.RestoreOp(cut(gb.color), cut(gb.emission), cut(kept), cut(gb.albedo),
+                                                    cut(gb.hit), tile, level, r,
+                                                    self.filter_params.get("eps", GUIDED.eps), s, GUIDED.firefly,
+                                                    workspace, centres[0], centres[1]))
+                    for r in radii]
+            return _back_off(outs, gb, surface, level, rows, cols, radii)
 
         # light and guide centred by constants of each image, so that tiles compute the untiled sums
         centres = (light.centre(gb.color, gb.emission, kept, gb.albedo, surface, GUIDED.firefly * level), guide_means)
 
         if self.max_memory_mb is None:
             return op(workspace=self._workspace)
-        return _tiled(op, gb.color, self.max_memory_mb, _footprint(radius, s), s, kept is not None,
-                      gb.variance is not None)
+        return _tiled(op, gb.color, self.max_memory_mb, _footprint(max(radii), s, len(radii) > 1), s, kept is not None,
+                      gb.variance is not None, len(radii))
+
+    def _radii(self, radius: int, s: int, gb: GBuffer) -> tuple[int, ...]:
+        """The guided filter's radii: ``(radius,)``, or ``(radius // 2 (>= 1), radius, 2 radius)``
+        for :func:`torchgi.light.choose` where the radius is not given, the filter runs at full
+        resolution and every pixel has a variance from 2 samples or more, ``GUIDED.choose_from_spp``
+        on average."""
+        if ("radius" in self.filter_params or s > 1 or gb.variance is None or gb.spp is None
+                or float(gb.spp.min()) < 2 or _mean_spp(gb.spp) < GUIDED.choose_from_spp):
+            return (radius,)
+        return (max(1, radius // 2), radius, 2 * radius)
 
     def _guide_spec(self, gb: GBuffer) -> tuple[backends.GuideSpec, torch.Tensor]:
         """:func:`~torchgi.filters.guide_from_gbuffer`'s guide (normal to [0, 1], depth over the
@@ -463,41 +483,48 @@ def _mean_spp(spp: torch.Tensor) -> float:
     return float(spp.sum()) / max(spp.numel(), 1)
 
 
-def _back_off(out: torch.Tensor, gb: GBuffer, surface: torch.Tensor, level: torch.Tensor, rows: slice = slice(None),
-              cols: slice = slice(None)) -> torch.Tensor:
+def _back_off(out: torch.Tensor | list[torch.Tensor], gb: GBuffer, surface: torch.Tensor, level: torch.Tensor,
+              rows: slice = slice(None), cols: slice = slice(None), radii: tuple[int, ...] = ()) -> torch.Tensor:
     """:func:`torchgi.light.back_off` of ``out`` (the pipeline's output for ``gb[..., rows, cols]``)
     toward that crop of ``gb.color`` (:class:`~torchgi.backends.BackOffOp`, compiled in the C back
-    end), where ``gb`` has a variance from 2 samples or more (else ``out``)."""
+    end), where ``gb`` has a variance from 2 samples or more (else ``out``). ``out`` a list: the
+    outputs of the filter at ``radii``, blended first by :func:`torchgi.light.choose` (one: itself)."""
     c, e, a, on, v, n = (None if t is None else t[..., rows, cols]
                          for t in (gb.color, gb.emission, gb.albedo, surface, gb.variance, gb.spp))
     n = light.samples(n)
+    if isinstance(out, list) and len(out) == 1:
+        out = out[0]
     if v is None or (isinstance(n, float) and n < 2):
         return out
-    return backends.run(backends.BackOffOp(out, c, v, n, light.emitting(c, e, a, on, level)))
+    emit = light.emitting(c, e, a, on, level)
+    if isinstance(out, list):
+        out = light.choose(out, list(radii), v, emit, box)
+    return backends.run(backends.BackOffOp(out, c, v, n, emit))
 
 
-def _footprint(radius: int, s: int) -> int:
+def _footprint(radius: int, s: int, chosen: bool = False) -> int:
     """How far (px) the guided pipeline's output reaches into its input: the firefly window, the
     light-source opening, the guided filter's two box passes at radius r (r / s at 1 / s
-    resolution, plus the s x s blocks and the bilinear taps) and the back-off's window, rounded up
-    to a multiple of s."""
+    resolution, plus the s x s blocks and the bilinear taps), the window of the choice among radii
+    (``chosen``) and the back-off's window, rounded up to a multiple of s."""
     r_low = radius if s == 1 else round(radius / s)
     reach = PIPELINE.firefly_radius + 2 * (PIPELINE.light_square // 2) + s * (2 * r_low + 2) + s
-    reach += PIPELINE.backoff_radius  # the back-off's window
+    reach += PIPELINE.backoff_radius * (1 + chosen)  # the back-off's window (and the choice's)
     return -(-reach // s) * s
 
 
 def _tiled(op: Callable[..., torch.Tensor], color: torch.Tensor, max_memory_mb: float, halo: int, s: int,
-           kept: bool, back_off: bool) -> torch.Tensor:
+           kept: bool, back_off: bool, candidates: int = 1) -> torch.Tensor:
     """``op(rows, cols)`` over square tiles (side a multiple of ``s``, so that the s x s blocks
     are the untiled ones) with ``halo`` px of overlap, the memory a tile needs within
     ``max_memory_mb`` beyond the inputs with the ``(B, 3, H, W)`` output; stitched. A tile
     holds copies of its inputs and the pipeline's planes: about ``4 (B (19 + 3 kept) + 22)``
-    bytes per pixel (the C back end's; docs/pipeline.md), and with a variance (``back_off``) the
-    back-off's residual, sums and weights: ``4 x 16 B`` more."""
+    bytes per pixel (the C back end's; docs/pipeline.md), with a variance (``back_off``) the
+    back-off's residual, sums and weights: ``4 x 16 B`` more, and with ``candidates`` > 1 radii
+    their outputs and :func:`torchgi.light.choose`'s planes: ``4 x (9 candidates + 5) B``."""
     B, _, H, W = color.shape
     out = torch.empty_like(color)
-    per_pixel = 4 * (B * (19 + 3 * kept + 16 * back_off) + 22)
+    per_pixel = 4 * (B * (19 + 3 * kept + 16 * back_off + (9 * candidates + 5) * (candidates > 1)) + 22)
     budget = 0.9 * max_memory_mb * 2**20 - out.numel() * out.element_size()  # 10 % for what the estimate misses
     side = (math.isqrt(int(max(budget, 0) / per_pixel)) - 2 * halo) // s * s
     if side < max(s, 16):

@@ -48,7 +48,8 @@ class DeployedDenoiser(torch.nn.Module):
     ``variance`` a last input ``variance (B, 1|3, H, W)`` (of the colour's mean, as
     ``GBuffer.variance``): the Denoiser's pipeline (:mod:`torchgi.denoise`'s docstring) with the
     fixed parameters, backed off toward the input as the eager call given a variance
-    (:func:`torchgi.light.back_off`, for the fixed sample count ``params["samples"]`` >= 2);
+    (:func:`torchgi.light.back_off`, for the fixed sample count ``params["samples"]`` >= 2; "guided"
+    with ``params["radii"]``: the filter at each radius blended by :func:`torchgi.light.choose` first);
     surfaces are the pixels of non-zero albedo. With an emission input (zeros when no light source is in
     view) the light sources are those pixels, as in the eager call given one; without it they
     are found from the colour, as in the eager call given none. A pixel
@@ -91,23 +92,26 @@ class DeployedDenoiser(torch.nn.Module):
         surface = light.surface_mask(None, albedo)
         scene_level = light.level(color, emission, None, albedo, surface)
 
-        def filter_fn(x: torch.Tensor) -> torch.Tensor:
+        def filter_fn(x: torch.Tensor, radius: int | None = None) -> torch.Tensor:
             if self.method == "pyramid":
                 return pyramid(x, guide_from(normal, geometry, depth_scale="image"), spp=self.params["spp"],
                                net=self.net)
             if self.method == "blend":
                 return blend(x, guide_from(normal, geometry, depth_scale="image"), spp=self.params["spp"], net=self.net)
             if self.method == "guided":
-                return guided(x, guide_from(normal, geometry, depth_scale="image"), radius=self.params["radius"],
+                return guided(x, guide_from(normal, geometry, depth_scale="image"), radius=radius or self.params["radius"],
                               eps=self.params["eps"], subsample=self.params.get("subsample", 1))
             return atrous(x, normal, geometry, iterations=self.params["iterations"],
                           sigma_normal=self.params["sigma_normal"], sigma_position=self.params["sigma_position"],
                           sigma_color=self.params["sigma_color"])
 
-        out = light.restore(color, emission, None, albedo, surface, filter_fn, FIREFLY[self.method], box, scene_level)
+        radii = self.params.get("radii", (None,)) if variance is not None else (None,)
+        outs = [light.restore(color, emission, None, albedo, surface, lambda x, r=r: filter_fn(x, r),
+                              FIREFLY[self.method], box, scene_level) for r in radii]
         if variance is None:
-            return out
+            return outs[0]
         emit = light.emitting(color, emission, albedo, surface, scene_level)
+        out = outs[0] if len(outs) == 1 else light.choose(outs, list(radii), variance, emit, box)
         return light.back_off(out, color, variance, float(self.params["samples"]), emit, box)
 
     def extra_repr(self) -> str:

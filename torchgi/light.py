@@ -1,7 +1,8 @@
 """The Denoiser's light maths (DESIGN §4): which pixels are surfaces, what light is divided by,
 which pixels are light sources, the firefly bound, the scene's light level and the whole
 demodulate / filter / remodulate step around a filter, and the step after it that backs off toward
-the input where the filter's residual exceeds the noise (:func:`back_off`).
+the input where the filter's residual exceeds the noise (:func:`back_off`), and the per-pixel
+choice among filters of several radii by their estimated error (:func:`choose`).
 
 It sits below the back ends: :mod:`torchgi.denoise`, :mod:`torchgi.temporal` and the torch
 back end's reference pipeline (``backends.torch_code``) all take it from here, and it imports
@@ -22,10 +23,10 @@ from collections.abc import Callable
 import torch
 
 from torchgi.core.check import is_recording
-from torchgi.settings import PIPELINE
+from torchgi.settings import GUIDED, PIPELINE
 
 __all__ = [
-    "BoxFn", "back_off", "centre", "clamp_fireflies", "demodulator", "emitting", "every4", "filter_light",
+    "BoxFn", "back_off", "centre", "choose", "clamp_fireflies", "demodulator", "emitting", "every4", "filter_light",
     "firefly_bound", "level", "light_sources", "median_level", "restore", "samples", "scaled_to", "surface_mask",
 ]
 
@@ -311,6 +312,61 @@ def back_off(out: torch.Tensor, color: torch.Tensor, variance: torch.Tensor | No
         w = torch.where(measured, w, 0.0)
     w = w.clamp(0, 1)
     return torch.addcmul(out.reshape(B, C, -1), w.reshape(B, 1, -1), res.view(B, C, -1)).view(B, C, H, W)
+
+
+def choose(outs: list[torch.Tensor], radii: list[int], variance: torch.Tensor, emitting: torch.Tensor,
+           box: BoxFn) -> torch.Tensor:
+    """A per-pixel blend of ``outs`` (each ``(B, 3, H, W)``: one linear filter of the same input at
+    each of ``radii``, sharpest first) weighted by each one's estimated local error.
+
+    A filter of radius ``r`` leaves ``c σ² / (2r+1)²`` of the input's noise variance ``σ²``
+    (``c = GUIDED.choose_noise``, a box mean applied twice) and a bias ``b_r``. Against the
+    sharpest output, ``|out_r - out_1|²`` pooled over ``PIPELINE.backoff_radius`` estimates
+    ``b_r² + (v_1 - v_r) σ²`` (the sharpest's own bias taken as 0), so each output's error is
+    estimated as ``max(that - (v_1 - v_r) σ², 0) + v_r σ²`` and the outputs are weighted by
+    ``softmax(-error / (GUIDED.choose_temperature v_1 σ²))``: the wide filter where the light is
+    smooth, the narrow one where the wide one's bias shows above the noise. Squares are weighted
+    as relMSE weights them (``1 / (out² + 0.01)`` of the middle output) and pooled over pixels
+    that do not emit (``emitting (B,1,H,W)`` bool: a light's variance would make its neighbours
+    blur). ``variance``: of the colour's mean, ``(B, 1|3, H, W)``; every pixel needs one (2 samples
+    or more). Differentiable; float16 and bfloat16 are worked in float32.
+
+    Example:
+        >>> from torchgi.filters import box
+        >>> edge = (torch.arange(16.0) >= 8).float().view(1, 1, 1, 16).expand(1, 3, 16, 16)
+        >>> sharp, wide = edge + 0.02, box(edge, 4)        # the wide one blurs the edge
+        >>> none = torch.zeros(1, 1, 16, 16, dtype=torch.bool)
+        >>> out = choose([sharp, wide], [1, 4], torch.full((1, 1, 16, 16), 1e-4), none, box)
+        >>> bool((out - edge).abs().amax() < 0.05)
+        True
+    """
+    if outs[0].dtype in (torch.float16, torch.bfloat16):  # squares of radiance overflow float16
+        return choose([o.float() for o in outs], radii, variance.float(), emitting, box).to(outs[0].dtype)
+    if len(outs) != len(radii) or len(outs) < 2:
+        raise ValueError(f"outs, radii: expected one output per radius, at least 2; got {len(outs)} and {len(radii)}")
+    C = outs[0].shape[1]
+    channels = range(C)  # (channel by channel: broadcasts over channels run slowly)
+    mid = outs[len(outs) // 2]
+    weight = 1 / (sum(mid[:, c : c + 1].square() for c in channels) / C + 0.01)
+    noise = sum(variance[:, c : c + 1] for c in channels) if variance.shape[1] > 1 else variance * C
+    planes = [noise * weight] + [sum((o[:, c : c + 1] - outs[0][:, c : c + 1]).square() for c in channels) * weight
+                                 for o in outs[1:]]
+    stacked = torch.cat(planes, 1)
+    any_lit = is_recording() or bool(emitting.any())
+    sums = box(stacked.masked_fill(emitting, 0.0) if any_lit else stacked, PIPELINE.backoff_radius)
+    sigma = sums[:, :1]
+    share = [GUIDED.choose_noise / (2 * r + 1) ** 2 for r in radii]
+    errors = [sigma * share[0]] + [(sums[:, k : k + 1] - sigma * (share[0] - share[k])).clamp_min(0) + sigma * share[k]
+                                   for k in range(1, len(outs))]
+    # no noise measured (a noise-free window): the sharpest; every division guarded by a where
+    # whose other branch stays finite (gradients and onnxruntime, which flushes tiny numbers, too)
+    floor = torch.finfo(sigma.dtype).eps ** 2  # (its square is still a normal number)
+    noisy = sigma > floor
+    scale = torch.where(noisy, GUIDED.choose_temperature * share[0] * sigma, 1.0).clamp_min(floor)
+    w = torch.softmax(-torch.cat(errors, 1) / scale, 1)
+    sharpest = torch.zeros_like(w[:, :1])
+    w = torch.where(noisy, w, torch.cat([sharpest + 1] + [sharpest] * (len(outs) - 1), 1))
+    return sum(w[:, k : k + 1] * o for k, o in enumerate(outs))
 
 
 def samples(spp: torch.Tensor | None) -> float | torch.Tensor | None:
