@@ -7,7 +7,7 @@
 For each scene of ``configs/scenes/sets.yaml``'s ``--set`` (judged by default: never used for a
 default) and each spp: one noisy render (seed 1) against a ``--ref-spp`` reference (seed 999),
 denoised by the default ``Denoiser()``, the same without its back-off toward the input
-(``denoise._back_off`` replaced by the identity: the filter as it was before issue 33), ``Denoiser("atrous")``, ``Denoiser("blend")`` and Intel Open Image Denoise high
+(``denoise._back_off`` replaced by the identity: the filter at its one radius, as it was before issue 33), ``Denoiser("atrous")``, ``Denoiser("blend")`` and Intel Open Image Denoise high
 (pyoidn, both protocols of ``bench_quality.py``; the better counts) → relMSE, PSNR, SSIM, FLIP.
 Writes ``spp.csv/json/md`` and ``spp_<scene>.png`` (relMSE against spp, log-log, per method beside
 the noisy input), and checks issue 33's lines for the default Denoiser: below the noisy input's
@@ -36,7 +36,8 @@ OIDN = ("OIDN high", "OIDN high, emission added back")
 
 def without_back_off(gb):
     """``Denoiser()(gb)`` with its back-off toward the input (``denoise._back_off``, which runs
-    :func:`torchgi.light.back_off`) replaced by the identity: the filter's output."""
+    :func:`torchgi.light.back_off`, and before it from 4 spp the choice among radii,
+    :func:`torchgi.light.choose`) replaced by the identity: the filter's output at its one radius."""
     saved = denoise._back_off
     denoise._back_off = lambda out, *_: out[len(out) // 2] if isinstance(out, list) else out
     try:

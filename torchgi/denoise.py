@@ -20,10 +20,10 @@ remodulated. Around the filter:
   left in where more samples made the input better than it, so the error falls as samples rise.
   Without a variance (1 spp, or none given) the filter's output is returned as it is.
 * Method "guided" with that variance from ``GUIDED.choose_from_spp`` (4) samples on average, at
-  full resolution and no ``radius`` given: the filter runs at half, once and twice its radius and
-  each pixel takes a blend of the three weighted by their estimated error
+  full resolution and no ``radius`` given: the filter runs at half and at twice its radius and
+  each pixel takes a blend of the two weighted by their estimated error
   (:func:`torchgi.light.choose`) before the back-off: narrow at edges and glossy highlights, wide
-  on smooth light (about 3x the filter's time).
+  on smooth light (about 2x the filter's time).
 
 Parameters that depend on the noise level are chosen from the measured variance when every
 surface pixel has one (>= 2 samples), else from ``spp``: the guided filter's and the bilateral's
@@ -207,7 +207,7 @@ class Denoiser(torch.nn.Module):
                 params["subsample"] = subsample
             elif variance and "radius" not in p and samples >= GUIDED.choose_from_spp:  # as the eager _radii
                 r = params["radius"]
-                params["radii"] = (max(1, r // 2), r, 2 * r)
+                params["radii"] = (max(1, r // 2), 2 * r)
         elif self.method == "atrous":
             sigma_x = p.get("sigma_position", sigma_position)
             if sigma_x is None:
@@ -291,14 +291,14 @@ class Denoiser(torch.nn.Module):
                       gb.variance is not None, len(radii))
 
     def _radii(self, radius: int, s: int, gb: GBuffer) -> tuple[int, ...]:
-        """The guided filter's radii: ``(radius,)``, or ``(radius // 2 (>= 1), radius, 2 radius)``
+        """The guided filter's radii: ``(radius,)``, or ``(radius // 2 (>= 1), 2 radius)``
         for :func:`torchgi.light.choose` where the radius is not given, the filter runs at full
         resolution and every pixel has a variance from 2 samples or more, ``GUIDED.choose_from_spp``
         on average."""
         if ("radius" in self.filter_params or s > 1 or gb.variance is None or gb.spp is None
                 or float(gb.spp.min()) < 2 or _mean_spp(gb.spp) < GUIDED.choose_from_spp):
             return (radius,)
-        return (max(1, radius // 2), radius, 2 * radius)
+        return (max(1, radius // 2), 2 * radius)
 
     def _guide_spec(self, gb: GBuffer) -> tuple[backends.GuideSpec, torch.Tensor]:
         """:func:`~torchgi.filters.guide_from_gbuffer`'s guide (normal to [0, 1], depth over the
@@ -488,7 +488,8 @@ def _back_off(out: torch.Tensor | list[torch.Tensor], gb: GBuffer, surface: torc
     """:func:`torchgi.light.back_off` of ``out`` (the pipeline's output for ``gb[..., rows, cols]``)
     toward that crop of ``gb.color`` (:class:`~torchgi.backends.BackOffOp`, compiled in the C back
     end), where ``gb`` has a variance from 2 samples or more (else ``out``). ``out`` a list: the
-    outputs of the filter at ``radii``, blended first by :func:`torchgi.light.choose` (one: itself)."""
+    outputs of the filter at ``radii``, blended first by :func:`torchgi.light.choose`
+    (:class:`~torchgi.backends.ChooseOp`, compiled in the C back end; one output: itself)."""
     c, e, a, on, v, n = (None if t is None else t[..., rows, cols]
                          for t in (gb.color, gb.emission, gb.albedo, surface, gb.variance, gb.spp))
     n = light.samples(n)
@@ -498,7 +499,7 @@ def _back_off(out: torch.Tensor | list[torch.Tensor], gb: GBuffer, surface: torc
         return out
     emit = light.emitting(c, e, a, on, level)
     if isinstance(out, list):
-        out = light.choose(out, list(radii), v, emit, box)
+        out = backends.run(backends.ChooseOp(tuple(out), radii, v, emit))
     return backends.run(backends.BackOffOp(out, c, v, n, emit))
 
 

@@ -319,14 +319,15 @@ def choose(outs: list[torch.Tensor], radii: list[int], variance: torch.Tensor, e
     """A per-pixel blend of ``outs`` (each ``(B, 3, H, W)``: one linear filter of the same input at
     each of ``radii``, sharpest first) weighted by each one's estimated local error.
 
-    A filter of radius ``r`` leaves ``c σ² / (2r+1)²`` of the input's noise variance ``σ²``
-    (``c = GUIDED.choose_noise``, a box mean applied twice) and a bias ``b_r``. Against the
+    A filter of radius ``r`` leaves ``v_r σ² = c σ² / (2r+1)²`` of the input's noise variance ``σ²``
+    (``c = GUIDED.choose_noise``; 0.44 for a box mean applied twice on a flat guide, more at
+    edges) and a bias ``b_r``. Against the
     sharpest output, ``|out_r - out_1|²`` pooled over ``PIPELINE.backoff_radius`` estimates
     ``b_r² + (v_1 - v_r) σ²`` (the sharpest's own bias taken as 0), so each output's error is
     estimated as ``max(that - (v_1 - v_r) σ², 0) + v_r σ²`` and the outputs are weighted by
     ``softmax(-error / (GUIDED.choose_temperature v_1 σ²))``: the wide filter where the light is
     smooth, the narrow one where the wide one's bias shows above the noise. Squares are weighted
-    as relMSE weights them (``1 / (out² + 0.01)`` of the middle output) and pooled over pixels
+    as relMSE weights them (``1 / (out² + 0.01)`` of ``outs[len(outs) // 2]``) and pooled over pixels
     that do not emit (``emitting (B,1,H,W)`` bool: a light's variance would make its neighbours
     blur). ``variance``: of the colour's mean, ``(B, 1|3, H, W)``; every pixel needs one (2 samples
     or more). Differentiable; float16 and bfloat16 are worked in float32.

@@ -74,14 +74,14 @@ class GuidedSettings:
                                     "time)")
     choose_from_spp: float = _setting(4.0, 2.0, math.inf, "samples per pixel",
                                       "with a variance from this many samples and at full resolution, the filter runs "
-                                      "at half, once and twice its radius and each pixel takes a blend by estimated "
-                                      "error (light.choose; tuning set, 256²: 4-16 spp 7-15 % lower relMSE, worse at "
-                                      "2 spp)")
-    choose_noise: float = _setting(1.25, 0.0, math.inf, "x noise variance / (2r+1)²",
+                                      "at half and twice its radius and each pixel takes a blend by estimated error "
+                                      "(light.choose; tuning set, 256²: 4-16 spp 6-16 % lower relMSE on every scene; "
+                                      "worse at 2 spp)")
+    choose_noise: float = _setting(1.5, 0.0, math.inf, "x noise variance / (2r+1)²",
                                    "the noise a radius-r filter leaves, in light.choose's error estimate (tuning set; "
                                    "0.44 for a box mean applied twice on a flat guide, edges leave more)")
-    choose_temperature: float = _setting(0.3, 0.01, math.inf, "x the sharpest filter's noise",
-                                         "the softmax temperature of light.choose (tuning set: 1 % below a hard pick)")
+    choose_temperature: float = _setting(0.6, 0.01, math.inf, "x the sharpest filter's noise",
+                                         "the softmax temperature of light.choose (tuning set: 0.15-1.5 swept)")
     edge: float = _setting(0.1, 0.0, math.inf, "guide units", "a neighbour this different in the guide is an edge")
     edge_share: float = _setting(0.1, 0.0, 1.0, "share of pixels",
                                  "half resolution only where fewer pixels than this lie on edges")

@@ -29,6 +29,7 @@ from torchgi.backends.base import (
     ATrousOp,
     BackOffOp,
     BoxOp,
+    ChooseOp,
     EdgeShareOp,
     GuidedOp,
     GuideRaysOp,
@@ -51,7 +52,8 @@ from torchgi.backends.base import (
 )
 
 __all__ = [
-    "NAMES", "ORDER", "ATrousOp", "AccumulateOp", "AllocateOp", "BackOffOp", "BoxOp", "EdgeShareOp", "GuideRaysOp",
+    "NAMES", "ORDER", "ATrousOp", "AccumulateOp", "AllocateOp", "BackOffOp", "BoxOp", "ChooseOp", "EdgeShareOp",
+    "GuideRaysOp",
     "GuideSpec", "GuideStatsOp", "GuidedOp", "ImportanceOp", "PathOp", "RestoreOp", "TraceSetup", "UpsampleApplyOp",
     "box_mean", "chunks",
     "embree_started", "enabled", "mark_embree_started", "run", "select", "status", "use",

@@ -29,7 +29,7 @@ from torchgi.core.dtypes import compute_dtype
 from torchgi.core.errors import OptionError
 
 __all__ = [
-    "LUMA", "NAMES", "ORDER", "ATrousOp", "AccumulateOp", "AllocateOp", "BackOffOp", "BoxOp", "EdgeShareOp", "GuideRaysOp",
+    "LUMA", "NAMES", "ORDER", "ATrousOp", "AccumulateOp", "AllocateOp", "BackOffOp", "BoxOp", "ChooseOp", "EdgeShareOp", "GuideRaysOp",
     "GuideSpec", "GuideStatsOp", "GuidedOp", "ImportanceOp", "PathOp", "RestoreOp", "TraceSetup", "UpsampleApplyOp", "box_mean", "chunks",
     "eager", "embree_started", "enabled", "float32_eager", "mark_embree_started", "run",
     "select", "status", "use",
@@ -268,6 +268,23 @@ class BackOffOp:
         return (self.out, self.color, self.variance)
 
 
+@dataclass(eq=False, slots=True)
+class ChooseOp:
+    """:func:`torchgi.light.choose`: a per-pixel blend of ``outs`` (2 to 4 ``(B,3,H,W)`` outputs of
+    one filter at ``radii``, sharpest first) by their estimated error against the noise
+    ``variance (B,1|3,H,W)`` (of the mean), pooled over pixels that are not ``emitting (B,1,H,W)``
+    bool; constants ``settings.PIPELINE``'s and ``settings.GUIDED``'s. All float tensors of one
+    dtype and device. Returns the ``(B,3,H,W)`` blend."""
+
+    outs: tuple[torch.Tensor, ...]
+    radii: tuple[int, ...]
+    variance: torch.Tensor
+    emitting: torch.Tensor
+
+    def tensors(self) -> tuple[torch.Tensor | None, ...]:
+        return (*self.outs, self.variance)
+
+
 LUMA = (0.2126, 0.7152, 0.0722)  # the luminance AccumulateOp returns and moments are of (Rec. 709 weights)
 
 
@@ -380,10 +397,10 @@ class GuideRaysOp:
         return ()
 
 
-Op = BoxOp | GuidedOp | ATrousOp | ImportanceOp | AllocateOp | GuideStatsOp | EdgeShareOp | RestoreOp | BackOffOp | \
+Op = BoxOp | GuidedOp | ATrousOp | ImportanceOp | AllocateOp | GuideStatsOp | EdgeShareOp | RestoreOp | BackOffOp | ChooseOp | \
     AccumulateOp | PathOp | GuideRaysOp
 _OPS = {BoxOp: "box", GuidedOp: "guided", UpsampleApplyOp: "upsample_apply", ATrousOp: "atrous", ImportanceOp: "importance", AllocateOp: "allocate",
-        GuideStatsOp: "guide_stats", EdgeShareOp: "edge_share", RestoreOp: "restore", BackOffOp: "back_off",
+        GuideStatsOp: "guide_stats", EdgeShareOp: "edge_share", RestoreOp: "restore", BackOffOp: "back_off", ChooseOp: "choose",
         AccumulateOp: "accumulate", PathOp: "path", GuideRaysOp: "guide_rays"}
 
 

@@ -38,6 +38,7 @@ from torchgi.backends.base import (
     ATrousOp,
     BackOffOp,
     BoxOp,
+    ChooseOp,
     EdgeShareOp,
     GuidedOp,
     GuideStatsOp,
@@ -50,13 +51,13 @@ from torchgi.backends.c_kernels import build
 from torchgi.backends.c_kernels.accumulation import accumulate
 from torchgi.backends.c_kernels.build import describe, library
 from torchgi.backends.c_kernels.filters import atrous, box, guided, upsample_apply
-from torchgi.backends.c_kernels.pipeline import back_off, edge_share, guide_stats, restore
+from torchgi.backends.c_kernels.pipeline import back_off, choose, edge_share, guide_stats, restore
 from torchgi.backends.c_kernels.runtime import empty_planes, padded
 from torchgi.backends.c_kernels.sampling import allocate, importance
 from torchgi.backends.c_kernels.tracer import _path_support, guide_rays, path
 
 __all__ = [
-    "NAME", "accumulate", "allocate", "atrous", "back_off", "box", "describe", "edge_share", "empty_planes",
+    "NAME", "accumulate", "allocate", "atrous", "back_off", "box", "choose", "describe", "edge_share", "empty_planes",
     "guide_rays", "guide_stats", "guided", "importance", "library", "padded", "path", "restore", "supports",
     "upsample_apply",
 ]
@@ -65,7 +66,7 @@ NAME = "c"
 
 
 def supports(op: str, desc: BoxOp | GuidedOp | ATrousOp | ImportanceOp | AllocateOp | GuideStatsOp | EdgeShareOp |
-             RestoreOp | BackOffOp | UpsampleApplyOp) -> str | None:
+             RestoreOp | BackOffOp | ChooseOp | UpsampleApplyOp) -> str | None:
     """None when the kernels take ``desc``: eager float32 CPU tensors (float32/float64
     importance for the allocation, fewer than 2^31 pixels per image), a built library; else why not.
 
@@ -98,4 +99,8 @@ def supports(op: str, desc: BoxOp | GuidedOp | ATrousOp | ImportanceOp | Allocat
             return "per-pixel sample counts: the torch code"
         if desc.out.numel() == 0 or desc.out.shape[1] != 3 or desc.variance.shape[1] not in (1, 3):
             return "the C back-off takes non-empty 3-channel images with 1 or 3 variance planes"
+    if op == "choose":
+        o = desc.outs[0]
+        if not 2 <= len(desc.outs) <= 4 or o.numel() == 0 or o.shape[1] != 3 or desc.variance.shape[1] not in (1, 3):
+            return "the C choice takes 2 to 4 non-empty 3-channel images with 1 or 3 variance planes"
     return None if build.library() is not None else build._status

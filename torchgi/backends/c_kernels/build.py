@@ -54,6 +54,8 @@ _SIGNATURES = {
     "torchgi_accumulate": ([_P] * 13 + [_I, _I, _F, _F, _F, _F, _P, *_BANDS], None),
     "torchgi_backoff_planes": ([_P, _P, _P, _I, _P, _I, _I, _P, *_BANDS], None),
     "torchgi_backoff_apply": ([_P, _P, _P, _I, _P, _P, _I, _I, _F, _F, _F, _P, *_BANDS], None),
+    "torchgi_choose_planes": ([_P, _P, _P, _P, _I, _P, _I, _P, _I, _I, _P, *_BANDS], None),
+    "torchgi_choose_apply": ([_P, _P, _P, _P, _I, _P, _P, _F, _F, _I, _I, _P, *_BANDS], None),
     "torchgi_embree_init": ([_P], None),
     "torchgi_scene_new": ([_P, _L], _P),
     "torchgi_scene_free": ([_P], None),

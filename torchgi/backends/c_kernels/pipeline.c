@@ -523,3 +523,70 @@ void torchgi_backoff_apply(const float *color, const float *out, const float *va
     const size_t HW = (size_t)H * W;
     OVER_BANDS(H, backoff_apply_rows(color, out, var, var_c, emit, sums, W, HW, k, inv_n, floor, dst, y0, y1));
 }
+
+/* ---------------------------------------------------------------- choice among radii (backends.base.ChooseOp)
+ * torchgi.light.choose in two walks around the box pass: planes = (the summed noise variance,
+ * |o_k - o_0|² for k = 1..n-1), each times the relMSE weight 1 / (mean_c o_mid² + 0.01) of
+ * o_mid = o[n / 2], 0 on emitting pixels; then, from their box means (sums), each output's error
+ * e_0 = σ share_0, e_k = max(sums_k - σ (share_0 - share_k), 0) + σ share_k (σ = sums_0) and the
+ * softmax weights of -e / max(T share_0 σ, floor), one-hot on the sharpest where σ <= floor;
+ * dst = Σ w_k o_k. o: n (2..4) outputs, the unused pointers NULL. */
+static void choose_planes_rows(const float *const o[4], int n, const float *var, int var_c, const uint8_t *emit,
+                               int W, size_t HW, float *planes, int y0, int y1) {
+    const float *mid = o[n / 2];
+    for (size_t i = (size_t)y0 * W; i < (size_t)y1 * W; ++i) {
+        const float m = (mid[i] * mid[i] + mid[HW + i] * mid[HW + i] + mid[2 * HW + i] * mid[2 * HW + i]) / 3.0f;
+        const float w = emit[i] ? 0.0f : 1.0f / (m + 0.01f);
+        const float noise = var_c == 3 ? var[i] + var[HW + i] + var[2 * HW + i] : 3.0f * var[i];
+        planes[i] = noise * w;
+        for (int k = 1; k < n; ++k) {
+            float d2 = 0.0f;
+            for (int c = 0; c < 3; ++c) {
+                const float d = o[k][c * HW + i] - o[0][c * HW + i];
+                d2 += d * d;
+            }
+            planes[k * HW + i] = d2 * w;
+        }
+    }
+}
+
+static void choose_apply_rows(const float *const o[4], int n, const float *sums, const float *share, float T,
+                              float floor, int W, size_t HW, float *dst, int y0, int y1) {
+    for (size_t i = (size_t)y0 * W; i < (size_t)y1 * W; ++i) {
+        const float sigma = sums[i];
+        float wk[4] = {1.0f, 0.0f, 0.0f, 0.0f};
+        if (sigma > floor) {
+            float e[4], lo;
+            e[0] = lo = sigma * share[0];
+            for (int k = 1; k < n; ++k) {
+                e[k] = fmaxf(sums[k * HW + i] - sigma * (share[0] - share[k]), 0.0f) + sigma * share[k];
+                lo = fminf(lo, e[k]);
+            }
+            const float scale = fmaxf(T * share[0] * sigma, floor);
+            float total = 0.0f;
+            for (int k = 0; k < n; ++k) total += wk[k] = expf(-(e[k] - lo) / scale);
+            for (int k = 0; k < n; ++k) wk[k] /= total;
+        }
+        for (int c = 0; c < 3; ++c) {
+            float acc = 0.0f;
+            for (int k = 0; k < n; ++k) acc += wk[k] * o[k][c * HW + i];
+            dst[c * HW + i] = acc;
+        }
+    }
+}
+
+void torchgi_choose_planes(const float *o0, const float *o1, const float *o2, const float *o3, int n, const float *var,
+                           int var_c, const uint8_t *emit, int H, int W, float *planes, int nt, void *scratch,
+                           long long stride) {
+    const size_t HW = (size_t)H * W;
+    const float *const o[4] = {o0, o1, o2, o3};
+    OVER_BANDS(H, choose_planes_rows(o, n, var, var_c, emit, W, HW, planes, y0, y1));
+}
+
+void torchgi_choose_apply(const float *o0, const float *o1, const float *o2, const float *o3, int n, const float *sums,
+                          const float *share, float T, float floor, int H, int W, float *dst, int nt, void *scratch,
+                          long long stride) {
+    const size_t HW = (size_t)H * W;
+    const float *const o[4] = {o0, o1, o2, o3};
+    OVER_BANDS(H, choose_apply_rows(o, n, sums, share, T, floor, W, HW, dst, y0, y1));
+}

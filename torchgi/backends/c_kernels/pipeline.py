@@ -1,6 +1,7 @@
 """The C back end's Denoiser pipeline: the guide statistics, the edge share, the fused guided
 pipeline (:class:`~torchgi.backends.base.RestoreOp`) and the back-off toward the input after it
-(:class:`~torchgi.backends.base.BackOffOp`)."""
+(:class:`~torchgi.backends.base.BackOffOp`) and the choice among radii before it
+(:class:`~torchgi.backends.base.ChooseOp`)."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import torch
 
 from torchgi.backends.base import (
     BackOffOp,
+    ChooseOp,
     EdgeShareOp,
     GuideStatsOp,
     RestoreOp,
@@ -25,7 +27,7 @@ from torchgi.backends.c_kernels.runtime import (
     _threads,
 )
 from torchgi.core.dtypes import variance_rounding
-from torchgi.settings import PIPELINE
+from torchgi.settings import GUIDED, PIPELINE
 
 
 def guide_stats(desc: GuideStatsOp) -> torch.Tensor:
@@ -191,4 +193,34 @@ def back_off(desc: BackOffOp) -> torch.Tensor:
     for b in range(B):
         _run(lib.torchgi_backoff_apply, H, W, color[b].data_ptr(), out[b].data_ptr(), var[b].data_ptr(),
              var.shape[1], emit[b].data_ptr(), sums[b].data_ptr(), H, W, k, 1 / n, floor, dst[b].data_ptr(), 0)
+    return dst
+
+
+def choose(desc: ChooseOp) -> torch.Tensor:
+    """:class:`~torchgi.backends.base.ChooseOp` in two walks per image around the box pass.
+
+    Example:
+        >>> c = torch.ones(1, 3, 4, 4); lit = torch.zeros(1, 1, 4, 4, dtype=torch.bool)
+        >>> build.library() is None or round(choose(ChooseOp((c, c + 1), (1, 4), torch.zeros_like(c), lit)).mean().item(), 4)
+        1.0
+    """
+    lib = build.library()
+    outs = [o.contiguous() for o in desc.outs]
+    var, emit = desc.variance.contiguous(), desc.emitting.contiguous()
+    n = len(outs)
+    B, _, H, W = outs[0].shape
+    share = torch.tensor([GUIDED.choose_noise / (2 * r + 1) ** 2 for r in desc.radii] + [0.0] * (4 - n),
+                         dtype=torch.float32)
+    floor = torch.finfo(torch.float32).eps ** 2
+    planes = torch.empty(B, n, H, W, dtype=torch.float32)
+    for b in range(B):
+        ptrs = [o[b].data_ptr() for o in outs] + [None] * (4 - n)
+        _run(lib.torchgi_choose_planes, H, W, *ptrs, n, var[b].data_ptr(), var.shape[1], emit[b].data_ptr(), H, W,
+             planes[b].data_ptr(), 0)
+    sums = _box(planes, PIPELINE.backoff_radius)
+    dst = torch.empty_like(outs[0])
+    for b in range(B):
+        ptrs = [o[b].data_ptr() for o in outs] + [None] * (4 - n)
+        _run(lib.torchgi_choose_apply, H, W, *ptrs, n, sums[b].data_ptr(), share.data_ptr(),
+             float(GUIDED.choose_temperature), floor, H, W, dst[b].data_ptr(), 0)
     return dst

@@ -11,6 +11,7 @@ import torch
 from torchgi import light
 from torchgi.backends.base import (
     BackOffOp,
+    ChooseOp,
     EdgeShareOp,
     GuideStatsOp,
     RestoreOp,
@@ -94,3 +95,16 @@ def back_off(desc: BackOffOp) -> torch.Tensor:
     """
     d = desc
     return light.back_off(d.out, d.color, d.variance, d.spp, d.emitting, box_mean)
+
+
+def choose(desc: ChooseOp) -> torch.Tensor:
+    """:class:`~torchgi.backends.base.ChooseOp` by :func:`torchgi.light.choose` in tensor ops (the
+    reference: autograd, tracing, any dtype and device; its box through the seam).
+
+    Example:
+        >>> c = torch.ones(1, 3, 4, 4); lit = torch.zeros(1, 1, 4, 4, dtype=torch.bool)
+        >>> round(choose(ChooseOp((c, c + 1), (1, 4), torch.zeros_like(c), lit)).mean().item(), 4)   # noise-free: the sharpest
+        1.0
+    """
+    d = desc
+    return light.choose(list(d.outs), list(d.radii), d.variance, d.emitting, box_mean)
