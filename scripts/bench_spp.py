@@ -36,14 +36,15 @@ OIDN = ("OIDN high", "OIDN high, emission added back")
 
 def without_back_off(gb):
     """``Denoiser()(gb)`` with its back-off toward the input (``denoise._back_off``, which runs
-    :func:`torchgi.light.back_off`, and before it from 4 spp the choice among radii,
-    :func:`torchgi.light.choose`) replaced by the identity: the filter's output at its one radius."""
-    saved = denoise._back_off
-    denoise._back_off = lambda out, *_: out[len(out) // 2] if isinstance(out, list) else out
+    :func:`torchgi.light.back_off`) replaced by the identity and its choice among radii from 4 spp
+    (``Denoiser._radii``, :func:`torchgi.light.choose`) by its one radius: the filter's output."""
+    saved = denoise._back_off, Denoiser._radii
+    denoise._back_off = lambda out, *_: out[0] if isinstance(out, list) else out
+    Denoiser._radii = lambda self, radius, *_: (radius,)
     try:
         return Denoiser()(gb)
     finally:
-        denoise._back_off = saved
+        denoise._back_off, Denoiser._radii = saved
 
 
 def methods() -> dict:
