@@ -206,8 +206,7 @@ class Denoiser(torch.nn.Module):
             if subsample > 1:
                 params["subsample"] = subsample
             elif variance and "radius" not in p and samples >= GUIDED.choose_from_spp:  # as the eager _radii
-                r = params["radius"]
-                params["radii"] = (max(1, r // 2), 2 * r)
+                params["radii"] = _choice_radii(params["radius"])
         elif self.method == "atrous":
             sigma_x = p.get("sigma_position", sigma_position)
             if sigma_x is None:
@@ -298,7 +297,7 @@ class Denoiser(torch.nn.Module):
         if ("radius" in self.filter_params or s > 1 or gb.variance is None or gb.spp is None
                 or float(gb.spp.min()) < 2 or _mean_spp(gb.spp) < GUIDED.choose_from_spp):
             return (radius,)
-        return (max(1, radius // 2), 2 * radius)
+        return _choice_radii(radius)
 
     def _guide_spec(self, gb: GBuffer) -> tuple[backends.GuideSpec, torch.Tensor]:
         """:func:`~torchgi.filters.guide_from_gbuffer`'s guide (normal to [0, 1], depth over the
@@ -476,6 +475,11 @@ class Denoiser(torch.nn.Module):
                               sigma_color=p.get("sigma_color", BILATERAL.sigma_color),
                               sigma_guides=[BILATERAL.sigma_guide] * len(guides))
         return out / scale
+
+
+def _choice_radii(radius: int) -> tuple[int, int]:
+    """The radii :func:`torchgi.light.choose` blends in place of ``radius``: half (>= 1) and twice it."""
+    return (max(1, radius // 2), 2 * radius)
 
 
 def _mean_spp(spp: torch.Tensor) -> float:
