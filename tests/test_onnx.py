@@ -154,6 +154,26 @@ def test_a_non_finite_variance_pixel_is_a_hole_too():
     assert float(((out - clean).abs() / (clean.abs() + 1e-2))[..., far].max()) < 3e-4
 
 
+def test_finite_inputs_whose_sum_overflows_pass_unchanged():
+    """The hole filling runs only where the inputs' sum is not finite (an If in the graph); finite
+    values whose sum overflows float32 take that branch and must still pass bit for bit, and a
+    NaN beside them is filled from its finite neighbours (a hand case)."""
+    from torchgi.deployed import _fill_holes
+
+    x = torch.rand(1, 3, 9, 11)
+    x[0, 0, 2, 2] = x[0, 1, 5, 7] = 3e38  # finite; their sum is inf
+    y = torch.rand(1, 1, 9, 11)
+    assert not torch.isfinite(x.sum())
+    got = _fill_holes([x, y])
+    assert torch.equal(got[0], x) and torch.equal(got[1], y)
+    y[0, 0, 4, 4] = float("nan")
+    z = torch.ones(1, 1, 9, 11)
+    z[0, 0, 4, 4] = float("nan")
+    assert torch.equal(_fill_holes([z])[0], torch.ones(1, 1, 9, 11))  # the mean of its finite 5x5 neighbours
+    got = _fill_holes([x, y])
+    assert bool(torch.isfinite(got[1]).all()) and got[0][0, 0, 4, 4] != x[0, 0, 4, 4]  # the whole pixel is a hole
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("emission", [True, False])
 def test_exported_default_matches_the_eager_default_on_large_renders(tmp_path, emission):

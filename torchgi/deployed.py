@@ -11,7 +11,8 @@ from typing import Any
 import torch
 
 from torchgi import light
-from torchgi.core.check import check_option
+from torchgi.backends.torch_code.filter_box import box_pool
+from torchgi.core.check import check_option, is_recording
 from torchgi.filters import atrous, blend, box, guide_from, guided
 from torchgi.filters.pyramid import pyramid
 from torchgi.settings import ATROUS, BILATERAL, GUIDED, PIPELINE
@@ -28,11 +29,31 @@ def _fill_holes(tensors: list[torch.Tensor]) -> list[torch.Tensor]:
     of them made a hole: all its inputs replaced by the mean of the finite pixels within
     ``PIPELINE.hole_radius`` (normalised convolution; 0 where there is none), so nothing
     non-finite reaches the filter and the hole's output comes from its neighbours. Plain
-    tensor ops (exportable); finite inputs pass unchanged."""
+    tensor ops (exportable); finite inputs pass unchanged.
+
+    The filling runs only where the sum of every input is not finite (one reduction per input;
+    in a graph an ``If``): NaN/Inf anywhere make it so, and so can finite values whose sum
+    overflows, for which the filling changes nothing. Clean inputs skip its full-resolution passes.
+
+    Example:
+        >>> x = torch.ones(1, 1, 3, 3); x[0, 0, 1, 1] = float("nan")
+        >>> _fill_holes([x])[0][0, 0, 1].tolist()
+        [1.0, 1.0, 1.0]
+    """
+    maybe = torch.isfinite(torch.stack([t.sum() for t in tensors]).sum())
+    if not is_recording():
+        return list(tensors) if bool(maybe) else _filled(tensors)
+    # (a branch of a cond may return no view of its inputs nor two views of one tensor: clones)
+    return list(torch.cond(maybe, lambda *ts: tuple(t.clone() for t in ts),
+                           lambda *ts: tuple(t.clone() for t in _filled(list(ts))), tuple(tensors)))
+
+
+def _filled(tensors: list[torch.Tensor]) -> list[torch.Tensor]:
+    """:func:`_fill_holes`' filling, on every pixel."""
     ok = torch.stack([torch.isfinite(t).all(1, keepdim=True) for t in tensors]).all(0)
     w = ok.to(tensors[0].dtype)
     clean = torch.where(ok, torch.cat(tensors, 1), 0.0)  # one select, one box over every channel
-    sums = box(torch.cat([clean, w], 1), PIPELINE.hole_radius)
+    sums = box_pool(torch.cat([clean, w], 1), PIPELINE.hole_radius)  # (the torch code: inside a graph's If)
     # 0 where no finite pixel is near (the sums are 0 there); ``clean + (1 - w) filled`` is the
     # input itself where finite, exactly, and the fill in a hole
     filled = clean + (1 - w) * (sums[:, :-1] / sums[:, -1:].clamp_min(1e-6))

@@ -137,18 +137,35 @@ def _guided_reference(
 
 
 def upsample_apply(desc: UpsampleApplyOp) -> torch.Tensor:
-    """:class:`~torchgi.backends.base.UpsampleApplyOp`: ``F.interpolate`` x2, cropped, then
-    :func:`apply_coefficients`.
+    """:class:`~torchgi.backends.base.UpsampleApplyOp`: ``F.interpolate`` x2, then
+    :func:`apply_coefficients` on the guide padded to that size, and the output cropped: the crop
+    moves ``Cs`` planes, not the ``(n + 1) Cs`` of the coefficients (in onnxruntime a crop of the
+    coefficients cost more than their upsampling: docs/benchmarks/onnx.md).
 
     Example:
         >>> c = torch.zeros(1, 2, 1, 2, 2); c[:, 1] = 3.0   # a = 0, b = 3
         >>> upsample_apply(UpsampleApplyOp(c, torch.rand(1, 1, 4, 3))).unique().tolist()
         [3.0]
     """
-    c, guide = desc.coeffs, desc.guide
+    return upsampled_apply(desc.coeffs, desc.guide, 2)
+
+
+def upsampled_apply(coeffs: torch.Tensor, guide: torch.Tensor, s: int) -> torch.Tensor:
+    """Coefficients ``(B, n + 1, Cs, h, w)`` on the ``s x s`` blocks of ``guide (B, n, H, W)``
+    (``h, w = ⌈H/s⌉, ⌈W/s⌉``) upsampled bilinearly by ``s`` and applied to it: ``(B, Cs, H, W)``.
+    The guide is padded to ``s h x s w`` and the output cropped (not the coefficients).
+
+    Example:
+        >>> c = torch.zeros(1, 2, 1, 2, 2); c[:, 0] = 1.0   # a = 1, b = 0: the guide itself
+        >>> g = torch.rand(1, 1, 3, 4)
+        >>> torch.equal(upsampled_apply(c, g, 2), g)
+        True
+    """
     H, W = guide.shape[-2:]
-    up = F.interpolate(c.flatten(1, 2), scale_factor=2, mode="bilinear", align_corners=False)[..., :H, :W]
-    return apply_coefficients(up.unflatten(1, c.shape[1:3]), guide)
+    h, w = coeffs.shape[-2:]
+    up = F.interpolate(coeffs.flatten(1, 2), scale_factor=s, mode="bilinear", align_corners=False)
+    padded = F.pad(guide, (0, s * w - W, 0, s * h - H), mode="replicate")  # (its pad is cropped away)
+    return apply_coefficients(up.unflatten(1, coeffs.shape[1:3]), padded)[..., :H, :W]
 
 
 def apply_coefficients(coeffs: torch.Tensor, I: torch.Tensor) -> torch.Tensor:
@@ -302,7 +319,4 @@ def guided_filter(
     zero_g, zero_p = torch.zeros_like(mean_g), torch.zeros_like(mean_p)  # low_g, low_p are centred
     coeffs = run(GuidedOp(low_g, low_p, zero_g, zero_p, round(radius / subsample), eps, coefficients_only=True,
                           workspace=workspace))
-    coeffs = F.interpolate(coeffs.flatten(1, 2), scale_factor=subsample, mode="bilinear",
-                           align_corners=False)[..., : src.shape[-2], : src.shape[-1]]
-    return (apply_coefficients(coeffs.unflatten(1, (guide.shape[1] + 1, src.shape[1])), gc)
-            + mean_p).to(src.dtype)
+    return (upsampled_apply(coeffs, gc, subsample) + mean_p).to(src.dtype)
