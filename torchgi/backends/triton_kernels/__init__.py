@@ -1,8 +1,9 @@
 """The Triton back end, for CUDA tensors (float32, without autograd or tracing): an À-Trous level,
-the guided filter (with the box filter it is built from) and the Denoiser's guided pipeline.
+the guided filter (with the box filter it is built from), the Denoiser's guided pipeline and the
+temporal accumulation.
 
 One file per op family: :mod:`.filter_atrous`, :mod:`.filter_guided` (and the box filter),
-:mod:`.pipeline`;
+:mod:`.pipeline`, :mod:`.accumulation` (one launch per frame);
 :mod:`.common` holds Triton itself and what the kernels share. This module is the back end's
 registry: :func:`supports`, :func:`describe` and one function per op.
 
@@ -31,13 +32,14 @@ Example:
 
 from __future__ import annotations
 
-from torchgi.backends.base import ATrousOp, BoxOp, GuidedOp, RestoreOp, float32_eager
+from torchgi.backends.base import AccumulateOp, ATrousOp, BoxOp, GuidedOp, RestoreOp, float32_eager
+from torchgi.backends.triton_kernels.accumulation import accumulate
 from torchgi.backends.triton_kernels.common import _INTERPRET, triton
 from torchgi.backends.triton_kernels.filter_atrous import MAX_CHANNELS, atrous
 from torchgi.backends.triton_kernels.filter_guided import box, guided
 from torchgi.backends.triton_kernels.pipeline import restore
 
-__all__ = ["MAX_CHANNELS", "NAME", "atrous", "box", "describe", "guided", "restore", "supports"]
+__all__ = ["MAX_CHANNELS", "NAME", "accumulate", "atrous", "box", "describe", "guided", "restore", "supports"]
 
 NAME = "triton"
 
@@ -55,16 +57,16 @@ def describe() -> str:
     return f"Triton {triton.__version__} kernels for {where}"
 
 
-def supports(op: str, desc: BoxOp | GuidedOp | ATrousOp | RestoreOp) -> str | None:
-    """None when the kernels take ``desc``: an À-Trous level, the guided or box filter of eager
-    float32 CUDA tensors (CPU ones under the interpreter), at most 4 À-Trous colour channels;
-    else why not.
+def supports(op: str, desc: BoxOp | GuidedOp | ATrousOp | RestoreOp | AccumulateOp) -> str | None:
+    """None when the kernels take ``desc``: an À-Trous level, the guided or box filter, the
+    guided pipeline or the temporal accumulation of eager float32 CUDA tensors (CPU ones under the
+    interpreter), at most 4 À-Trous colour channels; else why not.
 
     Example:
         >>> supports("importance", None)   # no Triton kernel of the importance map
         'no Triton kernel for importance'
     """
-    if op not in ("box", "guided", "atrous", "restore"):
+    if op not in ("box", "guided", "atrous", "restore", "accumulate"):
         return f"no Triton kernel for {op}"
     if triton is None:
         return "Triton not installed"
@@ -74,6 +76,8 @@ def supports(op: str, desc: BoxOp | GuidedOp | ATrousOp | RestoreOp) -> str | No
     why = float32_eager(op, desc, "Triton")
     if why is not None:
         return why
+    if op == "accumulate" and desc.x.shape[-2] * desc.x.shape[-1] >= 2**31:
+        return "the Triton accumulation takes images of fewer than 2^31 pixels"
     if op == "atrous" and desc.color.shape[1] > MAX_CHANNELS:
         return f"the À-Trous kernel takes at most {MAX_CHANNELS} colour channels"
     return None
