@@ -111,7 +111,16 @@ if triton is not None:
         tl.store(out + 12 * HW, lum, mask=m)
 
 def accumulate(desc: AccumulateOp) -> torch.Tensor:
-    """:class:`~torchgi.backends.base.AccumulateOp` in one launch: ``(B, 13, H, W)`` float32."""
+    """:class:`~torchgi.backends.base.AccumulateOp` in one launch: ``(B, 13, H, W)`` float32
+    (the planes the op describes), for CUDA tensors (CPU ones under ``TRITON_INTERPRET=1``).
+
+    Example (CUDA; :class:`torchgi.TemporalDenoiser` calls it through the seam for such tensors):
+        >>> z = lambda c: torch.zeros(1, c, 2, 2, device="cuda")                        # doctest: +SKIP
+        >>> op = AccumulateOp(z(3) + 1, z(1) + 9, z(2), z(3), z(1) + 1, z(1) > 0, z(3), z(3), z(2), z(1), z(3),
+        ...                   z(1), z(1), 0.2, 32, 0.9, 0.05)                               # doctest: +SKIP
+        >>> accumulate(op)[0, :, 0, 0].tolist()[6:9]   # no history: moments of the frame, length 1  # doctest: +SKIP
+        [1.0, 1.0, 1.0]
+    """
     d = desc
     B, _, H, W = d.normal.shape
     out = torch.empty(B, 13, H, W, dtype=torch.float32, device=d.normal.device)
