@@ -186,6 +186,26 @@ def test_triton_guided_and_box_match_oracle_in_the_interpreter():
     assert guided_err < 2e-6 and box_err < 1e-6
 
 
+def test_triton_accumulation_matches_float64_torch_code_on_cuda(device):
+    """The accumulation kernel on the GPU against the float64 torch code: random history, normals
+    and motion (taps off the image, rejected and kept), fireflies at a bound."""
+    _cuda_with_triton(device)
+    from torchgi.settings import TEMPORAL as T
+
+    g = torch.Generator().manual_seed(3)
+    B, H, W = 2, 45, 61
+    r = lambda c: torch.rand(B, c, H, W, generator=g)
+    n = torch.nn.functional.normalize(r(3) - 0.3, dim=1)
+    tensors = [r(3) * 4, r(1) + 1, (r(2) - 0.5) * 6, n, r(1) + 1, r(1) > 0.2, r(3), r(3), r(2), (r(1) * 8).round(),
+               torch.nn.functional.normalize(n + 0.2 * r(3), dim=1), r(1) + 1, (r(1) > 0.2).float()]
+    op = lambda ts: backends.AccumulateOp(*ts, T.alpha, T.max_history, T.normal_tolerance, T.depth_tolerance)
+    got = backends.run(op([t.to(device) for t in tensors])).cpu()
+    assert last_backend("accumulate") == "triton"
+    with backends.use("torch"):
+        want = backends.run(op([t if t.dtype == torch.bool else t.double() for t in tensors]))
+    assert float((got.double() - want).abs().max() / want.abs().max()) < 1e-5
+
+
 @pytest.mark.parametrize("n", [1, 3, 4])
 @pytest.mark.parametrize("Cs", [1, 3])
 def test_triton_guided_matches_oracle_on_cuda(device, n, Cs):
