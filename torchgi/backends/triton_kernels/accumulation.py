@@ -11,7 +11,7 @@ from __future__ import annotations
 import torch
 
 from torchgi.backends.base import LUMA, AccumulateOp
-from torchgi.backends.triton_kernels.common import _cdiv, tl, triton
+from torchgi.backends.triton_kernels.common import _cdiv, _scaled_to, tl, triton
 from torchgi.backends.triton_kernels.filter_guided import _split
 
 _BLOCK = 256  # pixels per program
@@ -19,7 +19,7 @@ _BLOCK = 256  # pixels per program
 if triton is not None:
 
     @triton.jit
-    def _tap(hist_ptr, pn_ptr, pd_ptr, ps_ptr, tx, ty, w, H, W, HW, m, surf, n0, n1, n2, d, ntol, dtol):
+    def _tap(pn_ptr, pd_ptr, ps_ptr, tx, ty, w, H, W, HW, m, surf, n0, n1, n2, d, ntol, dtol):
         # one bilinear tap of the history at (tx, ty) with weight w: the weight kept where the tap
         # passes the tests, and its index in the image
         inside = (tx >= 0) & (tx <= W - 1) & (ty >= 0) & (ty <= H - 1) & m
@@ -49,7 +49,7 @@ if triton is not None:
         for k in tl.static_range(4):
             dx, dy = k % 2, k // 2
             w0 = (fx * dx + (1 - fx) * (1 - dx)) * (fy * dy + (1 - fy) * (1 - dy))  # (exact: one term is 0)
-            w, j, keep = _tap(l3, pn, pd, ps, x0f + dx, y0f + dy, w0, H, W, HW, m, surf, n0, n1, n2, d, ntol, dtol)
+            w, j, keep = _tap(pn, pd, ps, x0f + dx, y0f + dy, w0, H, W, HW, m, surf, n0, n1, n2, d, ntol, dtol)
             a0 += w * tl.load(l3 + j, mask=keep, other=0.0)
             a1 += w * tl.load(l3 + HW + j, mask=keep, other=0.0)
             a2 += w * tl.load(l3 + 2 * HW + j, mask=keep, other=0.0)
@@ -87,11 +87,7 @@ if triton is not None:
         x0 = tl.load(x_ptr + o3, mask=m, other=0.0)
         x1 = tl.load(x_ptr + o3 + HW, mask=m, other=0.0)
         x2 = tl.load(x_ptr + o3 + 2 * HW, mask=m, other=0.0)
-        peak = tl.maximum(tl.maximum(x0, x1), x2)
-        bound = tl.load(b_ptr + o1, mask=m, other=0.0)
-        over = peak > bound
-        f = bound / tl.where(over, peak, 1.0)
-        x0, x1, x2 = tl.where(over, x0 * f, x0), tl.where(over, x1 * f, x1), tl.where(over, x2 * f, x2)
+        x0, x1, x2 = _scaled_to(x0, x1, x2, tl.load(b_ptr + o1, mask=m, other=0.0))
         lum = lr * x0 + lg * x1 + lb * x2
         m1, m2 = tl.where(found, a6 / t, 0.0), tl.where(found, a7 / t, 0.0)
         m1, m2 = m1 + a * (lum - m1), m2 + a * (lum * lum - m2)

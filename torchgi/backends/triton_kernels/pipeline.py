@@ -7,7 +7,7 @@ import torch
 
 from torchgi.backends.base import RestoreOp, box_mean
 from torchgi.backends.triton_kernels import filter_guided
-from torchgi.backends.triton_kernels.common import _cdiv, tl, triton
+from torchgi.backends.triton_kernels.common import _cdiv, _scaled_to, tl, triton
 from torchgi.backends.triton_kernels.filter_guided import _box, _guided, _split
 from torchgi.core.check import check_finite
 from torchgi.light import demodulator, light_sources, surface_mask
@@ -85,13 +85,10 @@ if triton is not None:
         x0 = tl.load(p, mask=m, other=0.0)
         x1 = tl.load(p + HW, mask=m, other=0.0)
         x2 = tl.load(p + 2 * HW, mask=m, other=0.0)
-        peak = tl.maximum(tl.maximum(x0, x1), x2)
-        bound = k_fire * tl.maximum(tl.load(mean_ptr + b * HW + i, mask=m, other=0.0), 0.0)
-        over = peak > bound
-        f = bound / tl.where(over, peak, 1.0)
-        tl.store(p, tl.where(over, x0 * f, x0), mask=m)
-        tl.store(p + HW, tl.where(over, x1 * f, x1), mask=m)
-        tl.store(p + 2 * HW, tl.where(over, x2 * f, x2), mask=m)
+        x0, x1, x2 = _scaled_to(x0, x1, x2, k_fire * tl.maximum(tl.load(mean_ptr + b * HW + i, mask=m, other=0.0), 0.0))
+        tl.store(p, x0, mask=m)
+        tl.store(p + HW, x1, mask=m)
+        tl.store(p + 2 * HW, x2, mask=m)
 
     @triton.jit
     def _remodulate(q, c_ptr, e_ptr, k_ptr, j, m, d, light, HAS_E: tl.constexpr, HAS_K: tl.constexpr):
