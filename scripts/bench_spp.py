@@ -25,26 +25,12 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_quality import MITSUBA, case_args, cases, rendered, scores
-from benchmark_utils import available_scenes, markdown_table, metadata, oidn, write_results
+from benchmark_utils import available_scenes, markdown_table, metadata, oidn, without_back_off, write_results
 
-from torchgi import denoise
 from torchgi.denoise import Denoiser
 
 DEFAULT = "torchgi default"
 OIDN = ("OIDN high", "OIDN high, emission added back")
-
-
-def without_back_off(gb):
-    """``Denoiser()(gb)`` with its back-off toward the input (``denoise._back_off``, which runs
-    :func:`torchgi.light.back_off`) replaced by the identity and its choice among radii from 4 spp
-    (``Denoiser._radii``, :func:`torchgi.light.choose`) by its one radius: the filter's output."""
-    saved = denoise._back_off, Denoiser._radii
-    denoise._back_off = lambda out, *_: out[0] if isinstance(out, list) else out
-    Denoiser._radii = lambda self, radius, *_: (radius,)
-    try:
-        return Denoiser()(gb)
-    finally:
-        denoise._back_off, Denoiser._radii = saved
 
 
 def methods() -> dict:

@@ -122,3 +122,18 @@ def available_scenes(names: list[str], size: int):
             yield name, load_scene(name, size)
         except FileNotFoundError as exc:
             print(f"skipping {name}: {exc}", flush=True)
+
+
+def without_back_off(gb, method: str = "guided") -> torch.Tensor:
+    """``Denoiser(method)(gb)`` with its back-off toward the input (``denoise._back_off``, which
+    runs :func:`torchgi.light.back_off`) replaced by the identity and its choice among radii from 4
+    spp (``Denoiser._radii``, :func:`torchgi.light.choose`) by its one radius: the filter's output."""
+    from torchgi import denoise
+
+    saved = denoise._back_off, denoise.Denoiser._radii
+    denoise._back_off = lambda out, *_: out[0] if isinstance(out, list) else out
+    denoise.Denoiser._radii = lambda self, radius, *_: (radius,)
+    try:
+        return denoise.Denoiser(method)(gb)
+    finally:
+        denoise._back_off, denoise.Denoiser._radii = saved

@@ -41,7 +41,8 @@ FEATURES = ("color", "albedo", "normal", "depth", "emission", "variance")
 
 def filter_input(sample: dict, method: str) -> dict:
     """One shard through the Denoiser's pipeline up to its filter (a recording filter: light
-    sources kept, demodulation, firefly clamp): the filter's input ``x``, its guide (as
+    sources kept, demodulation, firefly clamp): the filter's input ``x`` (and ``raw``, the
+    same before the firefly clamp), its guide (as
     ``Denoiser(method)`` builds it), the sample count it sees, the demodulator and the light
     added back, the target, the GBuffer, the shard's name and spp; tensors ``(1, ., H, W)``."""
     t = {k: sample[k][None] for k in FEATURES}
@@ -50,12 +51,12 @@ def filter_input(sample: dict, method: str) -> dict:
     surface = light.surface_mask(gb.hit, gb.albedo)
     seen = {}
 
-    def record(x):
-        seen["x"] = x
+    def record(x, raw):
+        seen["x"], seen["raw"] = x, raw
         return torch.zeros_like(x)
 
-    kept = light.restore(gb.color, gb.emission, None, gb.albedo, surface, record, GUIDED.firefly, box)
-    return {"x": seen["x"], "guide": guide_from(gb.normal, gb.depth, depth_scale="image"),
+    kept = light.restore(gb.color, gb.emission, None, gb.albedo, surface, record, GUIDED.firefly, box, unclamped=True)
+    return {"x": seen["x"], "raw": seen["raw"], "guide": guide_from(gb.normal, gb.depth, depth_scale="image"),
             "spp": Denoiser(method)._spp(gb, surface), "demod": light.demodulator(gb.albedo, surface),
             "kept": kept, "target": sample["target"][None], "gbuffer": gb, "name": sample["name"],
             "shard_spp": int(sample["spp"])}

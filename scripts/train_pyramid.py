@@ -27,12 +27,12 @@ import time
 from pathlib import Path
 
 import torch
+from benchmark_utils import without_back_off
 from tqdm.auto import tqdm
 from train_blend import FEATURES, data_sha256, filter_input, git_state, oidn_high
 
 from torchgi import metrics
 from torchgi.data import ShardDataset
-from torchgi.denoise import Denoiser
 from torchgi.filters.pyramid import FEATURE_SCALE, PyramidNet, pyramid_inputs, pyramid_mix
 
 HOLDOUT = ("mirror_lamps", "lucy_sun_glossy")
@@ -47,7 +47,7 @@ def prepared(sample: dict, net: PyramidNet) -> dict:
     """One shard through the Denoiser's pipeline up to the filter, then the pyramid's inputs."""
     d = filter_input(sample, "pyramid")
     with torch.no_grad():
-        feats, coeffs, rest = pyramid_inputs(d["x"], d["guide"], max(d["spp"], 1.0), net)
+        feats, coeffs, rest = pyramid_inputs(d["x"], d["guide"], max(d["spp"], 1.0), net, d["raw"])
     return {"feats": feats, "coeffs": coeffs, "x": d["x"], "rest": rest, "demod": d["demod"], "kept": d["kept"],
             "target": d["target"], "name": d["name"], "spp": d["shard_spp"], "gbuffer": d["gbuffer"]}
 
@@ -72,6 +72,8 @@ def crops(data: list[dict], size: int, count: int, g: torch.Generator) -> dict:
         for k, t in d["coeffs"].items():  # "<group>@<scale>": cut at that scale
             parts["coeffs." + k] = cut(t, int(k.split("@")[1]))
         parts["rest.mean"] = d["rest"]["mean"]
+        if "removed4" in d["rest"]:
+            parts["rest.removed4"] = cut(d["rest"]["removed4"], q)
         for k in ("guide", "colour"):  # full resolution (no colour channel without colour candidates)
             if k in d["rest"]:
                 parts["rest." + k] = cut(d["rest"][k], 1)
@@ -95,22 +97,15 @@ def validate(net: PyramidNet, data: list[dict]) -> dict[int, float]:
 def peers(net: PyramidNet, data: list[dict]) -> list[dict]:
     """relMSE per shard: the pyramid, ``Denoiser("guided")``, ``Denoiser("blend")``, OIDN high
     (colour + albedo + normal, HDR), all on the same shard (filters only: no back-off)."""
-    import torchgi.denoise as dn
-
     rows = []
-    keep = dn._back_off
-    dn._back_off = lambda out, *a, **k: out
-    try:
-        with torch.no_grad():
-            for d in data:
-                gb = d["gbuffer"]
-                rows.append({"name": d["name"], "spp": d["spp"],
-                             "pyramid": float(metrics.relmse(output(net, d), d["target"])),
-                             "guided": float(metrics.relmse(Denoiser("guided")(gb), d["target"])),
-                             "blend": float(metrics.relmse(Denoiser("blend")(gb), d["target"])),
-                             "oidn": float(metrics.relmse(oidn_high(gb), d["target"]))})
-    finally:
-        dn._back_off = keep
+    with torch.no_grad():
+        for d in data:
+            gb = d["gbuffer"]
+            rows.append({"name": d["name"], "spp": d["spp"],
+                         "pyramid": float(metrics.relmse(output(net, d), d["target"])),
+                         "guided": float(metrics.relmse(without_back_off(gb, "guided"), d["target"])),
+                         "blend": float(metrics.relmse(without_back_off(gb, "blend"), d["target"])),
+                         "oidn": float(metrics.relmse(oidn_high(gb), d["target"]))})
     return rows
 
 
@@ -161,6 +156,8 @@ def parse() -> argparse.Namespace:
     ap.add_argument("--lr", type=float, default=5e-4)
     ap.add_argument("--clip", type=float, default=1.0, help="gradient norm clip")
     ap.add_argument("--widths", type=int, nargs=3, default=[16, 24, 32])
+    ap.add_argument("--direct", action=argparse.BooleanOptionalAction, default=True,
+                    help="the low-frequency correction and the gains of the clamped-away light (PyramidNet's direct)")
     ap.add_argument("--colour", type=float, nargs="*", default=None,
                     help="scale radius eps triples of the colour-guided candidates (none: no colour candidates)")
     ap.add_argument("--candidates", type=float, nargs="+", default=None,
@@ -181,7 +178,7 @@ def main() -> None:
     kw = {} if args.candidates is None else {"candidates": triples(args.candidates)}
     if args.colour is not None:
         kw["colour"] = triples(args.colour)
-    net = PyramidNet(widths=args.widths, **kw)
+    net = PyramidNet(widths=args.widths, direct=args.direct, **kw)
     ds = ShardDataset(args.data, features=FEATURES)
     data = [prepared(ds[i], net) for i in tqdm(range(len(ds)), desc="prepare", unit="shard", mininterval=30)]
     train = [d for d in data if scene_of(d["name"]) not in args.holdout]

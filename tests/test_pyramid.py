@@ -27,10 +27,10 @@ def _inputs(B=1, H=32, W=48, seed=0, dtype=torch.float32):
     return x.to(dtype), guide.to(dtype)
 
 
-def pyramid_oracle(x, guide, spp, net):
+def pyramid_oracle(x, guide, spp, net, raw=None):
     """The module docstring's pyramid in float64: block means straight from the full image (sizes
-    divisible by the top scale, so equal to means of means), brute-force coefficients, bilinear
-    x2 steps, the network in float64."""
+    divisible by the top scale and by 16, so equal to means of means), brute-force coefficients,
+    bilinear x2 steps, the network in float64."""
     x, guide = x.double(), guide.double()
     lum = lambda c: c.mean(1, keepdim=True)
     mp, mg = x.mean((2, 3), keepdim=True), guide.mean((2, 3), keepdim=True)
@@ -75,6 +75,10 @@ def pyramid_oracle(x, guide, spp, net):
     feats = [torch.log1p(x4 / m), torch.log(var / (lum(x4) ** 2 + 0.01 * m**2) + 1e-4), g4,
              torch.log(edge + 1e-4), torch.full_like(base, torch.log2(torch.tensor(float(spp))).item())]
     feats += [torch.log1p(lum(v + mp) / m) - base for v in views]
+    if net.direct:  # the clamped-away light at 1/4 and 1/16 (the latter back at 1/4)
+        r4 = block_means((raw.double() - x).clamp_min(0), 4)
+        r16 = block_means(r4, 4)
+        feats += [torch.log1p(lum(r4) / m), torch.log1p(upsample(upsample(lum(r16), 2, size(8)), 2, size(4)) / m)]
     head = copy.deepcopy(net).double()(torch.cat(feats, 1))
     K = len(coeffs)
     w = torch.softmax(head[:, :K], 1)
@@ -87,13 +91,18 @@ def pyramid_oracle(x, guide, spp, net):
     model = model + sum(upsample(upsample(w[:, k : k + 1], 2, size(2)), 2, size(1)) * coeffs[k]
                         for k, (s, _, _) in enumerate(net.candidates) if s == 1)
     # the residual's Laplacian bands at scales 1, 2, 4 and its low-pass at 8, each with its gain
-    g = torch.sigmoid(head[:, K:])
+    g = torch.sigmoid(head[:, K : K + 4])
     gains = {1: upsample(upsample(g[:, :1], 2, size(2)), 2, size(1)), 2: upsample(g[:, 1:2], 2, size(2)),
              4: g[:, 2:3], 8: block_means(g[:, 3:], 2)}
     res = {s: block_means(x - model, s) for s in (1, 2, 4, 8)}
     out = gains[8] * res[8]
     for s in (4, 2, 1):
         out = upsample(out, 2, size(s)) + gains[s] * (res[s] - upsample(res[2 * s], 2, size(s)))
+    if net.direct:  # m x the correction, and the gains of the clamped-away light, at 1/4
+        d = head[:, K + 4 :]
+        lift = m * d[:, :3] + torch.sigmoid(d[:, 3:4]) * r4
+        lift = lift + upsample(upsample(block_means(torch.sigmoid(d[:, 4:5]), 4) * r16, 2, size(8)), 2, size(4))
+        out = out + upsample(upsample(lift, 2, size(2)), 2, size(1))
     return model + out
 
 
@@ -109,17 +118,41 @@ def _choosing(k: int, gain: float) -> PyramidNet:
 
 
 @pytest.mark.parametrize("spp, scales", [(1.0, "default"), (4.0, "default"), (2.0, "with full resolution"),
-                                         (1.0, "no colour")])
+                                         (1.0, "no colour"), (2.0, "direct")])
 def test_matches_the_float64_oracle(spp, scales):
     torch.manual_seed(1)
     kw = {"default": {}, "with full resolution": {"candidates": [(2, 1, 1e-5), (1, 2, 1e-6), (8, 2, 1e-5)],
                                                   "colour": [(1, 1, 1e-5), (4, 2, 1e-5)]},
-          "no colour": {"colour": []}}[scales]
+          "no colour": {"colour": []}, "direct": {"direct": True}}[scales]
     net = PyramidNet(**kw)  # a random network: every feature and candidate counts
     with torch.no_grad():
-        net.head.weight.mul_(20)  # sharp, spatially varying weights
+        net.head.weight.normal_().mul_(2)  # sharp, spatially varying weights (the direct outputs too)
     x, guide = _inputs(seed=3)
-    assert rel(pyramid(x, guide, spp=spp, net=net), pyramid_oracle(x, guide, spp, net)) < 1e-4
+    raw = x * (1 + 3 * (torch.rand_like(x) > 0.9))  # a tenth of the pixels clamped to a quarter
+    out = pyramid(x, guide, spp=spp, net=net, raw=raw)
+    assert rel(out, pyramid_oracle(x, guide, spp, net, raw)) < 1e-4
+
+
+@pytest.mark.parametrize("which", [3, 4])
+def test_the_direct_term_gives_back_the_clamped_light_in_full(which):
+    """With the gain of the clamped-away light at 1/4 (or at 1/16) at 1 and every other direct
+    output 0, the output's mean rises by exactly the mean of ``raw - x`` (block means and
+    bilinear x2 steps keep an image's sum on sizes divisible by 16), and without ``raw`` by
+    nothing."""
+    net = PyramidNet(direct=True)
+    j = len(net.candidates) + 4
+    with torch.no_grad():  # a constant head: the features raw changes do not move the mix
+        net.head.weight.zero_()
+        net.head.bias[j + 3 : j + 5] = -30.0
+        net.head.bias[j + which] = 30.0
+    x, guide = _inputs(seed=7)
+    raw = x.clone()
+    raw[..., 5, 7] += 40.0
+    raw[..., 20:22, 30] += 9.0
+    base = pyramid(x, guide, net=net)
+    given = (pyramid(x, guide, net=net, raw=raw) - base).double().mean((2, 3))
+    assert torch.allclose(given, (raw - x).double().mean((2, 3)), rtol=1e-4, atol=0)
+    assert torch.equal(pyramid(x, guide, net=net, raw=x), base)
 
 
 def test_one_chosen_candidate_is_the_fast_guided_filter():
@@ -190,6 +223,10 @@ def test_bad_input():
     bad[0, 0, 3, 3] = float("inf")
     with pytest.raises(NonFiniteError):
         pyramid(bad, guide, net=net)
+    with pytest.raises(NonFiniteError, match="raw"):
+        pyramid(x, guide, net=net, raw=bad)
+    with pytest.raises(ValueError, match="raw"):
+        pyramid(x, guide, net=net, raw=x[..., :10])
     with pytest.raises(RangeError, match="candidates"):
         PyramidNet(candidates=[(3, 1, 1e-5)])
 

@@ -256,7 +256,8 @@ class Denoiser(torch.nn.Module):
         else:
             level = light.level(gb.color, gb.emission, kept, gb.albedo, surface)
             out = light.restore(gb.color, gb.emission, kept, gb.albedo, surface,
-                                lambda x: self._filter(x, gb, surface), FIREFLY[self.method], box, level)
+                                lambda x, *raw: self._filter(x, gb, surface, *raw), FIREFLY[self.method], box, level,
+                                unclamped=self.method == "pyramid")
             out = _back_off(out, gb, surface, level)
         return out if self.hdr else out.clamp(0, 1)
 
@@ -358,7 +359,8 @@ class Denoiser(torch.nn.Module):
             lit = x
         else:
             lit = light.filter_light(x, light.median_level(light.every4(x), light.every4(surface)),
-                                     lambda v: self._filter(v, gb, surface), FIREFLY[self.method], box)
+                                     lambda v, *raw: self._filter(v, gb, surface, *raw), FIREFLY[self.method], box,
+                                     self.method == "pyramid")
         lit = torch.where(surface, lit, 0.0)  # no reflected light without a surface
         own, sample_own = gb.emission, samples.emission
         if not self.filter_direct:
@@ -435,11 +437,13 @@ class Denoiser(torch.nn.Module):
             return 1
         return 2 if backends.run(backends.EdgeShareOp(spec, GUIDED.edge)) < GUIDED.edge_share else 1
 
-    def _filter(self, x: torch.Tensor, gb: GBuffer, surface: torch.Tensor) -> torch.Tensor:
+    def _filter(self, x: torch.Tensor, gb: GBuffer, surface: torch.Tensor, raw: torch.Tensor | None = None,
+                ) -> torch.Tensor:
+        """The method's filter of the clamped light ``x`` (``raw``: before the clamp; the pyramid's)."""
         p = self.filter_params
         spp = self._spp(gb, surface)
         if self.method == "pyramid":  # its guide as in training; noisier renders than 1 spp fed as 1 spp
-            out, w = pyramid(x, guide_from(gb.normal, gb.depth, depth_scale="image"), spp=max(spp, 1.0),
+            out, w = pyramid(x, guide_from(gb.normal, gb.depth, depth_scale="image"), spp=max(spp, 1.0), raw=raw,
                              return_weights=True)
             if self._capture is not None:
                 self._capture["weights"] = w

@@ -113,10 +113,10 @@ class DeployedDenoiser(torch.nn.Module):
         surface = light.surface_mask(None, albedo)
         scene_level = light.level(color, emission, None, albedo, surface)
 
-        def filter_fn(x: torch.Tensor, radius: int | None = None) -> torch.Tensor:
+        def filter_fn(x: torch.Tensor, radius: int | None = None, raw: torch.Tensor | None = None) -> torch.Tensor:
             if self.method == "pyramid":
                 return pyramid(x, guide_from(normal, geometry, depth_scale="image"), spp=self.params["spp"],
-                               net=self.net)
+                               net=self.net, raw=raw)
             if self.method == "blend":
                 return blend(x, guide_from(normal, geometry, depth_scale="image"), spp=self.params["spp"], net=self.net)
             if self.method == "guided":
@@ -127,8 +127,9 @@ class DeployedDenoiser(torch.nn.Module):
                           sigma_color=self.params["sigma_color"])
 
         radii = self.params.get("radii", (None,)) if variance is not None else (None,)
-        outs = [light.restore(color, emission, None, albedo, surface, lambda x, r=r: filter_fn(x, r),
-                              FIREFLY[self.method], box, scene_level) for r in radii]
+        pyr = self.method == "pyramid"  # it gives back some of what the firefly clamp took
+        outs = [light.restore(color, emission, None, albedo, surface, lambda x, *raw, r=r: filter_fn(x, r, *raw),
+                              FIREFLY[self.method], box, scene_level, unclamped=pyr) for r in radii]
         if variance is None:
             return outs[0]
         emit = light.emitting(color, emission, albedo, surface, scene_level)

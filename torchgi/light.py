@@ -149,18 +149,20 @@ def scaled_to(x: torch.Tensor, peak: torch.Tensor, bound: torch.Tensor) -> torch
     return torch.where(over, x * (bound / torch.where(over, peak, 1.0)), x)
 
 
-def filter_light(x: torch.Tensor, scene_level: torch.Tensor, filter_fn: Callable[[torch.Tensor], torch.Tensor],
-                 firefly: float, box: BoxFn) -> torch.Tensor:
+def filter_light(x: torch.Tensor, scene_level: torch.Tensor, filter_fn: Callable[..., torch.Tensor],
+                 firefly: float, box: BoxFn, unclamped: bool = False) -> torch.Tensor:
     """``filter_fn`` of demodulated light ``x (B,C,H,W)`` with its fireflies clamped at ``firefly``
     x their local level (``scene_level`` from :func:`median_level`), clamped at 0: light is >= 0
-    and linear models can undershoot.
+    and linear models can undershoot. With ``unclamped``, ``filter_fn(clamped, x)`` (a filter
+    that gives back some of the light the clamp took).
 
     Example:
         >>> from torchgi.filters import box
         >>> filter_light(-torch.ones(1, 3, 4, 4), torch.ones(1, 1, 1, 1), lambda v: v, 4.0, box).max().item()
         0.0
     """
-    return filter_fn(clamp_fireflies(x, scene_level, firefly, box)).clamp_min(0)
+    clamped = clamp_fireflies(x, scene_level, firefly, box)
+    return (filter_fn(clamped, x) if unclamped else filter_fn(clamped)).clamp_min(0)
 
 
 def _without(color: torch.Tensor, emission: torch.Tensor | None, kept: torch.Tensor | None, albedo: torch.Tensor,
@@ -201,15 +203,16 @@ def centre(color: torch.Tensor, emission: torch.Tensor | None, kept: torch.Tenso
 
 def restore(
     color: torch.Tensor, emission: torch.Tensor | None, kept: torch.Tensor | None, albedo: torch.Tensor,
-    surface: torch.Tensor, filter_fn: Callable[[torch.Tensor], torch.Tensor], firefly: float, box: BoxFn,
-    scene_level: torch.Tensor | None = None,
+    surface: torch.Tensor, filter_fn: Callable[..., torch.Tensor], firefly: float, box: BoxFn,
+    scene_level: torch.Tensor | None = None, unclamped: bool = False,
 ) -> torch.Tensor:
     """The Denoiser's pipeline around ``filter_fn`` (demodulated light in, filtered out): light
     sources found (from ``emission``, else from the bright coherent regions of ``color``) and kept
     whole, the rest demodulated by :func:`demodulator`, its fireflies clamped, filtered, clamped at
     0 and remodulated. All ``(B, C, H, W)``; ``kept`` is light added back unfiltered (direct light
     in the papers' split) or None; ``firefly`` the method's clamp factor; ``scene_level``
-    :func:`level` (None: computed here). Returns the ``(B, 3, H, W)`` radiance.
+    :func:`level` (None: computed here); ``unclamped``: ``filter_fn`` also gets the light before
+    the firefly clamp (:func:`filter_light`). Returns the ``(B, 3, H, W)`` radiance.
 
     Example:
         >>> from torchgi.filters import box
@@ -230,7 +233,7 @@ def restore(
         x = (base - light) / albedo
     else:  # no emission input: a light source's pixels pass whole and enter the filter at the median level
         x = torch.where(lights, scene_level.expand_as(color), base / albedo)
-    out = filter_light(x, scene_level, filter_fn, firefly, box) * albedo
+    out = filter_light(x, scene_level, filter_fn, firefly, box, unclamped) * albedo
     out = out + kept if kept is not None else out
     return out if emission is not None else torch.where(lights, color, out)
 

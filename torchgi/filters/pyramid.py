@@ -32,7 +32,20 @@ the same way), ``R_s`` the ``s x s`` means of ``x - M`` and ``up``
 the bilinear x2 (so gains of 1 everywhere give back ``x``, gains of 0 the model: a coarse gain
 corrects the model's low-frequency bias, whose noise the means have removed). The gains are
 evaluated at 1/4 resolution and resampled to their band (bilinear x2 steps up, 2 x 2 means down
-to 1/8). The network's features at 1/4 resolution, with ``m`` each image's mean luminance
+to 1/8).
+
+With ``direct`` (the shipped network) the filter also gets the light before the Denoiser's
+firefly clamp, ``raw``, and the network five more outputs at 1/4: a correction ``δ`` (three
+channels, in units of ``m``, the image's mean luminance) and the gains ``h_4, h_16 ∈ [0, 1]``
+(sigmoids) of the clamped-away light ``r = raw - x`` at 1/4 and at 1/16::
+
+    L = m · δ + h_4 · r_4 + up²(mean₄(h_4') · r_16),   out = M + P_1 + up²(L)
+
+(``r_s`` the ``s x s`` means of ``r``, ``mean₄(h_4')`` the 1/16 gain's 4 x 4 means, ``up²`` two
+bilinear x2 steps): the clamp keeps a firefly's spike out of the filter, and ``h`` puts its
+energy back spread over 4 or 16 px where the network judges it real (a small bright lamp seen in
+a glossy floor loses a fifth of the image's light to the clamp at 1 spp; docs/pyramid.md). Two
+more features: ``log(1 + lum(r_4) / m)`` and the same of ``r_16`` brought to 1/4. The network's features at 1/4 resolution, with ``m`` each image's mean luminance
 (channel mean) of ``x`` and ``·₄`` a 4 x 4 mean:
 
 - ``log(1 + x₄ / m)`` per channel; ``log(var₄ / (lum₄² + 0.01 m²) + 1e-4)`` with ``var₄ =
@@ -167,7 +180,7 @@ class PyramidNet(SavedNet):
                                                                     (4, 2, 1e-5), (4, 4, 1e-5), (8, 2, 1e-5),
                                                                     (8, 4, 1e-5), (1, 1, 1e-5), (1, 2, 1e-6)),
                  colour: Sequence[Sequence[float]] = (),
-                 colour_scale: float = 0.1, widths: Sequence[int] = (16, 24, 32)) -> None:
+                 colour_scale: float = 0.1, widths: Sequence[int] = (16, 24, 32), direct: bool = False) -> None:
         super().__init__()
         self.geometric = _triples(candidates, "candidates")
         self.colour = _triples(colour, "colour")
@@ -177,8 +190,9 @@ class PyramidNet(SavedNet):
                              f"a scale > 0, got {len(self.geometric)}, {list(widths)} and {colour_scale!r}")
         self.colour_scale = float(colour_scale)
         self.widths = tuple(int(w) for w in widths)
+        self.direct = bool(direct)
         self.top = max(s for s, _, _ in self.candidates)
-        self.features = 10 + len(self.candidates)
+        self.features = 10 + len(self.candidates) + 2 * self.direct
         w1, w2, w3 = self.widths
         conv = lambda i, o, k=3: nn.Conv2d(i, o, k, padding=k // 2)
         self.enc1 = nn.Sequential(conv(self.features, w1), nn.ReLU(), conv(w1, w1), nn.ReLU())
@@ -186,7 +200,14 @@ class PyramidNet(SavedNet):
         self.enc3 = nn.Sequential(conv(w2, w3), nn.ReLU(), conv(w3, w3), nn.ReLU())
         self.dec2 = nn.Sequential(conv(w3 + w2, w2), nn.ReLU())
         self.dec1 = nn.Sequential(conv(w2 + w1, w1), nn.ReLU())
-        self.head = conv(w1, len(self.candidates) + len(BANDS), 1)  # candidate logits, then gain logits
+        # candidate logits, then gain logits, then (direct) a low-frequency correction per channel
+        # and the gains of the clamped-away light at 1/4 and 1/16
+        self.head = conv(w1, len(self.candidates) + len(BANDS) + 5 * self.direct, 1)
+        if self.direct:  # no correction to begin with
+            with torch.no_grad():
+                self.head.weight[-5:].zero_()
+                self.head.bias[-5:-2].zero_()
+                self.head.bias[-2:].fill_(-4.0)
         # the features' standardisation, set from the training data (scripts/train_pyramid.py)
         self.register_buffer("shift", torch.zeros(self.features))
         self.register_buffer("scale", torch.ones(self.features))
@@ -202,7 +223,7 @@ class PyramidNet(SavedNet):
     def config(self) -> dict[str, Any]:
         """The constructor arguments (what the weights file records)."""
         return {"candidates": [list(c) for c in self.geometric], "colour": [list(c) for c in self.colour],
-                "colour_scale": self.colour_scale, "widths": list(self.widths)}
+                "colour_scale": self.colour_scale, "widths": list(self.widths), "direct": self.direct}
 
 
 _DEFAULT: dict[torch.device, PyramidNet] = {}
@@ -264,7 +285,7 @@ def _colour_channel(net: PyramidNet, coeffs: dict[str, list[torch.Tensor]], xs: 
 
 
 def pyramid_inputs(
-    x: torch.Tensor, guide: torch.Tensor, spp: float | torch.Tensor, net: PyramidNet
+    x: torch.Tensor, guide: torch.Tensor, spp: float | torch.Tensor, net: PyramidNet, raw: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor], dict[str, torch.Tensor]]:
     """The first half of :func:`pyramid`: the network's features ``(B, F, ⌈H/4⌉, ⌈W/4⌉)``, the
     candidates' coefficients by group and mixing scale (keys of :func:`_groups`; ``(B, k, n + 1,
@@ -322,6 +343,13 @@ def pyramid_inputs(
     order = [k for key in groups.values() for k in key]  # the views were made in group order
     views = [views[order.index(k)] for k in range(len(net.candidates))]
     feats = _features(x, xs, gs, mean_p, m, spp, views)
+    if net.direct:  # the light the firefly clamp took away, at 1/4 and 1/16
+        removed = torch.zeros_like(x) if raw is None else (raw - x).clamp_min(0)
+        r4 = F.avg_pool2d(removed, FEATURE_SCALE, ceil_mode=True)
+        r16 = F.avg_pool2d(r4, 4, ceil_mode=True)
+        rest["removed4"] = r4
+        r16up = _up(_up(r16, _down(r4).shape[-2:]), r4.shape[-2:])
+        feats = torch.cat([feats, torch.log1p(_luminance(r4) / m), torch.log1p(_luminance(r16up) / m)], 1)
     return feats, coeffs, rest
 
 
@@ -379,12 +407,19 @@ def pyramid_mix(
         size = res[s].shape[-2:]
         band = _up(band, size) + gains[s] * (res[s] - _up(res[2 * s], size))
     out = model + band
+    if net.direct:  # the correction at 1/4, in units of the image's mean luminance, upsampled
+        j = K + len(BANDS)
+        lift = _luminance(rest["mean"]) * head[:, j : j + 3] + torch.sigmoid(head[:, j + 3 : j + 4]) * rest["removed4"]
+        r16 = F.avg_pool2d(rest["removed4"], 4, ceil_mode=True)
+        g16 = F.avg_pool2d(torch.sigmoid(head[:, j + 4 : j + 5]), 4, ceil_mode=True)
+        lift = lift + _up(_up(g16 * r16, _down(lift).shape[-2:]), lift.shape[-2:])
+        out = out + _up(_up(lift, half), full)
     return (out, torch.cat([w, gain], 1)) if return_weights else out
 
 
 def pyramid(
     x: torch.Tensor, guide: torch.Tensor, *, spp: float | torch.Tensor = 1.0, net: PyramidNet | None = None,
-    return_weights: bool = False,
+    raw: torch.Tensor | None = None, return_weights: bool = False,
 ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
     """Filter ``x`` with the learned guided pyramid (module docstring).
 
@@ -395,6 +430,9 @@ def pyramid(
             :func:`~torchgi.filters.guide_from` with ``depth_scale="image"``).
         spp: samples per pixel the noise corresponds to, a float or ``(B,)`` tensor (>= 1).
         net: the network, on ``x``'s device; None = the shipped one there (:func:`default_net`).
+        raw: ``(B, C, H, W)`` the light before its firefly clamp (``>= x`` where the clamp scaled
+            ``x`` down), same dtype and device; a ``net`` with ``direct`` gives some of ``raw - x``
+            back at 1/4 and 1/16 resolution. None: nothing was clamped.
         return_weights: also return the ``(B, K + 4, ⌈H/4⌉, ⌈W/4⌉)`` weights (the per-pixel
             choice: the candidates' in ``net.candidates`` order, then the gains of the
             residual's bands at scales 1, 2, 4 and its low-pass at 8, all at 1/4 resolution).
@@ -412,8 +450,11 @@ def pyramid(
     check_shape(x, "B C H W", "x")
     check_floating(x, "x")
     check_shape(guide, "B G H W", "guide", {"B": x.shape[0], "H": x.shape[2], "W": x.shape[3]})
-    check_same_device({"x": x, "guide": guide})
-    check_same_floating({"x": x, "guide": guide})
+    tensors = {"x": x, "guide": guide} if raw is None else {"x": x, "guide": guide, "raw": raw}
+    if raw is not None:
+        check_shape(raw, "B C H W", "raw", dict(zip("BCHW", x.shape, strict=True)))
+    check_same_device(tensors)
+    check_same_floating(tensors)
     if not 1 <= guide.shape[1] <= 4:
         raise ShapeError(f"guide: expected 1 to 4 channels, got {guide.shape[1]} (shape {tuple(guide.shape)})")
     if isinstance(spp, (int, float)) and not (math.isfinite(spp) and spp >= 1):
@@ -422,11 +463,11 @@ def pyramid(
     if next(net.parameters()).device != x.device:
         raise ValueError(f"net: on {next(net.parameters()).device}, x on {x.device} (move one of them)")
     if not is_recording():
-        check_finite(x, "x")
-        check_finite(guide, "guide")
+        for name, t in tensors.items():
+            check_finite(t, name)
     ct = compute_dtype(x.dtype)
     xs, gs = x.to(ct), guide.to(ct)
-    feats, coeffs, rest = pyramid_inputs(xs, gs, spp, net)
+    feats, coeffs, rest = pyramid_inputs(xs, gs, spp, net, None if raw is None else raw.to(ct))
     p = next(net.parameters())
     out, w = pyramid_mix(net, net(feats.to(p.dtype)).to(ct), coeffs, xs, rest, return_weights=True)
     out = out.to(x.dtype)
@@ -445,5 +486,6 @@ class Pyramid(nn.Module):
         super().__init__()
         self.net = net if net is not None else PyramidNet.load(WEIGHTS)
 
-    def forward(self, x: torch.Tensor, guide: torch.Tensor, spp: float | torch.Tensor = 1.0) -> torch.Tensor:
-        return pyramid(x, guide, spp=spp, net=self.net)
+    def forward(self, x: torch.Tensor, guide: torch.Tensor, spp: float | torch.Tensor = 1.0,
+                raw: torch.Tensor | None = None) -> torch.Tensor:
+        return pyramid(x, guide, spp=spp, net=self.net, raw=raw)
