@@ -41,9 +41,10 @@ channels, in units of ``m``, the image's mean luminance) and the gains ``h_4, h_
 
     L = m · δ + h_4 · r_4 + up²(mean₄(h_4') · r_16),   out = M + P_1 + up²(L)
 
-(``r_s`` the ``s x s`` means of ``r``, ``mean₄(h_4')`` the 1/16 gain's 4 x 4 means, ``up²`` two
-bilinear x2 steps): the clamp keeps a firefly's spike out of the filter, and ``h`` puts its
-energy back spread over 4 or 16 px where the network judges it real (a small bright lamp seen in
+(``r_s`` the ``s x s`` means of ``r``, each 1/4 block's scaled down to at most the luminance of
+the block's clamped light, ``mean₄(h_4')`` the 1/16 gain's 4 x 4 means, ``up²`` two bilinear x2
+steps): the clamp keeps a firefly's spike out of the filter, and ``h`` puts its energy back
+spread over 4 or 16 px where the network judges it real, never more than doubling a block (a small bright lamp seen in
 a glossy floor loses a fifth of the image's light to the clamp at 1 spp; docs/pyramid.md). Two
 more features: ``log(1 + lum(r_4) / m)`` and the same of ``r_16`` brought to 1/4. The network's features at 1/4 resolution, with ``m`` each image's mean luminance
 (channel mean) of ``x`` and ``·₄`` a 4 x 4 mean:
@@ -346,6 +347,9 @@ def pyramid_inputs(
     if net.direct:  # the light the firefly clamp took away, at 1/4 and 1/16
         removed = torch.zeros_like(x) if raw is None else (raw - x).clamp_min(0)
         r4 = F.avg_pool2d(removed, FEATURE_SCALE, ceil_mode=True)
+        # at most the block's own (clamped) light: a rare huge sample adds at most that, spread
+        lr, lx = _luminance(r4), _luminance((xs[FEATURE_SCALE] + mean_p).clamp_min(0))
+        r4 = r4 * (lx / lr.clamp_min(torch.finfo(x.dtype).tiny)).clamp(max=1)
         r16 = F.avg_pool2d(r4, 4, ceil_mode=True)
         rest["removed4"] = r4
         r16up = _up(_up(r16, _down(r4).shape[-2:]), r4.shape[-2:])
