@@ -162,6 +162,19 @@ def test_the_direct_term_gives_back_the_clamped_light_in_full(which):
     assert torch.allclose(given, expected.expand_as(given), rtol=1e-4, atol=0)
 
 
+def test_one_chosen_candidate_is_the_fast_guided_filter():
+    """All weight on a scale-2 candidate and no residual given back: He & Sun's fast guided
+    filter at radius 2r (the loop oracle; to 1e-3: in float32 the solve at ε 1e-5 on a random
+    guide loses 1.6e-4 of the range); all of the residual given back: the light."""
+    x, guide = _inputs(seed=5, H=20, W=26)  # odd block counts: partial blocks at the edges
+    net = PyramidNet()
+    for k, (s, r, e) in enumerate(net.geometric):
+        if s == 2:
+            out = pyramid(x, guide, net=_choosing(k, 1e-30))
+            assert rel(out, fast_guided_oracle(x, guide, 2 * r, e, 2)) < 1e-3, (s, r, e)
+    assert rel(pyramid(x, guide, net=_choosing(0, 1.0)), x) < 1e-6
+
+
 def test_gradients_in_float64():
     x, guide = _inputs(H=16, W=16, dtype=torch.float64)
     net = PyramidNet().double()
