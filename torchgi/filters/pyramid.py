@@ -402,22 +402,25 @@ def pyramid_mix(
     outputs = [k for k in ("geometric@1", "colour@1") if k in coeffs]  # scale 1: outputs, mixed at full resolution
     if outputs:
         w_full = _up(_up(w[:, [k for key in outputs for k in groups[key]]], half), full)
-        model = model + (w_full[:, :, None] * torch.cat([coeffs[k] for k in outputs], 1)).sum(1)
+        ys = coeffs[outputs[0]] if len(outputs) == 1 else torch.cat([coeffs[k] for k in outputs], 1)
+        model = model + (w_full[:, :, None] * ys).sum(1)
     gain = torch.sigmoid(head[:, K : K + len(BANDS)])  # at 1/4
     gains = {1: _up(_up(gain[:, :1], half), full), 2: _up(gain[:, 1:2], half), 4: gain[:, 2:3], 8: _down(gain[:, 3:])}
     res = _levels(x - model, BANDS[-1])
-    band = gains[8] * res[8]
-    for s in BANDS[-2::-1]:
-        size = res[s].shape[-2:]
-        band = _up(band, size) + gains[s] * (res[s] - _up(res[2 * s], size))
-    out = model + band
-    if net.direct:  # the correction at 1/4, in units of the image's mean luminance, upsampled
+    lift = None
+    if net.direct:  # the correction at 1/4, in units of the image's mean luminance (module docstring)
         j = K + len(BANDS)
         lift = _luminance(rest["mean"]) * head[:, j : j + 3] + torch.sigmoid(head[:, j + 3 : j + 4]) * rest["removed4"]
         r16 = F.avg_pool2d(rest["removed4"], 4, ceil_mode=True)
         g16 = F.avg_pool2d(torch.sigmoid(head[:, j + 4 : j + 5]), 4, ceil_mode=True)
         lift = lift + _up(_up(g16 * r16, _down(lift).shape[-2:]), lift.shape[-2:])
-        out = out + _up(_up(lift, half), full)
+    band = gains[8] * res[8]
+    for s in BANDS[-2::-1]:
+        size = res[s].shape[-2:]
+        band = _up(band, size) + gains[s] * (res[s] - _up(res[2 * s], size))
+        if s == FEATURE_SCALE and lift is not None:  # upsampled with the bands (the same bilinear steps)
+            band = band + lift
+    out = model + band
     return (out, torch.cat([w, gain], 1)) if return_weights else out
 
 
