@@ -32,9 +32,9 @@ from torchgi import light, metrics
 from torchgi.buffers import GBuffer
 from torchgi.data import ShardDataset
 from torchgi.denoise import Denoiser
+from torchgi.deployed import FIREFLY
 from torchgi.filters import box, guide_from
 from torchgi.filters.blend import BlendNet, blend_candidates, blend_features
-from torchgi.settings import GUIDED
 
 FEATURES = ("color", "albedo", "normal", "depth", "emission", "variance")
 
@@ -55,7 +55,7 @@ def filter_input(sample: dict, method: str) -> dict:
         seen["x"], seen["raw"] = x, raw
         return torch.zeros_like(x)
 
-    kept = light.restore(gb.color, gb.emission, None, gb.albedo, surface, record, GUIDED.firefly, box, unclamped=True)
+    kept = light.restore(gb.color, gb.emission, None, gb.albedo, surface, record, FIREFLY[method], box, unclamped=True)
     return {"x": seen["x"], "raw": seen["raw"], "guide": guide_from(gb.normal, gb.depth, depth_scale="image"),
             "spp": Denoiser(method)._spp(gb, surface), "demod": light.demodulator(gb.albedo, surface),
             "kept": kept, "target": sample["target"][None], "gbuffer": gb, "name": sample["name"],
