@@ -44,9 +44,12 @@ channels, in units of ``m``, the image's mean luminance) and the gains ``h_4, h_
 (``r_s`` the ``s x s`` means of ``r``, each 1/4 block's scaled down to at most the luminance of
 the block's clamped light, ``mean₄(h_4')`` the 1/16 gain's 4 x 4 means, ``up²`` two bilinear x2
 steps): the clamp keeps a firefly's spike out of the filter, and ``h`` puts its energy back
-spread over 4 or 16 px where the network judges it real, never more than doubling a block (a small bright lamp seen in
-a glossy floor loses a fifth of the image's light to the clamp at 1 spp; docs/pyramid.md). Two
-more features: ``log(1 + lum(r_4) / m)`` and the same of ``r_16`` brought to 1/4. The network's features at 1/4 resolution, with ``m`` each image's mean luminance
+spread over 4 x 4 or 16 x 16 px blocks where the network judges it real, never more than
+doubling a block (a small bright lamp seen in a glossy floor loses a fifth of the image's light
+to the clamp at 1 spp; docs/pyramid.md). Two more features: ``log(1 + lum(r_4) / m)`` and the
+same of ``r_16`` brought to 1/4.
+
+The network's features at 1/4 resolution, with ``m`` each image's mean luminance
 (channel mean) of ``x`` and ``·₄`` a 4 x 4 mean:
 
 - ``log(1 + x₄ / m)`` per channel; ``log(var₄ / (lum₄² + 0.01 m²) + 1e-4)`` with ``var₄ =
@@ -160,8 +163,10 @@ def _triples(values: Sequence[Sequence[float]], name: str) -> tuple[tuple[int, i
 
 class PyramidNet(SavedNet):
     """The network of :func:`pyramid`: features ``(B, F, h, w)`` at 1/4 resolution → ``(B, K +
-    4, h, w)``: logits over the ``K`` candidates (``candidates`` then ``colour``), then the gain
-    logits of the residual's bands (:data:`BANDS`); and the candidate set it was trained for.
+    4, h, w)`` (``K + 9`` with ``direct``): logits over the ``K`` candidates (``candidates`` then
+    ``colour``), then the gain logits of the residual's bands (:data:`BANDS`), then with
+    ``direct`` the correction ``δ`` (3) and the logits of the clamped light's gains at 1/4 and
+    1/16; and the candidate set it was trained for.
 
     Args:
         candidates: ``(scale, radius, eps)`` per candidate on the guide: the pyramid scale (2, 4,
@@ -170,11 +175,14 @@ class PyramidNet(SavedNet):
         colour: the same for the colour candidates (module docstring; none by default).
         colour_scale: λ, the colour channel's guide units per e-fold of luminance.
         widths: channels of the U-Net's three levels (1/4, 1/8, 1/16 resolution).
+        direct: the direct term (module docstring): two more features, five more outputs.
 
     Example:
         >>> net = PyramidNet()
         >>> net(torch.rand(1, net.features, 16, 16)).shape
         torch.Size([1, 13, 16, 16])
+        >>> PyramidNet(direct=True).features, PyramidNet(direct=True).head.out_channels
+        (21, 18)
     """
 
     def __init__(self, *, candidates: Sequence[Sequence[float]] = ((2, 1, 1e-5), (2, 2, 1e-5), (2, 2, 1e-6),
