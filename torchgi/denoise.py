@@ -43,7 +43,7 @@ from torchgi.buffers import GBuffer
 from torchgi.core.check import check_finite, check_option, finite_or_sanitized_all
 from torchgi.core.errors import ShapeError
 from torchgi.core.registry import Registry
-from torchgi.deployed import EXPORTABLE, FIREFLY, DeployedDenoiser, DeployedDenoiserWithoutEmission, deployed
+from torchgi.deployed import EXPORTABLE, FIREFLY, UNCLAMPED, DeployedDenoiser, DeployedDenoiserWithoutEmission, deployed
 from torchgi.filters import atrous, box, cross_bilateral, guide_from, guided
 from torchgi.filters.blend import blend, default_net
 from torchgi.filters.pyramid import default_net as pyramid_net
@@ -257,7 +257,7 @@ class Denoiser(torch.nn.Module):
             level = light.level(gb.color, gb.emission, kept, gb.albedo, surface)
             out = light.restore(gb.color, gb.emission, kept, gb.albedo, surface,
                                 lambda x, *raw: self._filter(x, gb, surface, *raw), FIREFLY[self.method], box, level,
-                                unclamped=self.method == "pyramid")
+                                unclamped=self.method in UNCLAMPED)
             out = _back_off(out, gb, surface, level)
         return out if self.hdr else out.clamp(0, 1)
 
@@ -360,7 +360,7 @@ class Denoiser(torch.nn.Module):
         else:
             lit = light.filter_light(x, light.median_level(light.every4(x), light.every4(surface)),
                                      lambda v, *raw: self._filter(v, gb, surface, *raw), FIREFLY[self.method], box,
-                                     self.method == "pyramid")
+                                     self.method in UNCLAMPED)
         lit = torch.where(surface, lit, 0.0)  # no reflected light without a surface
         own, sample_own = gb.emission, samples.emission
         if not self.filter_direct:

@@ -17,11 +17,12 @@ from torchgi.filters import atrous, blend, box, guide_from, guided
 from torchgi.filters.pyramid import pyramid
 from torchgi.settings import ATROUS, BILATERAL, GUIDED, PIPELINE
 
-__all__ = ["EXPORTABLE", "FIREFLY", "DeployedDenoiser", "DeployedDenoiserWithoutEmission", "deployed"]
+__all__ = ["EXPORTABLE", "FIREFLY", "UNCLAMPED", "DeployedDenoiser", "DeployedDenoiserWithoutEmission", "deployed"]
 
 EXPORTABLE = ("pyramid", "blend", "guided", "atrous")  # the methods Denoiser.deploy() fixes for ONNX
 # fireflies are clamped at this many times their local level before each method's filter
 FIREFLY = {"pyramid": GUIDED.firefly, "blend": GUIDED.firefly, "guided": GUIDED.firefly, "atrous": ATROUS.firefly, "bilateral": BILATERAL.firefly, "none": GUIDED.firefly}
+UNCLAMPED = ("pyramid",)  # the methods whose filter also gets the light before the firefly clamp
 
 
 def _fill_holes(tensors: list[torch.Tensor]) -> list[torch.Tensor]:
@@ -127,9 +128,8 @@ class DeployedDenoiser(torch.nn.Module):
                           sigma_color=self.params["sigma_color"])
 
         radii = self.params.get("radii", (None,)) if variance is not None else (None,)
-        pyr = self.method == "pyramid"  # it gives back some of what the firefly clamp took
         outs = [light.restore(color, emission, None, albedo, surface, lambda x, *raw, r=r: filter_fn(x, r, *raw),
-                              FIREFLY[self.method], box, scene_level, unclamped=pyr) for r in radii]
+                              FIREFLY[self.method], box, scene_level, unclamped=self.method in UNCLAMPED) for r in radii]
         if variance is None:
             return outs[0]
         emit = light.emitting(color, emission, albedo, surface, scene_level)

@@ -353,8 +353,8 @@ def pyramid_inputs(
     views = [views[order.index(k)] for k in range(len(net.candidates))]
     feats = _features(x, xs, gs, mean_p, m, spp, views)
     if net.direct:  # the light the firefly clamp took away, at 1/4 and 1/16
-        removed = torch.zeros_like(x) if raw is None else (raw - x).clamp_min(0)
-        r4 = F.avg_pool2d(removed, FEATURE_SCALE, ceil_mode=True)
+        r4 = (torch.zeros_like(xs[FEATURE_SCALE]) if raw is None
+              else F.avg_pool2d((raw - x).clamp_min(0), FEATURE_SCALE, ceil_mode=True))
         # at most the block's own (clamped) light: a rare huge sample adds at most that, spread
         lr, lx = _luminance(r4), _luminance((xs[FEATURE_SCALE] + mean_p).clamp_min(0))
         r4 = r4 * (lx / lr.clamp_min(torch.finfo(x.dtype).tiny)).clamp(max=1)

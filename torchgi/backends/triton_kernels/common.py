@@ -30,7 +30,6 @@ def _cdiv(a: int, b: int) -> int:
     return -(-a // b)
 
 
-
 if triton is not None:
 
     @triton.jit
