@@ -22,6 +22,7 @@ from collections.abc import Callable
 
 import torch
 
+from torchgi.core import exported
 from torchgi.core.check import is_recording
 from torchgi.settings import GUIDED, PIPELINE
 
@@ -40,7 +41,7 @@ def surface_mask(hit: torch.Tensor | None, albedo: torch.Tensor) -> torch.Tensor
         >>> surface_mask(None, torch.tensor([[[[0.0, 0.5]]]])).tolist()
         [[[[False, True]]]]
     """
-    return hit if hit is not None else albedo.amax(1, keepdim=True) > 0
+    return hit if hit is not None else exported.channel_max(albedo) > 0
 
 
 def demodulator(albedo: torch.Tensor, surface: torch.Tensor) -> torch.Tensor:
@@ -53,8 +54,7 @@ def demodulator(albedo: torch.Tensor, surface: torch.Tensor) -> torch.Tensor:
         >>> demodulator(a, surface_mask(None, a)).tolist()
         [[[[1.0, 0.5]]]]
     """
-    return torch.where(surface, albedo.clamp(PIPELINE.albedo_floor, PIPELINE.albedo_ceiling),
-                       torch.ones((), dtype=albedo.dtype, device=albedo.device))
+    return exported.where(surface, albedo.clamp(PIPELINE.albedo_floor, PIPELINE.albedo_ceiling), 1.0)
 
 
 def every4(t: torch.Tensor | None) -> torch.Tensor | None:
@@ -81,8 +81,8 @@ def median_level(x: torch.Tensor, surface: torch.Tensor) -> torch.Tensor:
     on = surface[:, 0].flatten(1)
     ranked = torch.where(on, peak, torch.full((), float("inf"), dtype=x.dtype, device=x.device))
     count = on.sum(1, keepdim=True)
-    if is_recording():  # a sort exports; eager calls select in linear time
-        m = ranked.sort(1).values.gather(1, ((count - 1).clamp_min(0) // 2))
+    if is_recording():  # the lower half sorted exports (a TopK); eager calls select in linear time
+        m = ranked.topk(ranked.shape[1] // 2 + 1, 1, largest=False).values.gather(1, ((count - 1).clamp_min(0) // 2))
     else:
         m = torch.stack([ranked[b].kthvalue(max(int(count[b]) - 1, 0) // 2 + 1).values for b in range(len(ranked))]
                         ).view(-1, 1) if ranked.shape[1] else ranked.new_ones(len(ranked), 1)
@@ -101,7 +101,7 @@ def light_sources(emission: torch.Tensor, threshold: torch.Tensor, box: BoxFn) -
         >>> int(light_sources(e, torch.ones(1, 1, 1, 1), box).sum())   # the 3x3 light, not the lone pixel
         9
     """
-    bright = emission.amax(1, keepdim=True) > threshold
+    bright = exported.channel_max(emission) > threshold
     if not is_recording() and not bool(bright.any()):
         return bright  # no light source in view: nothing to open
     r = PIPELINE.light_square // 2
@@ -133,7 +133,7 @@ def clamp_fireflies(x: torch.Tensor, scene_level: torch.Tensor, k: float, box: B
         >>> float(clamp_fireflies(x, torch.ones(1, 1, 1, 1), 4.0, box)[0, 0, 4, 4]) < 5
         True
     """
-    peak = x.amax(1, keepdim=True)
+    peak = exported.channel_max(x)
     return scaled_to(x, peak, firefly_bound(peak, scene_level, k, box))
 
 
@@ -146,7 +146,7 @@ def scaled_to(x: torch.Tensor, peak: torch.Tensor, bound: torch.Tensor) -> torch
         tensor([1.0000, 0.5000])
     """
     over = peak > bound  # so peak > 0 wherever it divides
-    return torch.where(over, x * (bound / torch.where(over, peak, 1.0)), x)
+    return x * exported.where(over, bound / exported.where(over, peak, 1.0), 1.0)
 
 
 def filter_light(x: torch.Tensor, scene_level: torch.Tensor, filter_fn: Callable[..., torch.Tensor],
@@ -228,14 +228,14 @@ def restore(
     base = color - kept if kept is not None else color
     lights = light_sources(emission if emission is not None else base / albedo, PIPELINE.light * scene_level, box)
     if emission is not None:
-        light = torch.where(lights, emission, 0.0)
+        light = exported.where(lights, emission, 0.0)
         kept = light if kept is None else kept + light
         x = (base - light) / albedo
     else:  # no emission input: a light source's pixels pass whole and enter the filter at the median level
-        x = torch.where(lights, scene_level.expand_as(color), base / albedo)
+        x = exported.where(lights, scene_level.expand_as(color), base / albedo)
     out = filter_light(x, scene_level, filter_fn, firefly, box, unclamped) * albedo
     out = out + kept if kept is not None else out
-    return out if emission is not None else torch.where(lights, color, out)
+    return out if emission is not None else exported.where(lights, color, out)
 
 
 def emitting(color: torch.Tensor, emission: torch.Tensor | None, albedo: torch.Tensor, surface: torch.Tensor,
@@ -250,8 +250,8 @@ def emitting(color: torch.Tensor, emission: torch.Tensor | None, albedo: torch.T
         [[[[False, True]]]]
     """
     if emission is not None:
-        return emission.amax(1, keepdim=True) > 0
-    return (color / demodulator(albedo, surface)).amax(1, keepdim=True) > PIPELINE.light * scene_level
+        return exported.channel_max(emission) > 0
+    return exported.channel_max(color / demodulator(albedo, surface)) > PIPELINE.light * scene_level
 
 
 def back_off(out: torch.Tensor, color: torch.Tensor, variance: torch.Tensor | None,
@@ -300,19 +300,19 @@ def back_off(out: torch.Tensor, color: torch.Tensor, variance: torch.Tensor | No
     n = 2.0 if n is None else n
     # every division guarded by a where whose other branch stays finite, so gradients do too
     measured = n >= 2 if torch.is_tensor(n) else None  # (fewer than 2 samples: no variance, the filter kept)
-    n = torch.where(measured, n, 2.0) if measured is not None else n
+    n = exported.where(measured, n, 2.0) if measured is not None else n
     k = 1 + PIPELINE.backoff_margin / ((n - 1).sqrt() if torch.is_tensor(n) else math.sqrt(n - 1))
     any_lit = is_recording() or bool(emitting.any())
     planes = torch.cat([r2, noise], 1)
-    sums = box(planes.masked_fill(emitting, 0.0) if any_lit else planes, PIPELINE.backoff_radius)
+    sums = box(exported.where(emitting, 0.0, planes) if any_lit else planes, PIPELINE.backoff_radius)
     floor = torch.finfo(out.dtype).eps ** 2  # (its square is still a normal number)
     e, v = sums[:, :1], sums[:, 1:]
-    w = torch.where(e > floor, 1 - k * v / torch.where(e > floor, e, 1.0), 0.0)
+    w = exported.where(e > floor, 1 - k * v / exported.where(e > floor, e, 1.0), 0.0)
     if any_lit:
-        own = 1 - k * (noise / torch.where(r2 > floor, r2, 1.0) + 1 / n)
-        w = torch.where(emitting, torch.where(r2 > floor, own, 0.0), w)
+        own = 1 - k * (noise / exported.where(r2 > floor, r2, 1.0) + 1 / n)
+        w = exported.where(emitting, exported.where(r2 > floor, own, 0.0), w)
     if measured is not None:
-        w = torch.where(measured, w, 0.0)
+        w = exported.where(measured, w, 0.0)
     w = w.clamp(0, 1)
     return torch.addcmul(out.reshape(B, C, -1), w.reshape(B, 1, -1), res.view(B, C, -1)).view(B, C, H, W)
 
@@ -357,7 +357,7 @@ def choose(outs: list[torch.Tensor], radii: list[int], variance: torch.Tensor, e
                                  for o in outs[1:]]
     stacked = torch.cat(planes, 1)
     any_lit = is_recording() or bool(emitting.any())
-    sums = box(stacked.masked_fill(emitting, 0.0) if any_lit else stacked, PIPELINE.backoff_radius)
+    sums = box(exported.where(emitting, 0.0, stacked) if any_lit else stacked, PIPELINE.backoff_radius)
     sigma = sums[:, :1]
     share = [GUIDED.choose_noise / (2 * r + 1) ** 2 for r in radii]
     errors = [sigma * share[0]] + [(sums[:, k : k + 1] - sigma * (share[0] - share[k])).clamp_min(0) + sigma * share[k]
@@ -366,10 +366,14 @@ def choose(outs: list[torch.Tensor], radii: list[int], variance: torch.Tensor, e
     # whose other branch stays finite (gradients and onnxruntime, which flushes tiny numbers, too)
     floor = torch.finfo(sigma.dtype).eps ** 2  # (its square is still a normal number)
     noisy = sigma > floor
-    scale = torch.where(noisy, GUIDED.choose_temperature * share[0] * sigma, 1.0).clamp_min(floor)
-    w = torch.softmax(-torch.cat(errors, 1) / scale, 1)
+    scale = exported.where(noisy, GUIDED.choose_temperature * share[0] * sigma, 1.0).clamp_min(floor)
+    if len(outs) == 2:  # the softmax of two as sigmoids (onnxruntime's Softmax over channels transposes: slow)
+        d = (errors[1] - errors[0]) / scale
+        w = torch.cat([torch.sigmoid(d), torch.sigmoid(-d)], 1)
+    else:
+        w = torch.softmax(-torch.cat(errors, 1) / scale, 1)
     sharpest = torch.zeros_like(w[:, :1])
-    w = torch.where(noisy, w, torch.cat([sharpest + 1] + [sharpest] * (len(outs) - 1), 1))
+    w = exported.where(noisy, w, torch.cat([sharpest + 1] + [sharpest] * (len(outs) - 1), 1))
     return sum(w[:, k : k + 1] * o for k, o in enumerate(outs))
 
 

@@ -90,6 +90,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from torchgi import backends
+from torchgi.backends.torch_code.filter_box import block_mean
 from torchgi.backends.torch_code.filter_guided import apply_coefficients
 from torchgi.core.check import (
     check_finite,
@@ -113,7 +114,7 @@ BANDS = (1, 2, 4, 8)  # the residual's bands (the last one its low-pass), one ga
 
 def _down(t: torch.Tensor) -> torch.Tensor:
     """2 x 2 means (a last odd row / column averaged over what it has)."""
-    return F.avg_pool2d(t, 2, ceil_mode=True)
+    return block_mean(t, 2)
 
 
 def _up(t: torch.Tensor, size: Sequence[int]) -> torch.Tensor:
@@ -263,9 +264,9 @@ def _features(x: torch.Tensor, xs: dict[int, torch.Tensor], gs: dict[int, torch.
     light4 = xs[FEATURE_SCALE] + mean_p
     lum = _luminance(x)
     lum4 = _luminance(light4)
-    var = (F.avg_pool2d(lum.square(), FEATURE_SCALE, ceil_mode=True) - lum4.square()).clamp_min(0)
+    var = (block_mean(lum.square(), FEATURE_SCALE) - lum4.square()).clamp_min(0)
     g4 = gs[FEATURE_SCALE]
-    edge = (F.avg_pool2d(gs[1].square().sum(1, keepdim=True), FEATURE_SCALE, ceil_mode=True)
+    edge = (block_mean(gs[1].square().sum(1, keepdim=True), FEATURE_SCALE)
             - g4.square().sum(1, keepdim=True)).clamp_min(0)
     if isinstance(spp, torch.Tensor):
         level = torch.log2(spp.to(x.dtype).reshape(-1, 1, 1, 1).expand(B, 1, 1, 1))
@@ -326,11 +327,11 @@ def pyramid_inputs(
         c = backends.run(backends.GuidedOp(levels[s], xs[s], zero, torch.zeros_like(mean_p), r, eps,
                                            coefficients_only=s > 1))
         if s == 1:
-            views.append(F.avg_pool2d(c, FEATURE_SCALE, ceil_mode=True))
+            views.append(block_mean(c, FEATURE_SCALE))
             return c
         # what the candidate makes of the light at 1/4 resolution (a feature)
         if s < FEATURE_SCALE:  # finer: applied at its scale, then averaged down
-            views.append(F.avg_pool2d(apply_coefficients(c, levels[s]), FEATURE_SCALE // s, ceil_mode=True))
+            views.append(block_mean(apply_coefficients(c, levels[s]), FEATURE_SCALE // s))
             return c
         c = _finer(c, s, FEATURE_SCALE, xs)
         views.append(apply_coefficients(c, levels[FEATURE_SCALE]))
@@ -354,11 +355,11 @@ def pyramid_inputs(
     feats = _features(x, xs, gs, mean_p, m, spp, views)
     if net.direct:  # the light the firefly clamp took away, at 1/4 and 1/16
         r4 = (torch.zeros_like(xs[FEATURE_SCALE]) if raw is None
-              else F.avg_pool2d((raw - x).clamp_min(0), FEATURE_SCALE, ceil_mode=True))
+              else block_mean((raw - x).clamp_min(0), FEATURE_SCALE))
         # at most the block's own (clamped) light: a rare huge sample adds at most that, spread
         lr, lx = _luminance(r4), _luminance((xs[FEATURE_SCALE] + mean_p).clamp_min(0))
         r4 = r4 * (lx / lr.clamp_min(torch.finfo(x.dtype).tiny)).clamp(max=1)
-        r16 = F.avg_pool2d(r4, 4, ceil_mode=True)
+        r16 = block_mean(r4, 4)
         rest["removed4"] = r4
         r16up = _up(_up(r16, _down(r4).shape[-2:]), r4.shape[-2:])
         feats = torch.cat([feats, torch.log1p(_luminance(r4) / m), torch.log1p(_luminance(r16up) / m)], 1)
@@ -419,8 +420,8 @@ def pyramid_mix(
     if net.direct:  # the correction at 1/4, in units of the image's mean luminance (module docstring)
         j = K + len(BANDS)
         lift = _luminance(rest["mean"]) * head[:, j : j + 3] + torch.sigmoid(head[:, j + 3 : j + 4]) * rest["removed4"]
-        r16 = F.avg_pool2d(rest["removed4"], 4, ceil_mode=True)
-        g16 = F.avg_pool2d(torch.sigmoid(head[:, j + 4 : j + 5]), 4, ceil_mode=True)
+        r16 = block_mean(rest["removed4"], 4)
+        g16 = block_mean(torch.sigmoid(head[:, j + 4 : j + 5]), 4)
         lift = lift + _up(_up(g16 * r16, _down(lift).shape[-2:]), lift.shape[-2:])
     band = gains[8] * res[8]
     for s in BANDS[-2::-1]:

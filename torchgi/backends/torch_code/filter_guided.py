@@ -15,7 +15,7 @@ from torchgi.backends.base import (
     UpsampleApplyOp,
     run,
 )
-from torchgi.backends.torch_code.filter_box import PlaneBoxer, box_pool, in_place
+from torchgi.backends.torch_code.filter_box import PlaneBoxer, block_mean, box_pool, in_place
 from torchgi.core.dtypes import compute_dtype, variance_rounding
 
 
@@ -314,8 +314,7 @@ def guided_filter(
     if subsample == 1:
         return run(GuidedOp(g, p, mean_g, mean_p, radius, eps, workspace=workspace)).to(src.dtype)
     gc = g - mean_g
-    low_g = F.avg_pool2d(gc, subsample, ceil_mode=True)
-    low_p = F.avg_pool2d(p - mean_p, subsample, ceil_mode=True)
+    low_g, low_p = block_mean(gc, subsample), block_mean(p - mean_p, subsample)
     zero_g, zero_p = torch.zeros_like(mean_g), torch.zeros_like(mean_p)  # low_g, low_p are centred
     coeffs = run(GuidedOp(low_g, low_p, zero_g, zero_p, round(radius / subsample), eps, coefficients_only=True,
                           workspace=workspace))
