@@ -10,7 +10,8 @@ run in onnxruntime on the render (without its emission layer for the second) and
 alternating, the eager default on the same inputs (the render with its variance). Each row:
 relMSE against the reference, the median ms of
 ``--rounds`` alternating calls (``bench_pipeline.timed``: each round starts one method later; each
-timed call follows an untimed call of the same method, as when one library runs alone), and
+timed call follows a 0.2 s pause and an untimed call of the same method, as when one library runs
+alone: onnxruntime's threads spin on past the next torch call), and
 onnxruntime's largest difference from the eager call over the eager
 output's largest value. Writes ``onnx.csv``, ``onnx.json``, ``onnx.md``. torch on 2 threads,
 onnxruntime with its default (one per core: 2 on the project's benchmark machine).
@@ -54,7 +55,7 @@ def run(args) -> list[dict]:
                     fns = {"eager": lambda d=d, g=same: d(g), "onnxruntime": lambda o=ort, g=same: o(g)}
                     outs = {k: f() for k, f in fns.items()}
                     eager = outs["eager"]
-                    for method, ms in timed(fns, args.rounds, "cpu", settle=1).items():
+                    for method, ms in timed(fns, args.rounds, "cpu", settle=1, pause=0.2).items():
                         out = outs[method]
                         rows.append({"scene": Path(name).name, "size": size, "spp": spp,
                                      "emission layer": emission, "method": method,

@@ -86,12 +86,14 @@ def methods(inputs: dict[str, torch.Tensor], device: str) -> dict:
     return fns
 
 
-def timed(fns: dict, rounds: int, device: str, settle: int = 0) -> dict[str, float]:
+def timed(fns: dict, rounds: int, device: str, settle: int = 0, pause: float = 0.0) -> dict[str, float]:
     """Median ms of each callable over ``rounds`` alternating rounds (after one warm-up call);
     each round starts one method later, so that every method follows every other equally often
     (OIDN's worker threads keep spinning for a while after its call). ``settle``: untimed calls
     of a method just before its timed one, so that it is timed after itself, not after another
-    library whose threads still spin (onnxruntime's slow the next torch call down)."""
+    library whose threads still spin (onnxruntime's slow the next torch call down); ``pause``:
+    seconds slept before those, for threads that spin longer than one call (onnxruntime's after
+    an 8 ms torch call: docs/benchmarks/onnx.md)."""
     sync = torch.cuda.synchronize if device == "cuda" else (lambda: None)
     times: dict[str, list[float]] = {k: [] for k in fns}
     for fn in fns.values():
@@ -100,6 +102,7 @@ def timed(fns: dict, rounds: int, device: str, settle: int = 0) -> dict[str, flo
     for i in range(rounds):
         for name in names[i % len(names):] + names[: i % len(names)]:
             fn = fns[name]
+            time.sleep(pause)
             for _ in range(settle):
                 fn()
             sync()

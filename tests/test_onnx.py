@@ -154,6 +154,35 @@ def test_a_non_finite_variance_pixel_is_a_hole_too():
     assert float(((out - clean).abs() / (clean.abs() + 1e-2))[..., far].max()) < 3e-4
 
 
+def test_exported_selects_and_channel_maxima_are_exact_without_their_slow_operators(tmp_path):
+    """Exported, ``core.exported.where`` is arithmetic on the mask and ``channel_max`` a Max of the
+    channel slices (onnxruntime runs Where and ReduceMax over channels several times slower:
+    docs/benchmarks/onnx.md): the graph holds neither, and onnxruntime gives what ``torch.where``
+    and ``amax`` give, bit for bit - a tiny value picked beside a large one included (``b + m (a -
+    b)`` would round it away)."""
+    from torchgi.core import exported
+
+    class Picks(torch.nn.Module):
+        def forward(self, x, y):
+            c = x[:, :1] > 0.5
+            return (exported.where(c, x * 1e-6, y * 1e3), exported.where(c, x, 0.0), exported.where(c, 0.0, y),
+                    exported.where(c, y, 1.0), exported.channel_max(y))
+
+    g = torch.Generator().manual_seed(0)
+    x, y = torch.rand(2, 3, 9, 11, generator=g), torch.rand(2, 3, 9, 11, generator=g)
+    path = export_onnx(Picks(), [x[:1, :, :8], y[:1, :, :8]], tmp_path / "p.onnx", input_names=["x", "y"],
+                       output_names=["a", "b", "c", "d", "e"])
+    import onnx
+
+    ops = {n.op_type for n in onnx.load(path).graph.node}
+    assert not ops & {"Where", "ReduceMax"}, ops
+    c = x[:, :1] > 0.5
+    want = (torch.where(c, x * 1e-6, y * 1e3), torch.where(c, x, 0.0), torch.where(c, 0.0, y), torch.where(c, y, 1.0),
+            y.amax(1, keepdim=True))
+    for got, w in zip(OrtSession(path).outputs(x=x, y=y), want, strict=True):
+        assert torch.equal(got, w)
+
+
 def test_finite_inputs_whose_sum_overflows_pass_unchanged():
     """The hole filling runs only where the inputs' sum is not finite (an If in the graph); finite
     values whose sum overflows float32 take that branch and must still pass bit for bit, and a
@@ -221,6 +250,12 @@ def test_exported_default_backs_off_with_the_variance_as_the_eager_one(tmp_path)
     ref = torchgi.render(scene, spp=128, bounces=1, seed=4).color
     ort = OrtDenoiser(export_denoiser("guided", tmp_path / "v.onnx", frame=gb))
     assert ort.input_names[-1] == "variance"
+    import onnx
+
+    # the operators onnxruntime runs slowly, kept out of the pipeline (docs/benchmarks/onnx.md):
+    # two selects on the median's 1/16 of the pixels, no Softmax over the two radii
+    ops = [n.op_type for n in onnx.load(tmp_path / "v.onnx").graph.node]
+    assert ops.count("Where") == 2 and "Softmax" not in ops, ops
     small = gb.crop(0, 0, 135, 128)
     for frame, want in ((gb, ref), (small, ref[..., :135, :128])):
         eager, exported = Denoiser()(frame), ort(frame)

@@ -17,9 +17,8 @@ from torchgi.backends.base import (
     eager,
 )
 
-# exported, a box up to this wide is one square AveragePool, not two separable ones: in onnxruntime
-# 1.32 (2 cores, 1920x1080, one plane) 2.0 / 3.0 / 5.8 ms against 3.5 / 4.7 / 7.4 at widths 3 / 7 / 17
-# (docs/benchmarks/onnx.md)
+# exported, a box up to this wide is one square AveragePool, not two separable ones (faster in
+# onnxruntime at every width measured up to this one: docs/benchmarks/onnx.md)
 _SQUARE_EXPORTED = 17
 # block widths of PlaneBoxer's blocked prefix sums (docs/calibration.md)
 _BLOCK_W, _BLOCK_H = 16, 16
