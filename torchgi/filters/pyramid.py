@@ -441,7 +441,8 @@ def pyramid(
 
     Args:
         x: ``(B, C, H, W)`` source, >= 0 (the Denoiser's demodulated, firefly-clamped light), any
-            scale (the network's inputs are relative to each image's mean).
+            scale (the network's inputs are relative to each image's mean); values below 0 count
+            as 0 (light: an emission pass from other samples than the colour's can leave some).
         guide: ``(B, G, H, W)``, ``1 <= G <= 4``, same dtype and device (e.g.
             :func:`~torchgi.filters.guide_from` with ``depth_scale="image"``).
         spp: samples per pixel the noise corresponds to, a float or ``(B,)`` tensor (>= 1).
@@ -482,8 +483,9 @@ def pyramid(
         for name, t in tensors.items():
             check_finite(t, name)
     ct = compute_dtype(x.dtype)
-    xs, gs = x.to(ct), guide.to(ct)
-    feats, coeffs, rest = pyramid_inputs(xs, gs, spp, net, None if raw is None else raw.to(ct))
+    # light is >= 0: what lies below (the colour less an emission pass of other samples) counts as 0
+    xs, gs = x.to(ct).clamp_min(0), guide.to(ct)
+    feats, coeffs, rest = pyramid_inputs(xs, gs, spp, net, None if raw is None else raw.to(ct).clamp_min(0))
     p = next(net.parameters())
     out, w = pyramid_mix(net, net(feats.to(p.dtype)).to(ct), coeffs, xs, rest, return_weights=True)
     out = out.to(x.dtype)
