@@ -95,6 +95,24 @@ def test_output_is_finite_and_non_negative(cornell, method):
     assert torch.isfinite(out).all() and (out >= 0).all()
 
 
+@pytest.mark.parametrize("method", ["pyramid", "blend", "guided", "atrous", "bilateral"])
+def test_units_do_not_matter_and_a_black_frame_stays_black(cornell, method):
+    # radiance in other units (x 1e-20 .. 1e20): the same image, scaled (the 1 spp path has no
+    # variance, whose absolute floors are another matter); a black frame: black, not NaN
+    noisy = cornell[0]
+    keys = ("albedo", "normal", "position", "depth", "spp", "hit")
+    base = Denoiser(method)(noisy)
+
+    def scaled(k):
+        return torchgi.GBuffer(**{n: getattr(noisy, n) for n in keys}, color=noisy.color * k, emission=noisy.emission * k)
+
+    for k in (1e-20, 1e-6, 1e20):
+        out = Denoiser(method)(scaled(k))
+        assert torch.isfinite(out).all(), (method, k)
+        assert float((out / k - base).abs().max()) < 1e-4 * float(base.max()), (method, k)
+    assert torch.equal(Denoiser(method)(scaled(0.0)), torch.zeros_like(base))
+
+
 def test_named_tensors_equal_the_gbuffer_call(cornell):
     noisy, _ = cornell
     named = {k: getattr(noisy, k) for k in ("color", "albedo", "normal", "position", "depth", "emission",

@@ -210,16 +210,22 @@ def _weights(net: BlendNet, candidates: Sequence[torch.Tensor], guide: torch.Ten
 
 
 _LARGEST = 2.0**60  # the features square box means of the light: keep them within float32
+_SMALLEST = 1e-4  # below this mean light, 1 % of it is under _floor's bound of 1e-6
 
 
 def _exponent_shift(x: torch.Tensor) -> int:
-    """``k`` such that ``x * 2^-k`` peaks near 1 when ``x (B,C,H,W)`` holds values above
-    :data:`_LARGEST` (whose squares would overflow the features' float32), else 0 (traced or
-    exported graphs: 0)."""
+    """``k`` such that ``x * 2^-k`` is of order 1 when ``x (B,C,H,W)`` holds values above
+    :data:`_LARGEST` (whose squares would overflow the features' float32) or its mean lies below
+    :data:`_SMALLEST` (where :func:`_floor`'s lower bound would stop being 1 % of the mean),
+    else 0 (traced or exported graphs: 0)."""
     if is_recording() or x.numel() == 0:
         return 0
-    peak = float(x.abs().amax())
-    return math.frexp(peak)[1] if math.isfinite(peak) and peak > _LARGEST else 0
+    peak, mean = float(x.abs().amax()), float(x.mean())
+    if not math.isfinite(peak):
+        return 0
+    if peak > _LARGEST:
+        return math.frexp(peak)[1]
+    return math.frexp(mean)[1] if 0 < mean < _SMALLEST else 0
 
 
 def blend(

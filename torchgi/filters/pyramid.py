@@ -262,8 +262,8 @@ def _features(x: torch.Tensor, xs: dict[int, torch.Tensor], gs: dict[int, torch.
     ``m`` and the candidates' ``views``."""
     B = x.shape[0]
     light4 = xs[FEATURE_SCALE] + mean_p
-    lum = _luminance(x)
-    lum4 = _luminance(light4)
+    lum = _luminance(x) / m  # relative to the mean before squaring: no overflow at 1e20, no underflow at 1e-20
+    lum4 = _luminance(light4) / m
     var = (block_mean(lum.square(), FEATURE_SCALE) - lum4.square()).clamp_min(0)
     g4 = gs[FEATURE_SCALE]
     edge = (block_mean(gs[1].square().sum(1, keepdim=True), FEATURE_SCALE)
@@ -272,8 +272,8 @@ def _features(x: torch.Tensor, xs: dict[int, torch.Tensor], gs: dict[int, torch.
         level = torch.log2(spp.to(x.dtype).reshape(-1, 1, 1, 1).expand(B, 1, 1, 1))
     else:
         level = torch.full((B, 1, 1, 1), math.log2(spp), dtype=x.dtype, device=x.device)
-    base = torch.log1p(lum4 / m)
-    feats = [torch.log1p(light4.clamp_min(0) / m), torch.log(var / (lum4.square() + 0.01 * m.square()) + 1e-4),
+    base = torch.log1p(lum4)
+    feats = [torch.log1p(light4.clamp_min(0) / m), torch.log(var / (lum4.square() + 0.01) + 1e-4),
              g4, torch.log(edge + 1e-4), level.expand_as(lum4)]
     feats += [torch.log1p(_luminance(v + mean_p).clamp_min(0) / m) - base for v in views]
     return torch.cat(feats, 1)
