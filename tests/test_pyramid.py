@@ -209,8 +209,17 @@ def test_module_form_and_scale():
     net = PyramidNet()
     x, guide = _inputs(seed=6)
     out = pyramid(x, guide, net=net)
-    assert torch.equal(Pyramid(net)(x, guide), out)
+    module = Pyramid(net)
+    assert torch.equal(module(x, guide), out)
     assert rel(pyramid(x * 1024, guide, net=net), out * 1024) < 1e-5
+    # the module keeps its fits' scratch planes between calls: a smaller image, two larger ones, the
+    # first again: each the fresh function's result (nothing of one call leaks into another)
+    x2, guide2 = _inputs(seed=7)
+    small = (x2[..., :20, :28].contiguous(), guide2[..., :20, :28].contiguous())
+    calls = (small, (x2, guide2), (x, guide), small)
+    outs = [module(xs, gs) for xs, gs in calls]  # all kept: no output may share a later call's buffers
+    for (xs, gs), o in zip(calls, outs, strict=True):
+        assert torch.equal(o, pyramid(xs, gs, net=net))
 
 
 def test_bad_input():

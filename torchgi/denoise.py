@@ -143,7 +143,7 @@ class Denoiser(torch.nn.Module):
         self.method, self.quality, self.hdr, self.input_scale = method, quality, hdr, input_scale
         self.filter_direct, self.sanitize, self.max_memory_mb = filter_direct, sanitize, max_memory_mb
         self.filter_params = dict(filter_params)
-        self._workspace: dict = {}  # the guided filter's CPU buffers, kept between calls
+        self._workspace: dict = {}  # the guided filter's (the pyramid's fits') CPU buffers, kept between calls
         self._capture: dict | None = None  # set by weights()
 
     @classmethod
@@ -444,7 +444,7 @@ class Denoiser(torch.nn.Module):
         spp = self._spp(gb, surface)
         if self.method == "pyramid":  # its guide as in training; noisier renders than 1 spp fed as 1 spp
             out, w = pyramid(x, guide_from(gb.normal, gb.depth, depth_scale="image"), spp=max(spp, 1.0), raw=raw,
-                             return_weights=True)
+                             return_weights=True, workspace=self._workspace)
             if self._capture is not None:
                 self._capture["weights"] = w
             return out

@@ -135,6 +135,15 @@ def _finer(c: torch.Tensor, s: int, target: int, levels: dict[int, torch.Tensor]
     return c
 
 
+def _weighted(w: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """``(w * t).sum(1)`` for ``w (B, k, ...)`` broadcasting against ``t (B, k, ...)``, summed
+    term by term (no ``(B, k, ...)`` product in memory: at 1920x1080 those are 50-90 MB)."""
+    out = w[:, 0] * t[:, 0]
+    for k in range(1, t.shape[1]):
+        out = out + w[:, k] * t[:, k]
+    return out
+
+
 def _levels(t: torch.Tensor, top: int) -> dict[int, torch.Tensor]:
     """``{1: t, 2: means 2x2, 4: ..., top: ...}``, each level from the one below."""
     out = {1: t}
@@ -296,6 +305,7 @@ def _colour_channel(net: PyramidNet, coeffs: dict[str, list[torch.Tensor]], xs: 
 
 def pyramid_inputs(
     x: torch.Tensor, guide: torch.Tensor, spp: float | torch.Tensor, net: PyramidNet, raw: torch.Tensor | None = None,
+    workspace: dict | None = None,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor], dict[str, torch.Tensor]]:
     """The first half of :func:`pyramid`: the network's features ``(B, F, ⌈H/4⌉, ⌈W/4⌉)``, the
     candidates' coefficients by group and mixing scale (keys of :func:`_groups`; ``(B, k, n + 1,
@@ -303,7 +313,7 @@ def pyramid_inputs(
     geometric ones, the first ``min(G, 3)`` and the colour channel for the colour ones) and what
     :func:`pyramid_mix` needs besides (the centred guide, its colour channel, the light's mean),
     all in the compute dtype. ``x (B, C, H, W) >= 0``, ``guide (B, G, H, W)``, ``spp`` a float
-    or ``(B,)`` tensor.
+    or ``(B,)`` tensor; ``workspace`` as :func:`pyramid`'s.
 
     Example:
         >>> net = PyramidNet()
@@ -317,6 +327,7 @@ def pyramid_inputs(
     xs, gs = _levels(x - mean_p, top), _levels(guide - mean_g, top)
     m = _luminance(mean_p).clamp_min(torch.finfo(x.dtype).tiny)  # each image's mean light level
     coeffs, views = {}, []
+    workspaces = {} if workspace is None else workspace  # one per scale: the fits of one size share scratch planes
 
     def fit(levels: dict[int, torch.Tensor], s: int, r: int, e: float) -> torch.Tensor:
         """One candidate's coefficients at its mixing scale (at scale 1 its centred output); its
@@ -325,7 +336,7 @@ def pyramid_inputs(
         eps = torch.full((B, n, 1, 1), e, dtype=x.dtype, device=x.device)
         zero = torch.zeros((B, n, 1, 1), dtype=x.dtype, device=x.device)
         c = backends.run(backends.GuidedOp(levels[s], xs[s], zero, torch.zeros_like(mean_p), r, eps,
-                                           coefficients_only=s > 1))
+                                           coefficients_only=s > 1, workspace=workspaces.setdefault(s, {})))
         if s == 1:
             views.append(block_mean(c, FEATURE_SCALE))
             return c
@@ -395,9 +406,9 @@ def pyramid_mix(
         coarse, fine = f"{group}@{FEATURE_SCALE}", f"{group}@{MIX_SCALE}"
         out = 0
         if coarse in coeffs:
-            out = _up5((w[:, groups[coarse], None, None] * coeffs[coarse]).sum(1), half)
+            out = _up5(_weighted(w[:, groups[coarse], None, None], coeffs[coarse]), half)
         if fine in coeffs:
-            out = out + (_up(w[:, groups[fine]], half)[:, :, None, None] * coeffs[fine]).sum(1)
+            out = out + _weighted(_up(w[:, groups[fine]], half)[:, :, None, None], coeffs[fine])
         mixed[group] = out
     G, keep = rest["guide"].shape[1], min(rest["guide"].shape[1], 3)
     geo, col = mixed["geometric"], mixed["colour"]
@@ -412,7 +423,7 @@ def pyramid_mix(
     if outputs:
         w_full = _up(_up(w[:, [k for key in outputs for k in groups[key]]], half), full)
         ys = coeffs[outputs[0]] if len(outputs) == 1 else torch.cat([coeffs[k] for k in outputs], 1)
-        model = model + (w_full[:, :, None] * ys).sum(1)
+        model = model + _weighted(w_full[:, :, None], ys)
     gain = torch.sigmoid(head[:, K : K + len(BANDS)])  # at 1/4
     gains = {1: _up(_up(gain[:, :1], half), full), 2: _up(gain[:, 1:2], half), 4: gain[:, 2:3], 8: _down(gain[:, 3:])}
     res = _levels(x - model, BANDS[-1])
@@ -435,7 +446,7 @@ def pyramid_mix(
 
 def pyramid(
     x: torch.Tensor, guide: torch.Tensor, *, spp: float | torch.Tensor = 1.0, net: PyramidNet | None = None,
-    raw: torch.Tensor | None = None, return_weights: bool = False,
+    raw: torch.Tensor | None = None, return_weights: bool = False, workspace: dict | None = None,
 ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
     """Filter ``x`` with the learned guided pyramid (module docstring).
 
@@ -453,6 +464,9 @@ def pyramid(
         return_weights: also return the ``(B, K + 4, ⌈H/4⌉, ⌈W/4⌉)`` weights (the per-pixel
             choice: the candidates' in ``net.candidates`` order, then the gains of the
             residual's bands at scales 1, 2, 4 and its low-pass at 8, all at 1/4 resolution).
+        workspace: None, or a dict in which the CPU path keeps the guided fits' scratch planes
+            between calls (as :func:`~torchgi.filters.guided`'s; at 1920x1080 about 150 MB, which
+            a new call would otherwise fault in page by page).
 
     Returns:
         ``(B, C, H, W)`` in the dtype and on the device of ``x`` (float16 is computed in float32),
@@ -485,7 +499,8 @@ def pyramid(
     ct = compute_dtype(x.dtype)
     # light is >= 0: what lies below (the colour less an emission pass of other samples) counts as 0
     xs, gs = x.to(ct).clamp_min(0), guide.to(ct)
-    feats, coeffs, rest = pyramid_inputs(xs, gs, spp, net, None if raw is None else raw.to(ct).clamp_min(0))
+    feats, coeffs, rest = pyramid_inputs(xs, gs, spp, net, None if raw is None else raw.to(ct).clamp_min(0),
+                                         workspace)
     p = next(net.parameters())
     out, w = pyramid_mix(net, net(feats.to(p.dtype)).to(ct), coeffs, xs, rest, return_weights=True)
     out = out.to(x.dtype)
@@ -503,7 +518,12 @@ class Pyramid(nn.Module):
     def __init__(self, net: PyramidNet | None = None) -> None:
         super().__init__()
         self.net = net if net is not None else PyramidNet.load(WEIGHTS)
+        self._workspace: dict = {}
 
     def forward(self, x: torch.Tensor, guide: torch.Tensor, spp: float | torch.Tensor = 1.0,
                 raw: torch.Tensor | None = None) -> torch.Tensor:
-        return pyramid(x, guide, spp=spp, net=self.net, raw=raw)
+        return pyramid(x, guide, spp=spp, net=self.net, raw=raw, workspace=self._workspace)
+
+    def release(self) -> None:
+        """Free the CPU scratch buffers kept between calls."""
+        self._workspace.clear()
