@@ -69,8 +69,9 @@ def crops(data: list[dict], size: int, count: int, g: torch.Generator) -> dict:
         cut = lambda t, s: t[..., y // s : (y + size) // s, x // s : (x + size) // s]
         parts = {k: cut(d[k], 1) for k in ("x", "demod", "kept", "target")}
         parts["feats"] = cut(d["feats"], q)
-        for k, t in d["coeffs"].items():  # "<group>@<scale>": cut at that scale
-            parts["coeffs." + k] = cut(t, int(k.split("@")[1]))
+        for k, ts in d["coeffs"].items():  # "<group>@<scale>": each candidate's cut at that scale
+            for j, t in enumerate(ts):
+                parts[f"coeffs.{k}#{j}"] = cut(t, int(k.split("@")[1]))
         parts["rest.mean"] = d["rest"]["mean"]
         if "removed4" in d["rest"]:
             parts["rest.removed4"] = cut(d["rest"]["removed4"], q)
@@ -81,7 +82,11 @@ def crops(data: list[dict], size: int, count: int, g: torch.Generator) -> dict:
             out.setdefault(k, []).append(t)
     batch = {k: torch.cat(v) for k, v in out.items()}
     batch["rest"] = {k[5:]: batch.pop(k) for k in list(batch) if k.startswith("rest.")}
-    batch["coeffs"] = {k[7:]: batch.pop(k) for k in list(batch) if k.startswith("coeffs.")}
+    coeffs: dict[str, dict[int, torch.Tensor]] = {}
+    for k in [k for k in batch if k.startswith("coeffs.")]:
+        group, j = k[7:].split("#")
+        coeffs.setdefault(group, {})[int(j)] = batch.pop(k)
+    batch["coeffs"] = {g: [c[j] for j in sorted(c)] for g, c in coeffs.items()}
     return batch
 
 

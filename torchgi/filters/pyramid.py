@@ -135,12 +135,12 @@ def _finer(c: torch.Tensor, s: int, target: int, levels: dict[int, torch.Tensor]
     return c
 
 
-def _weighted(w: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
-    """``(w * t).sum(1)`` for ``w (B, k, ...)`` broadcasting against ``t (B, k, ...)``, summed
-    term by term (no ``(B, k, ...)`` product in memory: at 1920x1080 those are 50-90 MB)."""
-    out = w[:, 0] * t[:, 0]
-    for k in range(1, t.shape[1]):
-        out = out + w[:, k] * t[:, k]
+def _weighted(w: torch.Tensor, ts: Sequence[torch.Tensor]) -> torch.Tensor:
+    """``Σ_k w[:, k] ts[k]`` for ``w (B, k, ...)`` broadcasting against each ``ts[k] (B, ...)``,
+    term by term (neither the terms stacked nor their products: at 1920x1080 50-90 MB each)."""
+    out = w[:, 0] * ts[0]
+    for k in range(1, len(ts)):
+        out = out + w[:, k] * ts[k]
     return out
 
 
@@ -306,11 +306,12 @@ def _colour_channel(net: PyramidNet, coeffs: dict[str, list[torch.Tensor]], xs: 
 def pyramid_inputs(
     x: torch.Tensor, guide: torch.Tensor, spp: float | torch.Tensor, net: PyramidNet, raw: torch.Tensor | None = None,
     workspace: dict | None = None,
-) -> tuple[torch.Tensor, dict[str, torch.Tensor], dict[str, torch.Tensor]]:
+) -> tuple[torch.Tensor, dict[str, list[torch.Tensor]], dict[str, torch.Tensor]]:
     """The first half of :func:`pyramid`: the network's features ``(B, F, ⌈H/4⌉, ⌈W/4⌉)``, the
-    candidates' coefficients by group and mixing scale (keys of :func:`_groups`; ``(B, k, n + 1,
-    C, h, w)`` with ``h, w`` the 1/2 or 1/4 resolution, over the guide's ``G`` channels for the
-    geometric ones, the first ``min(G, 3)`` and the colour channel for the colour ones) and what
+    candidates' coefficients by group and mixing scale (keys of :func:`_groups`; a list of ``(B,
+    n + 1, C, h, w)``, one per candidate, ``h, w`` the 1/2 or 1/4 resolution, over the guide's
+    ``G`` channels for the geometric ones, the first ``min(G, 3)`` and the colour channel for the
+    colour ones; at scale 1 the candidates' centred outputs ``(B, C, H, W)``) and what
     :func:`pyramid_mix` needs besides (the centred guide, its colour channel, the light's mean),
     all in the compute dtype. ``x (B, C, H, W) >= 0``, ``guide (B, G, H, W)``, ``spp`` a float
     or ``(B,)`` tensor; ``workspace`` as :func:`pyramid`'s.
@@ -318,8 +319,8 @@ def pyramid_inputs(
     Example:
         >>> net = PyramidNet()
         >>> f, c, rest = pyramid_inputs(torch.rand(1, 3, 16, 16), torch.rand(1, 4, 16, 16), 1.0, net)
-        >>> f.shape, c["geometric@4"].shape
-        (torch.Size([1, 19, 4, 4]), torch.Size([1, 4, 5, 3, 4, 4]))
+        >>> f.shape, len(c["geometric@4"]), c["geometric@4"][0].shape
+        (torch.Size([1, 19, 4, 4]), 4, torch.Size([1, 5, 3, 4, 4]))
     """
     B = x.shape[0]
     mean_p, mean_g = x.mean((2, 3), keepdim=True), guide.mean((2, 3), keepdim=True)
@@ -360,7 +361,7 @@ def pyramid_inputs(
               if s > 1 or groups["colour@1"]}
         for key in ("colour@1", "colour@2", "colour@4"):
             coeffs[key] = [fit(cs, *net.candidates[k]) for k in groups[key]]
-    coeffs = {k: torch.stack(v, 1) for k, v in coeffs.items() if v}
+    coeffs = {k: v for k, v in coeffs.items() if v}
     order = [k for key in groups.values() for k in key]  # the views were made in group order
     views = [views[order.index(k)] for k in range(len(net.candidates))]
     feats = _features(x, xs, gs, mean_p, m, spp, views)
@@ -378,7 +379,7 @@ def pyramid_inputs(
 
 
 def pyramid_mix(
-    net: PyramidNet, head: torch.Tensor, coeffs: dict[str, torch.Tensor], x: torch.Tensor,
+    net: PyramidNet, head: torch.Tensor, coeffs: dict[str, list[torch.Tensor]], x: torch.Tensor,
     rest: dict[str, torch.Tensor], return_weights: bool = False,
 ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
     """The second half of :func:`pyramid`: ``head = net(features)`` at 1/4 resolution; the
@@ -422,7 +423,7 @@ def pyramid_mix(
     outputs = [k for k in ("geometric@1", "colour@1") if k in coeffs]  # scale 1: outputs, mixed at full resolution
     if outputs:
         w_full = _up(_up(w[:, [k for key in outputs for k in groups[key]]], half), full)
-        ys = coeffs[outputs[0]] if len(outputs) == 1 else torch.cat([coeffs[k] for k in outputs], 1)
+        ys = [y for k in outputs for y in coeffs[k]]
         model = model + _weighted(w_full[:, :, None], ys)
     gain = torch.sigmoid(head[:, K : K + len(BANDS)])  # at 1/4
     gains = {1: _up(_up(gain[:, :1], half), full), 2: _up(gain[:, 1:2], half), 4: gain[:, 2:3], 8: _down(gain[:, 3:])}
