@@ -281,7 +281,7 @@ def _features(x: torch.Tensor, xs: dict[int, torch.Tensor], gs: dict[int, torch.
         level = torch.log2(spp.to(x.dtype).reshape(-1, 1, 1, 1).expand(B, 1, 1, 1))
     else:
         level = torch.full((B, 1, 1, 1), math.log2(spp), dtype=x.dtype, device=x.device)
-    base = torch.log1p(lum4)
+    base = torch.log1p(lum4.clamp_min(-0.5))  # (below -0.5 only where the light is below 0)
     feats = [torch.log1p(light4.clamp_min(0) / m), torch.log(var / (lum4.square() + 0.01) + 1e-4),
              g4, torch.log(edge + 1e-4), level.expand_as(lum4)]
     feats += [torch.log1p(_luminance(v + mean_p).clamp_min(0) / m) - base for v in views]
@@ -326,7 +326,9 @@ def pyramid_inputs(
     mean_p, mean_g = x.mean((2, 3), keepdim=True), guide.mean((2, 3), keepdim=True)
     top = max(net.top, FEATURE_SCALE)
     xs, gs = _levels(x - mean_p, top), _levels(guide - mean_g, top)
-    m = _luminance(mean_p).clamp_min(torch.finfo(x.dtype).tiny)  # each image's mean light level
+    # each image's mean light level (of |x|: light below 0, an emission pass of other samples than
+    # the colour's, must not make it 0 or negative)
+    m = _luminance(x.abs().mean((2, 3), keepdim=True)).clamp_min(torch.finfo(x.dtype).tiny)
     coeffs, views = {}, []
     workspaces = {} if workspace is None else workspace  # one per scale: the fits of one size share scratch planes
 
@@ -453,8 +455,8 @@ def pyramid(
 
     Args:
         x: ``(B, C, H, W)`` source, >= 0 (the Denoiser's demodulated, firefly-clamped light), any
-            scale (the network's inputs are relative to each image's mean); values below 0 count
-            as 0 (light: an emission pass from other samples than the colour's can leave some).
+            scale (the network's inputs are relative to each image's mean); values below 0 (an
+            emission pass from other samples than the colour's can leave some) stay finite.
         guide: ``(B, G, H, W)``, ``1 <= G <= 4``, same dtype and device (e.g.
             :func:`~torchgi.filters.guide_from` with ``depth_scale="image"``).
         spp: samples per pixel the noise corresponds to, a float or ``(B,)`` tensor (>= 1).
@@ -498,10 +500,8 @@ def pyramid(
         for name, t in tensors.items():
             check_finite(t, name)
     ct = compute_dtype(x.dtype)
-    # light is >= 0: what lies below (the colour less an emission pass of other samples) counts as 0
-    xs, gs = x.to(ct).clamp_min(0), guide.to(ct)
-    feats, coeffs, rest = pyramid_inputs(xs, gs, spp, net, None if raw is None else raw.to(ct).clamp_min(0),
-                                         workspace)
+    xs, gs = x.to(ct), guide.to(ct)
+    feats, coeffs, rest = pyramid_inputs(xs, gs, spp, net, None if raw is None else raw.to(ct), workspace)
     p = next(net.parameters())
     out, w = pyramid_mix(net, net(feats.to(p.dtype)).to(ct), coeffs, xs, rest, return_weights=True)
     out = out.to(x.dtype)
