@@ -503,7 +503,12 @@ def pyramid(
     xs, gs = x.to(ct), guide.to(ct)
     feats, coeffs, rest = pyramid_inputs(xs, gs, spp, net, None if raw is None else raw.to(ct), workspace)
     p = next(net.parameters())
-    out, w = pyramid_mix(net, net(feats.to(p.dtype)).to(ct), coeffs, xs, rest, return_weights=True)
+    feats = feats.to(p.dtype)
+    if not is_recording():  # oneDNN's convolutions run faster channels-last; the mix reads channels
+        head = net(feats.contiguous(memory_format=torch.channels_last)).contiguous()
+    else:
+        head = net(feats)
+    out, w = pyramid_mix(net, head.to(ct), coeffs, xs, rest, return_weights=True)
     out = out.to(x.dtype)
     return (out, w.to(x.dtype)) if return_weights else out
 
