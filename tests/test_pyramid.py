@@ -10,11 +10,14 @@ import copy
 import pytest
 import torch
 
+import torchgi
 from tests.helpers import check_data_hash, check_weights_provenance, onnx_parity, shipped_untrained_guided
 from tests.helpers import rel_error as rel
 from tests.oracles import block_means, fast_guided_oracle, guided_oracle, upsample
+from torchgi import denoise
 from torchgi.core import NonFiniteError, RangeError
-from torchgi.filters.pyramid import WEIGHTS, Pyramid, PyramidNet, pyramid
+from torchgi.denoise import Denoiser
+from torchgi.filters.pyramid import ALIGN, REACH, WEIGHTS, Pyramid, PyramidNet, default_net, pyramid, pyramid_stats
 
 
 def _inputs(B=1, H=32, W=48, seed=0, dtype=torch.float32):
@@ -306,3 +309,47 @@ def test_huge_samples_do_not_come_back_as_blotches():
     clean = float(metrics.relmse(den(noisy), ref.color))
     assert clean < 0.25 * float(metrics.relmse(noisy.color, ref.color))
     assert float(metrics.relmse(den(dataclasses.replace(noisy, color=hot)), ref.color)) < 1.5 * clean
+
+
+def test_a_tile_with_its_reach_is_filtered_as_in_the_whole_image():
+    """``stats=``: a tile on multiples of ALIGN with REACH px of the image around it gives the
+    whole image's output there (float64, torch code: measured 3e-13 of the peak; with a reach of
+    160 px 4e-9, of 128 px 1.4e-6, of 64 px 4e-3)."""
+    net = copy.deepcopy(default_net()).double()
+    x, guide = _inputs(H=480, W=512, seed=9, dtype=torch.float64)
+    raw = x + (x > 3.5) * 40.0  # fireflies the clamp took: the direct term's context too
+    whole = pyramid(x, guide, spp=1.0, net=net, raw=raw)
+    rows, cols = slice(ALIGN * 13, ALIGN * 16), slice(ALIGN * 13, ALIGN * 17)  # the core, away from every edge
+    tr, tc = slice(rows.start - REACH, rows.stop + REACH), slice(cols.start - REACH, cols.stop + REACH)
+    assert tr.start > 0 and tc.start > 0 and tr.stop < 480 and tc.stop < 512
+    tile = pyramid(x[..., tr, tc], guide[..., tr, tc], spp=1.0, net=net, raw=raw[..., tr, tc],
+                   stats=pyramid_stats(x, guide))
+    core = tile[..., REACH : REACH + rows.stop - rows.start, REACH : REACH + cols.stop - cols.start]
+    assert rel(core, whole[..., rows, cols]) < 1e-11
+    with pytest.raises(ValueError, match="stats"):
+        pyramid(x, guide, net=net, stats={"mean": x.mean((2, 3), keepdim=True)})
+    with pytest.raises(ValueError, match="stats"):
+        pyramid(x, guide, net=net, stats={k: v.float() for k, v in pyramid_stats(x, guide).items()})
+
+
+@pytest.mark.parametrize("spp, emission", [(1, True), (4, False)])
+def test_the_denoiser_in_tiles_gives_the_untiled_result(monkeypatch, spp, emission):
+    """max_memory_mb: the image statistics from a first pass over tiles, then tiles that overlap by
+    the pipeline's reach and REACH: the untiled output and weights to float rounding (float32, 3x3
+    tiles; each tile's own statistics are off by 1e-3 of the peak), and at 4 spp the back-off in
+    each tile."""
+    gb = torchgi.render(torchgi.scenes.cornell(520).with_resolution(520, 470), spp=spp, bounces=1, seed=3)
+    if not emission:
+        gb = gb.replace(emission=None)
+    whole = Denoiser("pyramid")
+    tiles = []
+    real = denoise._tiles
+    monkeypatch.setattr(denoise, "_tiles", lambda *a: (tiles.append(t) or t for t in real(*a)))
+    tiled = Denoiser("pyramid", max_memory_mb=200)
+    out = tiled(gb)
+    assert len(tiles) % 2 == 0 and len(tiles) // 2 >= 9  # the statistics' pass and the filter's, 3x3 tiles or more
+    ref = whole(gb)
+    assert float((out - ref).abs().max() / ref.abs().max()) < 2e-6
+    assert float((tiled.weights(gb) - whole.weights(gb)).abs().max()) < 2e-4
+    with pytest.raises(ValueError, match="at least"):
+        Denoiser("pyramid", max_memory_mb=20)(gb)

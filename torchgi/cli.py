@@ -348,7 +348,7 @@ def _denoise_and_export_parsers(sub: argparse._SubParsersAction) -> None:
                    help="the motion layer's convention (default: from its name: motion torchgi, Vector Cycles, "
                    "motionvector Arnold)")
     p.add_argument("--sanitize", action="store_true", help="replace NaN/Inf in the input by 0 (with a warning)")
-    p.add_argument("--max-memory-mb", type=float, help="most MB denoising adds beyond the input (tiles; guided)")
+    p.add_argument("--max-memory-mb", type=float, help="most MB denoising adds beyond the input (tiles; guided and pyramid)")
     p.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar (--temporal)")
     p.set_defaults(func=cmd_denoise)
 

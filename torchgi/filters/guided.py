@@ -38,7 +38,7 @@ from torchgi.core.check import (
 from torchgi.core.dtypes import compute_dtype
 from torchgi.core.errors import RangeError, ShapeError
 
-__all__ = ["Guided", "guide_from", "guide_from_gbuffer", "guided"]
+__all__ = ["Guided", "depth_scales", "guide_from", "guide_from_gbuffer", "guided"]
 
 
 def _check_eps(
@@ -168,7 +168,7 @@ def guide_from_gbuffer(
 
 def guide_from(
     normal: torch.Tensor, depth: torch.Tensor | None = None, *, hit: torch.Tensor | None = None,
-    depth_scale: float | str | None = None, drop_constant: bool = False,
+    depth_scale: float | str | torch.Tensor | None = None, drop_constant: bool = False,
 ) -> torch.Tensor:
     """The guided filter's guide, built one way for the Denoiser, its exported form and
     :class:`~torchgi.data.FilterFeatures`: ``(normal + 1) / 2`` and ``depth / scale``.
@@ -179,7 +179,9 @@ def guide_from(
         hit: ``(B, 1, H, W)`` bool, the pixels whose depth sets the default scale.
         depth_scale: a float (scene units); None = the largest depth on ``hit`` pixels of the
             batch (a host read); ``"image"`` = each image's own largest depth (no host read:
-            traceable, and a sample's guide does not depend on its batch).
+            traceable, and a sample's guide does not depend on its batch); a ``(B, 1, 1, 1)``
+            tensor = each image's scale given (e.g. ``"image"``'s of a whole image, for its tiles:
+            :func:`depth_scales`).
         drop_constant: drop channels constant over the whole batch (a host read).
 
     Returns:
@@ -192,8 +194,11 @@ def guide_from(
     """
     channels = [(normal + 1) * 0.5]
     if depth is not None:
-        if depth_scale == "image":
-            channels.append(depth / depth.amax(dim=(1, 2, 3), keepdim=True).clamp_min(1e-12))
+        if isinstance(depth_scale, torch.Tensor):
+            check_shape(depth_scale, "B 1 1 1", "depth_scale", {"B": depth.shape[0]})
+            channels.append(depth / depth_scale)
+        elif depth_scale == "image":
+            channels.append(depth / depth_scales(depth))
         else:
             if depth_scale is None:
                 valid = depth if hit is None else torch.where(hit, depth, -torch.inf)
@@ -209,6 +214,17 @@ def guide_from(
         keep = varying if varying.numel() else torch.zeros(1, dtype=torch.long, device=guide.device)
         guide = guide.index_select(1, keep)
     return guide
+
+
+def depth_scales(depth: torch.Tensor) -> torch.Tensor:
+    """Each image's largest depth ``(B, 1, 1, 1)`` (at least 1e-12): :func:`guide_from`'s
+    ``depth_scale="image"`` of ``depth (B, 1, H, W)``.
+
+    Example:
+        >>> depth_scales(torch.tensor([1.0, 4.0]).view(2, 1, 1, 1).expand(2, 1, 2, 2)).flatten().tolist()
+        [1.0, 4.0]
+    """
+    return depth.amax(dim=(1, 2, 3), keepdim=True).clamp_min(1e-12)
 
 
 class Guided(nn.Module):

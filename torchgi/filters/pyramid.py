@@ -104,12 +104,18 @@ from torchgi.core.dtypes import compute_dtype
 from torchgi.core.errors import RangeError, ShapeError
 from torchgi.filters.learned import SavedNet, shipped
 
-__all__ = ["Pyramid", "PyramidNet", "default_net", "pyramid", "pyramid_inputs", "pyramid_mix"]
+__all__ = ["Pyramid", "PyramidNet", "default_net", "pyramid", "pyramid_inputs", "pyramid_mix", "pyramid_stats"]
 
 WEIGHTS = Path(__file__).with_name("pyramid_weights.json")
 FEATURE_SCALE = 4  # the network's resolution: 1/4
 MIX_SCALE = 2  # where the coefficients are mixed: 1/2
 BANDS = (1, 2, 4, 8)  # the residual's bands (the last one its low-pass), one gain each
+# How far (px) the shipped network's output reaches into its input, rounded up to the 16 x 16
+# blocks of its coarsest level: features up to 1/8 (a scale-8 fit of radius 4 and its bilinear
+# step, ~80 px), the U-Net's receptive field (~110 px) and the mix's bilinear steps (~20 px).
+# Tiles with this much overlap compute the untiled output up to float rounding (docs/pyramid.md).
+REACH = 192
+ALIGN = 16  # tile origins on multiples of this: the blocks of every level are the untiled ones
 
 
 def _down(t: torch.Tensor) -> torch.Tensor:
@@ -303,9 +309,26 @@ def _colour_channel(net: PyramidNet, coeffs: dict[str, list[torch.Tensor]], xs: 
     return lum_guide - lum_guide.mean((2, 3), keepdim=True)
 
 
+def pyramid_stats(x: torch.Tensor, guide: torch.Tensor) -> dict[str, torch.Tensor]:
+    """The image statistics :func:`pyramid` centres and scales by: ``"mean"`` the light's mean
+    ``(B, C, 1, 1)``, ``"guide_mean"`` the guide's ``(B, G, 1, 1)`` and ``"level"`` the mean
+    luminance of ``|x|`` ``(B, 1, 1, 1)`` (at least float's smallest normal; light below 0 must
+    not make it 0 or negative), of ``x (B, C, H, W)`` and ``guide (B, G, H, W)``. Each is a mean
+    over the pixels, so the statistics of a whole image are the pixel-weighted means of its
+    tiles' (how tiles get the untiled output: ``pyramid(..., stats=)``).
+
+    Example:
+        >>> st = pyramid_stats(torch.ones(2, 3, 4, 4), torch.zeros(2, 4, 4, 4))
+        >>> st["mean"].shape, st["guide_mean"].shape, float(st["level"][0])
+        (torch.Size([2, 3, 1, 1]), torch.Size([2, 4, 1, 1]), 1.0)
+    """
+    level = _luminance(x.abs().mean((2, 3), keepdim=True))
+    return {"mean": x.mean((2, 3), keepdim=True), "guide_mean": guide.mean((2, 3), keepdim=True), "level": level}
+
+
 def pyramid_inputs(
     x: torch.Tensor, guide: torch.Tensor, spp: float | torch.Tensor, net: PyramidNet, raw: torch.Tensor | None = None,
-    workspace: dict | None = None,
+    workspace: dict | None = None, stats: dict[str, torch.Tensor] | None = None,
 ) -> tuple[torch.Tensor, dict[str, list[torch.Tensor]], dict[str, torch.Tensor]]:
     """The first half of :func:`pyramid`: the network's features ``(B, F, ⌈H/4⌉, ⌈W/4⌉)``, the
     candidates' coefficients by group and mixing scale (keys of :func:`_groups`; a list of ``(B,
@@ -314,7 +337,7 @@ def pyramid_inputs(
     colour ones; at scale 1 the candidates' centred outputs ``(B, C, H, W)``) and what
     :func:`pyramid_mix` needs besides (the centred guide, its colour channel, the light's mean),
     all in the compute dtype. ``x (B, C, H, W) >= 0``, ``guide (B, G, H, W)``, ``spp`` a float
-    or ``(B,)`` tensor; ``workspace`` as :func:`pyramid`'s.
+    or ``(B,)`` tensor; ``workspace`` and ``stats`` as :func:`pyramid`'s.
 
     Example:
         >>> net = PyramidNet()
@@ -323,12 +346,11 @@ def pyramid_inputs(
         (torch.Size([1, 19, 4, 4]), 4, torch.Size([1, 5, 3, 4, 4]))
     """
     B = x.shape[0]
-    mean_p, mean_g = x.mean((2, 3), keepdim=True), guide.mean((2, 3), keepdim=True)
+    stats = pyramid_stats(x, guide) if stats is None else stats
+    mean_p, mean_g = stats["mean"], stats["guide_mean"]
     top = max(net.top, FEATURE_SCALE)
     xs, gs = _levels(x - mean_p, top), _levels(guide - mean_g, top)
-    # each image's mean light level (of |x|: light below 0, an emission pass of other samples than
-    # the colour's, must not make it 0 or negative)
-    m = _luminance(x.abs().mean((2, 3), keepdim=True)).clamp_min(torch.finfo(x.dtype).tiny)
+    m = stats["level"].clamp_min(torch.finfo(x.dtype).tiny)  # each image's mean light level
     coeffs, views = {}, []
     workspaces = {} if workspace is None else workspace  # one per scale: the fits of one size share scratch planes
 
@@ -450,6 +472,7 @@ def pyramid_mix(
 def pyramid(
     x: torch.Tensor, guide: torch.Tensor, *, spp: float | torch.Tensor = 1.0, net: PyramidNet | None = None,
     raw: torch.Tensor | None = None, return_weights: bool = False, workspace: dict | None = None,
+    stats: dict[str, torch.Tensor] | None = None,
 ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
     """Filter ``x`` with the learned guided pyramid (module docstring).
 
@@ -470,6 +493,11 @@ def pyramid(
         workspace: None, or a dict in which the CPU path keeps the guided fits' scratch planes
             between calls (as :func:`~torchgi.filters.guided`'s; at 1920x1080 about 150 MB, which
             a new call would otherwise fault in page by page).
+        stats: None (computed from ``x`` and ``guide``), or :func:`pyramid_stats` of the whole
+            image this ``x`` is a tile of (float32, or float64 for float64 input): a tile whose
+            origin is on multiples of :data:`ALIGN` px with :data:`REACH` px of the image around
+            it is filtered as in the whole image up to float rounding (the Denoiser's
+            ``max_memory_mb``). Not with a ``net`` that has colour candidates.
 
     Returns:
         ``(B, C, H, W)`` in the dtype and on the device of ``x`` (float16 is computed in float32),
@@ -500,8 +528,10 @@ def pyramid(
         for name, t in tensors.items():
             check_finite(t, name)
     ct = compute_dtype(x.dtype)
+    if stats is not None:
+        _check_stats(stats, x, guide, ct, net)
     xs, gs = x.to(ct), guide.to(ct)
-    feats, coeffs, rest = pyramid_inputs(xs, gs, spp, net, None if raw is None else raw.to(ct), workspace)
+    feats, coeffs, rest = pyramid_inputs(xs, gs, spp, net, None if raw is None else raw.to(ct), workspace, stats)
     p = next(net.parameters())
     feats = feats.to(p.dtype)
     if not is_recording():  # oneDNN's convolutions run faster channels-last; the mix reads channels
@@ -511,6 +541,23 @@ def pyramid(
     out, w = pyramid_mix(net, head.to(ct), coeffs, xs, rest, return_weights=True)
     out = out.to(x.dtype)
     return (out, w.to(x.dtype)) if return_weights else out
+
+
+def _check_stats(stats: dict[str, torch.Tensor], x: torch.Tensor, guide: torch.Tensor, ct: torch.dtype,
+                 net: PyramidNet) -> None:
+    """``pyramid``'s ``stats``: :func:`pyramid_stats`'s keys, shapes and the compute dtype."""
+    if net.colour:
+        raise ValueError("stats: a net with colour candidates centres their channel by its own image mean; "
+                         "it cannot take a whole image's statistics")
+    B, C, G = x.shape[0], x.shape[1], guide.shape[1]
+    if not isinstance(stats, dict) or set(stats) != {"mean", "guide_mean", "level"}:
+        raise ValueError(f"stats: expected pyramid_stats()'s dict (mean, guide_mean, level), got {stats!r:.80}")
+    for key, spec in (("mean", f"{B} {C} 1 1"), ("guide_mean", f"{B} {G} 1 1"), ("level", f"{B} 1 1 1")):
+        check_shape(stats[key], spec, f"stats[{key!r}]")
+        if stats[key].dtype != ct or stats[key].device != x.device:
+            raise ValueError(f"stats[{key!r}]: expected {ct} on {x.device} (the compute dtype of x), "
+                             f"got {stats[key].dtype} on {stats[key].device}")
+        check_finite(stats[key], f"stats[{key!r}]")
 
 
 class Pyramid(nn.Module):
