@@ -353,3 +353,24 @@ def test_the_denoiser_in_tiles_gives_the_untiled_result(monkeypatch, spp, emissi
     assert float((tiled.weights(gb) - whole.weights(gb)).abs().max()) < 2e-4
     with pytest.raises(ValueError, match="at least"):
         Denoiser("pyramid", max_memory_mb=20)(gb)
+
+
+def test_inference_reuses_its_temporaries_without_changing_the_result():
+    """Where no gradient flows the mix adds into its fresh temporaries (fewer pages to fault in):
+    the output of the path training takes (the same weights requiring gradients), and the inputs,
+    the kept scratch and earlier outputs untouched."""
+    torch.manual_seed(5)
+    trained = PyramidNet(direct=True)
+    frozen = copy.deepcopy(trained).requires_grad_(False)
+    x, guide = _inputs(seed=11)
+    raw = x * 1.5
+    copies = [t.clone() for t in (x, guide, raw)]
+    ws: dict = {}
+    first = pyramid(x, guide, spp=2.0, net=frozen, raw=raw, workspace=ws)
+    kept = first.clone()
+    again = pyramid(x, guide, spp=2.0, net=frozen, raw=raw, workspace=ws)
+    assert torch.equal(first, kept) and torch.equal(again, kept)
+    assert all(torch.equal(a, b) for a, b in zip(copies, (x, guide, raw), strict=True))
+    out_of_place = pyramid(x, guide, spp=2.0, net=trained, raw=raw)
+    assert out_of_place.requires_grad
+    assert rel(first, out_of_place.detach()) < 1e-6

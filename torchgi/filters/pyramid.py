@@ -141,12 +141,26 @@ def _finer(c: torch.Tensor, s: int, target: int, levels: dict[int, torch.Tensor]
     return c
 
 
+def _reusable(fresh: torch.Tensor, *others: torch.Tensor) -> bool:
+    """Whether ``fresh`` (a temporary the caller just made and nothing else holds) may take a
+    result in place of a new tensor: no gradient flows through it or ``others`` (the call runs
+    for inference, not training) and no graph is being recorded. Fewer fresh allocations: each
+    one the allocator returns to the system is faulted in again on the next call (docs/pyramid.md)."""
+    return not is_recording() and not (fresh.requires_grad or any(t.requires_grad for t in others))
+
+
+def _add(fresh: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """``fresh + t`` (``t`` broadcasting into ``fresh``), into ``fresh`` where :func:`_reusable`."""
+    return fresh.add_(t) if _reusable(fresh, t) else fresh + t
+
+
 def _weighted(w: torch.Tensor, ts: Sequence[torch.Tensor]) -> torch.Tensor:
     """``Σ_k w[:, k] ts[k]`` for ``w (B, k, ...)`` broadcasting against each ``ts[k] (B, ...)``,
     term by term (neither the terms stacked nor their products: at 1920x1080 50-90 MB each)."""
     out = w[:, 0] * ts[0]
+    inplace = _reusable(out, *ts)
     for k in range(1, len(ts)):
-        out = out + w[:, k] * ts[k]
+        out = out.addcmul_(w[:, k], ts[k]) if inplace else out + w[:, k] * ts[k]
     return out
 
 
@@ -433,7 +447,8 @@ def pyramid_mix(
         if coarse in coeffs:
             out = _up5(_weighted(w[:, groups[coarse], None, None], coeffs[coarse]), half)
         if fine in coeffs:
-            out = out + _weighted(_up(w[:, groups[fine]], half)[:, :, None, None], coeffs[fine])
+            fine_mix = _weighted(_up(w[:, groups[fine]], half)[:, :, None, None], coeffs[fine])
+            out = fine_mix if isinstance(out, int) else _add(out, fine_mix)
         mixed[group] = out
     G, keep = rest["guide"].shape[1], min(rest["guide"].shape[1], 3)
     geo, col = mixed["geometric"], mixed["colour"]
@@ -443,12 +458,13 @@ def pyramid_mix(
         model = backends.run(backends.UpsampleApplyOp(slope, rest["colour"]))
     else:
         model = 0
-    model = model + backends.run(backends.UpsampleApplyOp(geo, rest["guide"])) + rest["mean"]
+    applied = backends.run(backends.UpsampleApplyOp(geo, rest["guide"]))
+    model = _add(applied if isinstance(model, int) else _add(applied, model), rest["mean"])
     outputs = [k for k in ("geometric@1", "colour@1") if k in coeffs]  # scale 1: outputs, mixed at full resolution
     if outputs:
         w_full = _up(_up(w[:, [k for key in outputs for k in groups[key]]], half), full)
         ys = [y for k in outputs for y in coeffs[k]]
-        model = model + _weighted(w_full[:, :, None], ys)
+        model = _add(model, _weighted(w_full[:, :, None], ys))
     gain = torch.sigmoid(head[:, K : K + len(BANDS)])  # at 1/4
     gains = {1: _up(_up(gain[:, :1], half), full), 2: _up(gain[:, 1:2], half), 4: gain[:, 2:3], 8: _down(gain[:, 3:])}
     res = _levels(x - model, BANDS[-1])
@@ -462,10 +478,12 @@ def pyramid_mix(
     band = gains[8] * res[8]
     for s in BANDS[-2::-1]:
         size = res[s].shape[-2:]
-        band = _up(band, size) + gains[s] * (res[s] - _up(res[2 * s], size))
+        detail = res[s] - _up(res[2 * s], size)
+        detail = detail.mul_(gains[s]) if _reusable(detail, gains[s]) else gains[s] * detail
+        band = _add(_up(band, size), detail)
         if s == FEATURE_SCALE and lift is not None:  # upsampled with the bands (the same bilinear steps)
-            band = band + lift
-    out = model + band
+            band = _add(band, lift)
+    out = _add(model, band)
     return (out, torch.cat([w, gain], 1)) if return_weights else out
 
 
