@@ -175,3 +175,43 @@ def test_the_compiled_pipeline_of_each_device(render, device, subsample):
     with backends.use("torch"):
         ref = d(**{k: v.double() for k, v in inputs.items()})
     assert float(((out.double() - ref).abs() / (ref.abs() + 1e-3)).max()) < (5e-4 if subsample == 1 else 5e-3)
+
+
+@pytest.mark.parametrize("case", ["default", "odd", "batch", "no-emission", "split", "hit", "conductor"])
+def test_light_steps_around_another_filter_match_the_float64_torch_code(render, case):
+    """LightInOp / LightOutOp (the steps of light.restore before and after a filter run apart, the
+    learned pyramid's): the C kernels against the torch code in float64, every branch of
+    _variants (light sources from the emission or from the colour, kept light, hit, albedo above
+    1), with a filter that undershoots 0 somewhere (the clamp at 0 before remodulation)."""
+    _compiled(torch.device("cpu"))
+    _, _, inputs = next(v for v in _variants(render) if v[0] == case)
+    color = inputs.get("color", inputs.get("direct", 0) + inputs.get("indirect", 0)).clone()
+    emission = None if inputs.get("emission") is None else inputs["emission"].clone()
+    color[..., 10:15, 20:26] += 5.0  # a light source (the box's own is a strip too thin for the opening)
+    if emission is not None:
+        emission[..., 10:15, 20:26] += 5.0
+    kept = inputs.get("direct") if case == "split" else None
+    args = {"color": color, "emission": emission, "kept": kept, "albedo": inputs["albedo"], "hit": inputs.get("hit")}
+    level = torch.full((color.shape[0], 1, 1, 1), 0.1)
+    with backends.use("c"):
+        clamped, x, lights = backends.run(backends.LightInOp(**args, level=level, firefly=4.0))
+        filtered = clamped * 1.1 - 0.02 * clamped.mean()
+        out = backends.run(backends.LightOutOp(filtered.clone(), **args, lights=lights, inplace=True))
+    assert last_backend("light_in") == "c" and last_backend("light_out") == "c"
+    rel = lambda a, b: float(((a.double() - b.double()).abs() / (b.double().abs() + 1e-3)).max())
+    for dt, bound in ((torch.float32, 1e-5), (torch.float64, 5e-4)):  # the same arithmetic; the maths (as restore's)
+        ref_args = {k: None if v is None else v.to(dt) if v.is_floating_point() else v for k, v in args.items()}
+        with backends.use("torch"):
+            ref_clamped, ref_x, ref_lights = backends.run(backends.LightInOp(**ref_args, level=level.to(dt), firefly=4.0))
+            ref = backends.run(backends.LightOutOp(filtered.to(dt), **ref_args, lights=ref_lights))
+        assert torch.equal(lights, ref_lights) and int(lights.sum()) >= 30 * color.shape[0]
+        assert rel(x, ref_x) < bound and rel(clamped, ref_clamped) < bound and bool((clamped < x).any())
+        assert rel(out, ref) < bound
+
+
+def test_light_steps_name_a_non_finite_input(render):
+    _compiled(torch.device("cpu"))
+    color = render.color.clone()
+    color[0, 1, 7, 9] = float("nan")
+    with backends.use("c"), pytest.raises(NonFiniteError, match="color"):
+        backends.run(backends.LightInOp(color, render.emission, None, render.albedo, None, torch.ones(1, 1, 1, 1), 4.0))

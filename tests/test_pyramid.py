@@ -343,8 +343,8 @@ def test_the_denoiser_in_tiles_gives_the_untiled_result(monkeypatch, spp, emissi
         gb = gb.replace(emission=None)
     whole = Denoiser("pyramid")
     tiles = []
-    real = denoise._tiles
-    monkeypatch.setattr(denoise, "_tiles", lambda *a: (tiles.append(t) or t for t in real(*a)))
+    real = denoise.tiles
+    monkeypatch.setattr(denoise, "tiles", lambda *a: (tiles.append(t) or t for t in real(*a)))
     tiled = Denoiser("pyramid", max_memory_mb=200)
     out = tiled(gb)
     assert len(tiles) % 2 == 0 and len(tiles) // 2 >= 9  # the statistics' pass and the filter's, 3x3 tiles or more

@@ -33,7 +33,7 @@ radius and À-Trous' iteration count grow with the noise; ``quality`` scales the
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Mapping
 from typing import Any
 
 import torch
@@ -44,6 +44,7 @@ from torchgi.core.check import check_finite, check_option, finite_or_sanitized_a
 from torchgi.core.dtypes import compute_dtype
 from torchgi.core.errors import ShapeError
 from torchgi.core.registry import Registry
+from torchgi.core.tiles import tile_side, tiled, tiles
 from torchgi.deployed import EXPORTABLE, FIREFLY, UNCLAMPED, DeployedDenoiser, DeployedDenoiserWithoutEmission, deployed
 from torchgi.filters import atrous, box, cross_bilateral, guide_from, guided
 from torchgi.filters.blend import blend, default_net
@@ -296,7 +297,7 @@ class Denoiser(torch.nn.Module):
 
         if self.max_memory_mb is None:
             return op(workspace=self._workspace)
-        return _tiled(op, gb.color, self.max_memory_mb, _footprint(max(radii), s, len(radii) > 1), s, kept is not None,
+        return tiled(op, gb.color, self.max_memory_mb, _footprint(max(radii), s, len(radii) > 1), s, kept is not None,
                       gb.variance is not None, len(radii))
 
     def _pyramid_pipeline(self, gb: GBuffer, kept: torch.Tensor | None, surface: torch.Tensor) -> torch.Tensor:
@@ -313,26 +314,24 @@ class Denoiser(torch.nn.Module):
                stats: dict[str, torch.Tensor] | None = None, sums: list | None = None) -> torch.Tensor | None:
             """The pipeline on ``gb[..., rows, cols]``; with ``sums`` only the statistics of the core
             ``sums[0] = (rows, cols)`` (relative to the tile), added into ``sums[1]``."""
-            c, e, k, a, on, n, d = (None if t is None else t[..., rows, cols]
-                                    for t in (gb.color, gb.emission, kept, gb.albedo, surface, gb.normal, gb.depth))
+            c, e, k, a, hit, n, d = (None if t is None else t[..., rows, cols]
+                                     for t in (gb.color, gb.emission, kept, gb.albedo, gb.hit, gb.normal, gb.depth))
             guide = guide_from(n, d, depth_scale=depth_scale)
-
-            def fn(x: torch.Tensor, raw: torch.Tensor) -> torch.Tensor:
-                if sums is not None:  # the first pass: only the core's statistics
-                    core = (..., *sums[0])
-                    ct = compute_dtype(x.dtype)
-                    part = pyramid_stats(x[core].to(ct), guide[core].to(ct))
-                    weight = x[core][0, 0].numel() / (gb.color.shape[-2] * gb.color.shape[-1])
-                    for key, v in part.items():
-                        sums[1][key] = sums[1].get(key, 0) + weight * v
-                    return x
-                out, w = pyramid(x, guide, spp=spp, raw=raw, return_weights=True, workspace=workspace, stats=stats)
-                if self._capture is not None:
-                    self._capture.setdefault("tiles", []).append(w)
-                return out
-
-            out = light.restore(c, e, k, a, on, fn, FIREFLY["pyramid"], box, level, unclamped=True)
-            return None if sums is not None else _back_off(out, gb, surface, level, rows, cols)
+            # light.restore's steps around the filter, fused in the C back end
+            x, raw, lights = backends.run(backends.LightInOp(c, e, k, a, hit, level, FIREFLY["pyramid"]))
+            if sums is not None:  # the first pass: only the core's statistics
+                core = (..., *sums[0])
+                ct = compute_dtype(x.dtype)
+                part = pyramid_stats(x[core].to(ct), guide[core].to(ct))
+                weight = x[core][0, 0].numel() / (gb.color.shape[-2] * gb.color.shape[-1])
+                for key, v in part.items():
+                    sums[1][key] = sums[1].get(key, 0) + weight * v
+                return None
+            out, w = pyramid(x, guide, spp=spp, raw=raw, return_weights=True, workspace=workspace, stats=stats)
+            if self._capture is not None:
+                self._capture.setdefault("tiles", []).append(w)
+            out = backends.run(backends.LightOutOp(out, c, e, k, a, hit, lights, inplace=True))
+            return _back_off(out, gb, surface, level, rows, cols)
 
         if self.max_memory_mb is None:
             out = op(workspace=self._workspace)
@@ -342,21 +341,21 @@ class Denoiser(torch.nn.Module):
         reach = PIPELINE.firefly_radius + 2 * (PIPELINE.light_square // 2)  # the light's before the filter
         halo = -(-(reach + REACH + PIPELINE.backoff_radius) // ALIGN) * ALIGN
         per_pixel = _PYRAMID_BYTES * gb.color.shape[0] * torch.finfo(compute_dtype(gb.color.dtype)).bits / 32
-        side = _tile_side(gb.color, self.max_memory_mb, per_pixel, halo, ALIGN)
+        side = tile_side(gb.color, self.max_memory_mb, per_pixel, halo, ALIGN)
         stats: dict[str, torch.Tensor] = {}
-        for rows, cols, core_rows, core_cols, _, _ in _tiles(*gb.color.shape[-2:], side, reach, ALIGN):
+        for rows, cols, core_rows, core_cols, _, _ in tiles(*gb.color.shape[-2:], side, reach, ALIGN):
             op(rows, cols, sums=[(core_rows, core_cols), stats])
         out = torch.empty_like(gb.color)
-        tiles = []
-        for rows, cols, core_rows, core_cols, out_rows, out_cols in _tiles(*gb.color.shape[-2:], side, halo, ALIGN):
+        placed = []
+        for rows, cols, core_rows, core_cols, out_rows, out_cols in tiles(*gb.color.shape[-2:], side, halo, ALIGN):
             out[..., out_rows, out_cols] = op(rows, cols, stats=stats)[..., core_rows, core_cols]
-            tiles.append((core_rows, core_cols, out_rows, out_cols))
+            placed.append((core_rows, core_cols, out_rows, out_cols))
         if self._capture is not None:  # the weights at 1/4 resolution, stitched as the output
             parts = self._capture.pop("tiles")
             B, K = parts[0].shape[:2]
             w = parts[0].new_empty(B, K, *(-(-n // FEATURE_SCALE) for n in gb.color.shape[-2:]))
             q = lambda sl: slice(sl.start // FEATURE_SCALE, -(-sl.stop // FEATURE_SCALE))
-            for part, (core_rows, core_cols, out_rows, out_cols) in zip(parts, tiles, strict=True):
+            for part, (core_rows, core_cols, out_rows, out_cols) in zip(parts, placed, strict=True):
                 w[..., q(out_rows), q(out_cols)] = part[..., q(core_rows), q(core_cols)]
             self._capture["weights"] = w
         return out
@@ -591,57 +590,6 @@ def _footprint(radius: int, s: int, chosen: bool = False) -> int:
     reach = PIPELINE.firefly_radius + 2 * (PIPELINE.light_square // 2) + s * (2 * r_low + 2) + s
     reach += PIPELINE.backoff_radius * (1 + chosen)  # the back-off's window (and the choice's)
     return -(-reach // s) * s
-
-
-def _tile_side(color: torch.Tensor, max_memory_mb: float, per_pixel: float, halo: int, s: int) -> int:
-    """The side (px, a multiple of ``s``) of square tiles with ``halo`` px of overlap whose planes
-    (``per_pixel`` bytes per pixel of a tile) fit within ``max_memory_mb`` beyond the inputs
-    beside the ``(B, 3, H, W)`` output of ``color``'s size; raises naming ``max_memory_mb`` when
-    no tile of 16 px or more fits."""
-    out_bytes = color.numel() * color.element_size()
-    budget = 0.9 * max_memory_mb * 2**20 - out_bytes  # 10 % for what the estimate misses
-    side = (math.isqrt(int(max(budget, 0) / per_pixel)) - 2 * halo) // s * s
-    if side < max(s, 16):
-        need = (out_bytes + per_pixel * (max(s, 16) + 2 * halo) ** 2) / 0.9 / 2**20
-        raise ValueError(f"max_memory_mb: {max_memory_mb} MB cannot hold the output and a tile of this "
-                         f"{color.shape[-2]}x{color.shape[-1]} image; at least {math.ceil(need)} MB")
-    return side
-
-
-def _tiles(H: int, W: int, side: int, halo: int, s: int = 1) -> Iterator[tuple[slice, slice, slice, slice, slice, slice]]:
-    """Tiles of at most ``side x side`` px over ``H x W``, as even as multiples of ``s`` allow, with
-    ``halo`` px of the image around each: ``(rows, cols)`` of the tile with its halo,
-    ``(core_rows, core_cols)`` of its core within that, ``(out_rows, out_cols)`` of the core in
-    the image."""
-    even = lambda n: -(-n // -(-n // side) // s) * s  # n px in the fewest tiles of <= side, evened out
-    th, tw = even(H), even(W)
-    for y0 in range(0, H, th):
-        for x0 in range(0, W, tw):
-            rows = slice(max(0, y0 - halo), min(H, y0 + th + halo))
-            cols = slice(max(0, x0 - halo), min(W, x0 + tw + halo))
-            h, w = min(th, H - y0), min(tw, W - x0)
-            yield (rows, cols, slice(y0 - rows.start, y0 - rows.start + h), slice(x0 - cols.start, x0 - cols.start + w),
-                   slice(y0, y0 + h), slice(x0, x0 + w))
-
-
-def _tiled(op: Callable[..., torch.Tensor], color: torch.Tensor, max_memory_mb: float, halo: int, s: int,
-           kept: bool, back_off: bool, candidates: int = 1) -> torch.Tensor:
-    """``op(rows, cols)`` over square tiles (side a multiple of ``s``, so that the s x s blocks
-    are the untiled ones) with ``halo`` px of overlap, the memory a tile needs within
-    ``max_memory_mb`` beyond the inputs with the ``(B, 3, H, W)`` output; stitched. A tile
-    holds copies of its inputs and the pipeline's planes: about ``4 (B (19 + 3 kept) + 22)``
-    bytes per pixel (the C back end's; docs/pipeline.md), with a variance (``back_off``) the
-    back-off's residual, sums and weights: ``4 x 16 B`` more, and with ``candidates`` > 1 radii
-    their outputs and :func:`torchgi.light.choose`'s planes: ``4 x (9 candidates + 5) B``."""
-    B, _, H, W = color.shape
-    out = torch.empty_like(color)
-    per_pixel = 4 * (B * (19 + 3 * kept + 16 * back_off + (9 * candidates + 5) * (candidates > 1)) + 22)
-    side = _tile_side(color, max_memory_mb, per_pixel, halo, s)
-    for rows, cols, core_rows, core_cols, out_rows, out_cols in _tiles(H, W, side, halo, s):
-        tile = op(rows, cols)
-        out[..., out_rows, out_cols] = tile[..., core_rows, core_cols]
-        del tile
-    return out
 
 
 DENOISERS: Registry[Denoiser] = Registry("denoiser")

@@ -28,7 +28,8 @@ from torchgi.settings import GUIDED, PIPELINE
 
 __all__ = [
     "BoxFn", "back_off", "centre", "choose", "clamp_fireflies", "demodulator", "emitting", "every4", "filter_light",
-    "firefly_bound", "level", "light_sources", "median_level", "restore", "samples", "scaled_to", "surface_mask",
+    "finish", "firefly_bound", "level", "light_sources", "median_level", "prepare", "restore", "samples", "scaled_to",
+    "surface_mask",
 ]
 
 BoxFn = Callable[[torch.Tensor, int], torch.Tensor]  # box(x (B,C,H,W), r) -> the (2r+1)² mean, same shape
@@ -224,18 +225,73 @@ def restore(
     """
     if scene_level is None:
         scene_level = level(color, emission, kept, albedo, surface)
-    albedo = demodulator(albedo, surface)
+    demod = demodulator(albedo, surface)
+    x, lights = _demodulated(color, emission, kept, demod, box, scene_level)
+    clamped = clamp_fireflies(x, scene_level, firefly, box)
+    out = filter_fn(clamped, x) if unclamped else filter_fn(clamped)
+    return _remodulated(out, color, emission, kept, demod, lights)
+
+
+def prepare(
+    color: torch.Tensor, emission: torch.Tensor | None, kept: torch.Tensor | None, albedo: torch.Tensor,
+    surface: torch.Tensor, firefly: float, box: BoxFn, scene_level: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`restore`'s steps before its filter, for a filter run apart (the Denoiser's learned
+    pyramid, through :class:`~torchgi.backends.LightInOp`): the filter's input (the demodulated
+    light, its fireflies clamped), the light before the clamp, both ``(B,3,H,W)``, and the
+    light-source mask ``(B,1,H,W)`` bool that :func:`finish` takes. Arguments as :func:`restore`'s
+    (``scene_level`` required).
+
+    Example:
+        >>> from torchgi.filters import box
+        >>> c = torch.rand(1, 3, 8, 8); a = torch.full_like(c, 0.5)
+        >>> clamped, x, lights = prepare(c, None, None, a, surface_mask(None, a), 4.0, box, torch.ones(1, 1, 1, 1))
+        >>> torch.allclose(x, c / 0.5), bool((clamped <= x).all()), bool(lights.any())
+        (True, True, False)
+    """
+    x, lights = _demodulated(color, emission, kept, demodulator(albedo, surface), box, scene_level)
+    return clamp_fireflies(x, scene_level, firefly, box), x, lights
+
+
+def finish(
+    filtered: torch.Tensor, color: torch.Tensor, emission: torch.Tensor | None, kept: torch.Tensor | None,
+    albedo: torch.Tensor, surface: torch.Tensor, lights: torch.Tensor,
+) -> torch.Tensor:
+    """:func:`restore`'s steps after its filter: ``filtered (B,3,H,W)`` clamped at 0 and
+    remodulated, the light sources (``lights`` from :func:`prepare`) and ``kept`` light added
+    back; without an emission input a light source's pixels are its colour.
+
+    Example:
+        >>> c = torch.rand(1, 3, 8, 8); a = torch.full_like(c, 0.5); none = torch.zeros(1, 1, 8, 8, dtype=torch.bool)
+        >>> torch.equal(finish(c / 0.5, c, None, None, a, surface_mask(None, a), none), c)
+        True
+    """
+    return _remodulated(filtered, color, emission, kept, demodulator(albedo, surface), lights)
+
+
+def _demodulated(color: torch.Tensor, emission: torch.Tensor | None, kept: torch.Tensor | None, demod: torch.Tensor,
+                 box: BoxFn, scene_level: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The demodulated light without light sources and kept light, and the light-source mask."""
     base = color - kept if kept is not None else color
-    lights = light_sources(emission if emission is not None else base / albedo, PIPELINE.light * scene_level, box)
+    lights = light_sources(emission if emission is not None else base / demod, PIPELINE.light * scene_level, box)
+    if emission is not None:
+        return (base - exported.where(lights, emission, 0.0)) / demod, lights
+    # no emission input: a light source's pixels pass whole and enter the filter at the median level
+    return exported.where(lights, scene_level.expand_as(color), base / demod), lights
+
+
+def _remodulated(out: torch.Tensor, color: torch.Tensor, emission: torch.Tensor | None, kept: torch.Tensor | None,
+                 demod: torch.Tensor, lights: torch.Tensor) -> torch.Tensor:
+    """A filter's output clamped at 0 (light is >= 0; linear models can undershoot), remodulated,
+    with light sources and kept light added back."""
+    out = out.clamp_min(0) * demod
     if emission is not None:
         light = exported.where(lights, emission, 0.0)
         kept = light if kept is None else kept + light
-        x = (base - light) / albedo
-    else:  # no emission input: a light source's pixels pass whole and enter the filter at the median level
-        x = exported.where(lights, scene_level.expand_as(color), base / albedo)
-    out = filter_light(x, scene_level, filter_fn, firefly, box, unclamped) * albedo
     out = out + kept if kept is not None else out
     return out if emission is not None else exported.where(lights, color, out)
+
+
 
 
 def emitting(color: torch.Tensor, emission: torch.Tensor | None, albedo: torch.Tensor, surface: torch.Tensor,

@@ -36,6 +36,8 @@ from torchgi.backends.base import (
     GuideSpec,
     GuideStatsOp,
     ImportanceOp,
+    LightInOp,
+    LightOutOp,
     PathOp,
     RestoreOp,
     TraceSetup,
@@ -54,7 +56,7 @@ from torchgi.backends.base import (
 __all__ = [
     "NAMES", "ORDER", "ATrousOp", "AccumulateOp", "AllocateOp", "BackOffOp", "BoxOp", "ChooseOp", "EdgeShareOp",
     "GuideRaysOp",
-    "GuideSpec", "GuideStatsOp", "GuidedOp", "ImportanceOp", "PathOp", "RestoreOp", "TraceSetup", "UpsampleApplyOp",
+    "GuideSpec", "GuideStatsOp", "GuidedOp", "ImportanceOp", "LightInOp", "LightOutOp", "PathOp", "RestoreOp", "TraceSetup", "UpsampleApplyOp",
     "box_mean", "chunks",
     "embree_started", "enabled", "mark_embree_started", "run", "select", "status", "use",
 ]

@@ -43,6 +43,8 @@ from torchgi.backends.base import (
     GuidedOp,
     GuideStatsOp,
     ImportanceOp,
+    LightInOp,
+    LightOutOp,
     RestoreOp,
     UpsampleApplyOp,
     float32_eager,
@@ -51,14 +53,15 @@ from torchgi.backends.c_kernels import build
 from torchgi.backends.c_kernels.accumulation import accumulate
 from torchgi.backends.c_kernels.build import describe, library
 from torchgi.backends.c_kernels.filters import atrous, box, guided, upsample_apply
-from torchgi.backends.c_kernels.pipeline import back_off, choose, edge_share, guide_stats, restore
+from torchgi.backends.c_kernels.pipeline import back_off, choose, edge_share, guide_stats, light_in, light_out, restore
 from torchgi.backends.c_kernels.runtime import empty_planes, padded
 from torchgi.backends.c_kernels.sampling import allocate, importance
 from torchgi.backends.c_kernels.tracer import _path_support, guide_rays, path
 
 __all__ = [
     "NAME", "accumulate", "allocate", "atrous", "back_off", "box", "choose", "describe", "edge_share", "empty_planes",
-    "guide_rays", "guide_stats", "guided", "importance", "library", "padded", "path", "restore", "supports",
+    "guide_rays", "guide_stats", "guided", "importance", "library", "light_in", "light_out", "padded", "path", "restore",
+    "supports",
     "upsample_apply",
 ]
 
@@ -66,7 +69,7 @@ NAME = "c"
 
 
 def supports(op: str, desc: BoxOp | GuidedOp | ATrousOp | ImportanceOp | AllocateOp | GuideStatsOp | EdgeShareOp |
-             RestoreOp | BackOffOp | ChooseOp | UpsampleApplyOp) -> str | None:
+             RestoreOp | LightInOp | LightOutOp | BackOffOp | ChooseOp | UpsampleApplyOp) -> str | None:
     """None when the kernels take ``desc``: eager float32 CPU tensors (float32/float64
     importance for the allocation, fewer than 2^31 pixels per image), a built library; else why not.
 
@@ -88,7 +91,8 @@ def supports(op: str, desc: BoxOp | GuidedOp | ATrousOp | ImportanceOp | Allocat
         return _path_support(desc)
     if op == "accumulate" and (desc.x.numel() == 0 or desc.x.shape[-2] * desc.x.shape[-1] >= 2**31):
         return "the C accumulation takes non-empty images of fewer than 2^31 pixels"
-    if op == "restore" and (desc.color.numel() == 0 or desc.color.shape[-2] * desc.color.shape[-1] >= 2**31):
+    if op in ("restore", "light_in", "light_out") and (desc.color.numel() == 0
+                                                       or desc.color.shape[-2] * desc.color.shape[-1] >= 2**31):
         return "the C pipeline takes non-empty images of fewer than 2^31 pixels"
     if op == "upsample_apply":
         C, (n, H, W) = desc.coeffs.shape[2], desc.guide.shape[1:]

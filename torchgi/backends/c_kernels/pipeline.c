@@ -396,7 +396,6 @@ static guide_t make_guide(int n, const float *g0, const float *g1, const float *
 }
 
 #define PART_BYTES 64 /* the partial results at the start of each band's scratch block */
-
 void torchgi_guide_stats(const float *normal, const float *depth, const uint8_t *hit, int H, int W, int nt,
                          void *scratch, long long stride) {
     OVER_BANDS(H, guide_stats_rows(normal, depth, hit, H, W, (double *)scr, y0, y1));
@@ -457,6 +456,15 @@ void torchgi_guided_finish(const float *coef, int n, int Cs, const float *g0, co
         const int h = (H + s - 1) / s, w = (W + s - 1) / s;
         OVER_BANDS(H, upsample_apply_rows(coef, n, Cs, s, h, w, &G, meanI, offset, H, W, out, &L, mask, scr, y0, y1));
     }
+}
+
+/* backends.base.LightOutOp: another filter's output o (3 planes) remodulated in place; 3 W floats of scratch. */
+void torchgi_finish(float *o, const float *color, const float *emission, const float *kept, const float *albedo,
+                    const uint8_t *hit, float floor, float ceil, int H, int W, const uint8_t *mask, int nt,
+                    void *scratch, long long stride) {
+    const light_t L = make_light(color, emission, kept, albedo, hit, floor, ceil, H, W);
+    OVER_BANDS(H, for (int y = y0; y < y1; ++y) { demod_row(&L, y, (float *)scr);
+        for (int c = 0; c < 3; ++c) finish_row(&L, mask, c, y, (const float *)scr, o + c * L.HW + (size_t)y * W); });
 }
 
 /* backends.base.UpsampleApplyOp: coefficient planes at half resolution upsampled x2 and applied

@@ -1,7 +1,8 @@
 """The C back end's Denoiser pipeline: the guide statistics, the edge share, the fused guided
 pipeline (:class:`~torchgi.backends.base.RestoreOp`) and the back-off toward the input after it
 (:class:`~torchgi.backends.base.BackOffOp`) and the choice among radii before it
-(:class:`~torchgi.backends.base.ChooseOp`)."""
+(:class:`~torchgi.backends.base.ChooseOp`); the same light steps around another filter
+(:class:`~torchgi.backends.base.LightInOp`, :class:`~torchgi.backends.base.LightOutOp`)."""
 
 from __future__ import annotations
 
@@ -14,6 +15,8 @@ from torchgi.backends.base import (
     ChooseOp,
     EdgeShareOp,
     GuideStatsOp,
+    LightInOp,
+    LightOutOp,
     RestoreOp,
 )
 from torchgi.backends.c_kernels import build
@@ -163,6 +166,77 @@ def restore(desc: RestoreOp) -> torch.Tensor:
         _run(lib.torchgi_guided_finish, H, W, (coef if s == 1 else coef_box).data_ptr(), n, 3, *g, scale.data_ptr(),
              offset.data_ptr(), mean_g.data_ptr(), mean_p.data_ptr(), H, W, r_low, s, out[b].data_ptr(), *light_in,
              lights, _box_scratch(Q, W) + 3 * W if s == 1 else 7 * W + w)
+    return out
+
+
+def _light_args(desc: LightInOp | LightOutOp, b: int) -> list:
+    """Image ``b``'s light inputs as the C entry points take them (contiguous tensors)."""
+    return [desc.color[b].data_ptr(), _ptr(None if desc.emission is None else desc.emission[b]),
+            _ptr(None if desc.kept is None else desc.kept[b]), desc.albedo[b].data_ptr(),
+            _ptr(None if desc.hit is None else desc.hit[b]), float(PIPELINE.albedo_floor), float(PIPELINE.albedo_ceiling)]
+
+
+def _contiguous(desc: LightInOp | LightOutOp) -> None:
+    for name in ("color", "emission", "kept", "albedo", "hit"):
+        t = getattr(desc, name)
+        if t is not None:
+            setattr(desc, name, t.contiguous())
+
+
+def light_in(desc: LightInOp) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:class:`~torchgi.backends.base.LightInOp` in the walks of :func:`restore` before its filter:
+    the light-source mask, the demodulated light with its capped peak, the firefly bound's box and
+    the clamp (into a copy: the light before it is returned too). Raises
+    :class:`~torchgi.core.errors.NonFiniteError` naming an input with NaN/Inf.
+
+    Example:
+        >>> c = torch.rand(1, 3, 8, 8); a = torch.full_like(c, 0.5)
+        >>> build.library() is None or light_in(LightInOp(c, None, None, a, None, torch.ones(1, 1, 1, 1), 4.0))[2].dtype
+        torch.bool
+    """
+    from torchgi.core.check import check_finite
+
+    lib = build.library()
+    _contiguous(desc)
+    B, _, H, W = desc.color.shape
+    x, clamped = torch.empty(B, 3, H, W, dtype=torch.float32), torch.empty(B, 3, H, W, dtype=torch.float32)
+    mask = torch.empty(B, 1, H, W, dtype=torch.uint8)
+    peak = torch.empty(1, 1, H, W, dtype=torch.float32)
+    k, r_light = float(desc.firefly), PIPELINE.light_square // 2
+    rows = -(-H // _threads(H, H * W)) + 1  # the most rows of one band
+    for b in range(B):
+        level = float(desc.level[b].reshape(()))
+        light_in_ = _light_args(desc, b)
+        seen = _parts(lib.torchgi_lights, H, H * W, *light_in_, H, W, PIPELINE.light * level, r_light,
+                      mask[b].data_ptr(), doubles=1, extra_bytes=12 * W + 3 * (rows + 4 * r_light) * W + W)[0]
+        bad = _parts(lib.torchgi_prepare, H, H * W, *light_in_, H, W, mask[b].data_ptr() if seen > 0 else None, level,
+                     k * level, x[b].data_ptr(), peak.data_ptr(), doubles=4, extra_bytes=21 * W)
+        if bool(bad.any()):  # counted in the walk: the named error (with its counts) from the torch check
+            for name, t in desc.light_inputs():
+                check_finite(t, name)
+        mean = _box(peak, PIPELINE.firefly_radius)
+        clamped[b].copy_(x[b])
+        _parts(lib.torchgi_clamp, H, H * W, clamped[b].data_ptr(), mean.data_ptr(), k, H, W, 1, None, doubles=3,
+               extra_bytes=8 * W)
+    return clamped, x, mask.view(torch.bool)
+
+
+def light_out(desc: LightOutOp) -> torch.Tensor:
+    """:class:`~torchgi.backends.base.LightOutOp` in one walk per image (into ``filtered`` where
+    ``inplace``).
+
+    Example:
+        >>> c = torch.rand(1, 3, 8, 8); a = torch.full_like(c, 0.5); none = torch.zeros(1, 1, 8, 8, dtype=torch.bool)
+        >>> build.library() is None or torch.allclose(light_out(LightOutOp(c / 0.5, c, None, None, a, None, none)), c)
+        True
+    """
+    lib = build.library()
+    _contiguous(desc)
+    out = desc.filtered if desc.inplace and desc.filtered.is_contiguous() else desc.filtered.contiguous().clone()
+    mask = desc.lights.contiguous().view(torch.uint8)
+    B, _, H, W = out.shape
+    for b in range(B):
+        _run(lib.torchgi_finish, H, W, out[b].data_ptr(), *_light_args(desc, b), H, W, mask[b].data_ptr(), 3 * W)
     return out
 
 

@@ -15,14 +15,14 @@ from torchgi.backends.torch_code.accumulation import accumulate
 from torchgi.backends.torch_code.filter_atrous import atrous, channel_planes, squared_distance
 from torchgi.backends.torch_code.filter_box import PlaneBoxer, block_mean, box, box_pool, in_place
 from torchgi.backends.torch_code.filter_guided import apply_coefficients, guided, guided_filter, solve, upsample_apply
-from torchgi.backends.torch_code.pipeline import back_off, choose, edge_share, guide_stats, restore
+from torchgi.backends.torch_code.pipeline import back_off, choose, edge_share, guide_stats, light_in, light_out, restore
 from torchgi.backends.torch_code.sampling import allocate, importance
 from torchgi.backends.torch_code.tracer import guide_rays, path
 
 __all__ = [
     "NAME", "PlaneBoxer", "accumulate", "allocate", "apply_coefficients", "atrous", "back_off", "block_mean", "box", "box_pool",
     "channel_planes", "choose", "describe", "edge_share", "guide_rays", "guide_stats", "guided", "guided_filter", "importance",
-    "in_place", "path", "restore", "solve", "squared_distance", "supports", "upsample_apply",
+    "in_place", "light_in", "light_out", "path", "restore", "solve", "squared_distance", "supports", "upsample_apply",
 ]
 
 NAME = "torch"

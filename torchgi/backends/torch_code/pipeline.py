@@ -1,6 +1,7 @@
 """The torch code of the Denoiser's guided pipeline: its guide statistics, the edge share
 that decides half resolution, and the whole pipeline (:func:`torchgi.light.restore` around
-:func:`~torchgi.backends.torch_code.filter_guided.guided_filter`)."""
+:func:`~torchgi.backends.torch_code.filter_guided.guided_filter`); the steps before and after
+another filter (:func:`torchgi.light.prepare`, :func:`torchgi.light.finish`)."""
 
 from __future__ import annotations
 
@@ -14,6 +15,8 @@ from torchgi.backends.base import (
     ChooseOp,
     EdgeShareOp,
     GuideStatsOp,
+    LightInOp,
+    LightOutOp,
     RestoreOp,
     box_mean,
 )
@@ -81,6 +84,37 @@ def restore(desc: RestoreOp) -> torch.Tensor:
     return light.restore(desc.color, desc.emission, desc.kept, desc.albedo, light.surface_mask(desc.hit, desc.albedo),
                          lambda x: guided_filter(x, guide, desc.radius, eps, desc.workspace, desc.subsample),
                          desc.firefly, box_mean, desc.level)
+
+
+def light_in(desc: LightInOp) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:class:`~torchgi.backends.base.LightInOp` by :func:`torchgi.light.prepare` in tensor ops
+    (its box through the seam).
+
+    Example:
+        >>> c = torch.rand(1, 3, 8, 8); a = torch.full_like(c, 0.5)
+        >>> clamped, x, lights = light_in(LightInOp(c, None, None, a, None, torch.ones(1, 1, 1, 1), 4.0))
+        >>> clamped.shape, lights.dtype
+        (torch.Size([1, 3, 8, 8]), torch.bool)
+    """
+    for name, t in desc.light_inputs():
+        check_finite(t, name)
+    d = desc
+    return light.prepare(d.color, d.emission, d.kept, d.albedo, light.surface_mask(d.hit, d.albedo), d.firefly,
+                         box_mean, d.level)
+
+
+def light_out(desc: LightOutOp) -> torch.Tensor:
+    """:class:`~torchgi.backends.base.LightOutOp` by :func:`torchgi.light.finish` in tensor ops
+    (``inplace`` is a permission the torch code does not use).
+
+    Example:
+        >>> c = torch.rand(1, 3, 8, 8); a = torch.full_like(c, 0.5); none = torch.zeros(1, 1, 8, 8, dtype=torch.bool)
+        >>> torch.equal(light_out(LightOutOp(c / 0.5, c, None, None, a, None, none)), c)
+        True
+    """
+    d = desc
+    return light.finish(d.filtered, d.color, d.emission, d.kept, d.albedo, light.surface_mask(d.hit, d.albedo),
+                        d.lights)
 
 
 def back_off(desc: BackOffOp) -> torch.Tensor:
