@@ -374,3 +374,36 @@ def test_inference_reuses_its_temporaries_without_changing_the_result():
     out_of_place = pyramid(x, guide, spp=2.0, net=trained, raw=raw)
     assert out_of_place.requires_grad
     assert rel(first, out_of_place.detach()) < 1e-6
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+@pytest.mark.parametrize(("B", "H", "W", "n"), [(1, 37, 50, 2), (2, 64, 31, 1), (1, 20, 20, 3)])
+def test_full_resolution_walks_match_the_float64_torch_code(monkeypatch, threads, B, H, W, n):
+    """ModelResidualOp / FineBandOp (the pyramid's model, residual and finest band at full
+    resolution): the C kernels against the torch code in float64 (the path training takes), odd
+    sizes, a batch, 1 to 3 candidates, one and two bands of rows."""
+    from torchgi import backends
+    from torchgi.backends import c_kernels
+
+    if not backends.status()["c"].startswith("compiled kernels in use"):
+        pytest.skip(f"c: {backends.status()['c']}")
+    monkeypatch.setattr(c_kernels.runtime, "_MIN_BAND_PIXELS", 16)
+    g = torch.Generator().manual_seed(H + n)
+    h, w = (H + 1) // 2, (W + 1) // 2
+    model, x = torch.rand(B, 3, H, W, generator=g), torch.rand(B, 3, H, W, generator=g) * 4
+    ys = tuple(torch.rand(B, 3, H, W, generator=g) - 0.5 for _ in range(n))
+    weights, band, gain = torch.rand(B, n, h, w, generator=g), torch.randn(B, 3, h, w, generator=g), torch.rand(B, 1, h, w, generator=g)
+    count = torch.get_num_threads()
+    try:
+        torch.set_num_threads(threads)
+        with backends.use("c"):
+            got = backends.run(backends.ModelResidualOp(model.clone(), ys, weights, x, inplace=True))
+            out = backends.run(backends.FineBandOp(got[0], got[1], got[2], band, gain))
+    finally:
+        torch.set_num_threads(count)
+    d = lambda t: t.double()
+    with backends.use("torch"):
+        ref = backends.run(backends.ModelResidualOp(d(model), tuple(map(d, ys)), d(weights), d(x)))
+        ref_out = backends.run(backends.FineBandOp(*ref, d(band), d(gain)))
+    for a, b in zip((*got, out), (*ref, ref_out), strict=True):
+        assert rel(a, b) < 1e-6

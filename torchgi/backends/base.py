@@ -30,10 +30,40 @@ from torchgi.core.dtypes import compute_dtype
 from torchgi.core.errors import OptionError
 
 __all__ = [
-    "LUMA", "NAMES", "ORDER", "ATrousOp", "AccumulateOp", "AllocateOp", "BackOffOp", "BoxOp", "ChooseOp", "EdgeShareOp", "GuideRaysOp",
-    "GuideSpec", "GuideStatsOp", "GuidedOp", "ImportanceOp", "LightInOp", "LightOutOp", "PathOp", "RestoreOp", "TraceSetup", "UpsampleApplyOp", "box_mean", "chunks",
-    "eager", "embree_started", "enabled", "float32_eager", "mark_embree_started", "run",
-    "select", "status", "use",
+    "LUMA",
+    "NAMES",
+    "ORDER",
+    "ATrousOp",
+    "AccumulateOp",
+    "AllocateOp",
+    "BackOffOp",
+    "BoxOp",
+    "ChooseOp",
+    "EdgeShareOp",
+    "FineBandOp",
+    "GuideRaysOp",
+    "GuideSpec",
+    "GuideStatsOp",
+    "GuidedOp",
+    "ImportanceOp",
+    "LightInOp",
+    "LightOutOp",
+    "ModelResidualOp",
+    "PathOp",
+    "RestoreOp",
+    "TraceSetup",
+    "UpsampleApplyOp",
+    "box_mean",
+    "chunks",
+    "eager",
+    "embree_started",
+    "enabled",
+    "float32_eager",
+    "mark_embree_started",
+    "run",
+    "select",
+    "status",
+    "use",
 ]
 
 NAMES = ("torch", "c", "triton")
@@ -299,6 +329,43 @@ class LightOutOp:
 
 
 @dataclass(eq=False, slots=True)
+class ModelResidualOp:
+    """The learned pyramid's model and residual at full resolution
+    (:func:`torchgi.filters.pyramid.pyramid_mix`): ``model (B,C,H,W)`` plus ``Σ_j up(weights_j)
+    ys_j`` (``ys``: 1 to 4 ``(B,C,H,W)`` outputs of its scale-1 candidates, ``weights (B,n,h,w)``
+    theirs at half resolution, ``h = ⌈H/2⌉``, ``up`` the bilinear x2 step), the residual ``x -
+    model`` and its 2 x 2 means ``(B,C,h,w)``. One float dtype and device. ``inplace``: the model
+    may be written into ``model`` (the caller does not read it again). Returns ``(model,
+    residual, means)``."""
+
+    model: torch.Tensor
+    ys: tuple[torch.Tensor, ...]
+    weights: torch.Tensor
+    x: torch.Tensor
+    inplace: bool = False
+
+    def tensors(self) -> tuple[torch.Tensor | None, ...]:
+        return (self.model, *self.ys, self.weights, self.x)
+
+
+@dataclass(eq=False, slots=True)
+class FineBandOp:
+    """The learned pyramid's output from its finest band: ``model + (up(band) + up(gain) (residual
+    - up(means)))`` with ``model``, ``residual (B,C,H,W)`` and ``means (B,C,h,w)`` from
+    :class:`ModelResidualOp`, ``band (B,C,h,w)`` the coarser bands given back so far and ``gain
+    (B,1,h,w)`` the finest band's gain, both at half resolution. Returns ``(B,C,H,W)``."""
+
+    model: torch.Tensor
+    residual: torch.Tensor
+    means: torch.Tensor
+    band: torch.Tensor
+    gain: torch.Tensor
+
+    def tensors(self) -> tuple[torch.Tensor | None, ...]:
+        return (self.model, self.residual, self.means, self.band, self.gain)
+
+
+@dataclass(eq=False, slots=True)
 class BackOffOp:
     """:func:`torchgi.light.back_off`: ``out (B,3,H,W)`` (a filter's output) moved toward ``color
     (B,3,H,W)`` where the residual exceeds the noise ``variance (B,1|3,H,W)`` (of the mean, not
@@ -373,10 +440,11 @@ class AccumulateOp:
 
 
 Op = BoxOp | GuidedOp | ATrousOp | ImportanceOp | AllocateOp | GuideStatsOp | EdgeShareOp | RestoreOp | LightInOp | \
-    LightOutOp | BackOffOp | ChooseOp | AccumulateOp | PathOp | GuideRaysOp
+    LightOutOp | ModelResidualOp | FineBandOp | BackOffOp | ChooseOp | AccumulateOp | PathOp | GuideRaysOp
 _OPS = {BoxOp: "box", GuidedOp: "guided", UpsampleApplyOp: "upsample_apply", ATrousOp: "atrous", ImportanceOp: "importance", AllocateOp: "allocate",
         GuideStatsOp: "guide_stats", EdgeShareOp: "edge_share", RestoreOp: "restore", LightInOp: "light_in",
-        LightOutOp: "light_out", BackOffOp: "back_off", ChooseOp: "choose",
+        LightOutOp: "light_out", ModelResidualOp: "model_residual", FineBandOp: "fine_band", BackOffOp: "back_off",
+        ChooseOp: "choose",
         AccumulateOp: "accumulate", PathOp: "path", GuideRaysOp: "guide_rays"}
 
 

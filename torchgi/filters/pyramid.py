@@ -71,11 +71,9 @@ project-rendered scenes that are never benchmark scenes; the weights ship beside
 (``pyramid_weights.json``) with their training config, commit and data hash.
 :func:`pyramid_inputs` and :func:`pyramid_mix` are the two halves training uses.
 
-Everything is tensor code around the seam's :class:`~torchgi.backends.GuidedOp` and
-:class:`~torchgi.backends.UpsampleApplyOp` (compiled back ends run them eagerly; the torch code
-under autograd, tracing and export):
-differentiable with respect to the light, the guide and the network's weights, float16 in and
-out (computed in float32).
+Tensor code around the seam's ``GuidedOp``, ``UpsampleApplyOp``, ``ModelResidualOp`` and ``FineBandOp``
+(compiled back ends run them eagerly, the torch code under autograd, tracing and export):
+differentiable in the light, the guide and the weights, float16 in and out (computed in float32).
 """
 
 from __future__ import annotations
@@ -86,12 +84,12 @@ from pathlib import Path
 from typing import Any
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from torchgi import backends
 from torchgi.backends.torch_code.filter_box import block_mean
 from torchgi.backends.torch_code.filter_guided import apply_coefficients
+from torchgi.backends.torch_code.pyramid import up2
 from torchgi.core.check import (
     check_finite,
     check_floating,
@@ -123,9 +121,7 @@ def _down(t: torch.Tensor) -> torch.Tensor:
     return block_mean(t, 2)
 
 
-def _up(t: torch.Tensor, size: Sequence[int]) -> torch.Tensor:
-    """Bilinear x2 of ``(B, C, h, w)`` cropped to ``size`` (the pyramid's next finer level)."""
-    return F.interpolate(t, scale_factor=2, mode="bilinear", align_corners=False)[..., : size[0], : size[1]]
+_up = up2  # bilinear x2 of (B, C, h, w) cropped to a size: the pyramid's next finer level
 
 
 def _up5(c: torch.Tensor, size: Sequence[int]) -> torch.Tensor:
@@ -461,13 +457,16 @@ def pyramid_mix(
     applied = backends.run(backends.UpsampleApplyOp(geo, rest["guide"]))
     model = _add(applied if isinstance(model, int) else _add(applied, model), rest["mean"])
     outputs = [k for k in ("geometric@1", "colour@1") if k in coeffs]  # scale 1: outputs, mixed at full resolution
-    if outputs:
-        w_full = _up(_up(w[:, [k for key in outputs for k in groups[key]]], half), full)
-        ys = [y for k in outputs for y in coeffs[k]]
-        model = _add(model, _weighted(w_full[:, :, None], ys))
+    ys = tuple(y for k in outputs for y in coeffs[k])
+    if ys:  # mixed into the model with their weights brought to full resolution, the residual and its 2 x 2 means
+        w_half = _up(w[:, [k for key in outputs for k in groups[key]]], half)
+        model, res1, res2 = backends.run(backends.ModelResidualOp(model, ys, w_half, x, inplace=True))
+    else:
+        res1 = x - model
+        res2 = _down(res1)
     gain = torch.sigmoid(head[:, K : K + len(BANDS)])  # at 1/4
-    gains = {1: _up(_up(gain[:, :1], half), full), 2: _up(gain[:, 1:2], half), 4: gain[:, 2:3], 8: _down(gain[:, 3:])}
-    res = _levels(x - model, BANDS[-1])
+    gains = {2: _up(gain[:, 1:2], half), 4: gain[:, 2:3], 8: _down(gain[:, 3:])}
+    res = {1: res1} | {2 * s: lv for s, lv in _levels(res2, BANDS[-1] // 2).items()}  # res2's levels at their scales
     lift = None
     if net.direct:  # the correction at 1/4, in units of the image's mean luminance (module docstring)
         j = K + len(BANDS)
@@ -476,14 +475,15 @@ def pyramid_mix(
         g16 = block_mean(torch.sigmoid(head[:, j + 4 : j + 5]), 4)
         lift = lift + _up(_up(g16 * r16, _down(lift).shape[-2:]), lift.shape[-2:])
     band = gains[8] * res[8]
-    for s in BANDS[-2::-1]:
+    for s in BANDS[-2:0:-1]:
         size = res[s].shape[-2:]
         detail = res[s] - _up(res[2 * s], size)
         detail = detail.mul_(gains[s]) if _reusable(detail, gains[s]) else gains[s] * detail
         band = _add(_up(band, size), detail)
         if s == FEATURE_SCALE and lift is not None:  # upsampled with the bands (the same bilinear steps)
             band = _add(band, lift)
-    out = _add(model, band)
+    # the finest band: model + (up(band) + up(gain) (res1 - up(res2))) in one walk
+    out = backends.run(backends.FineBandOp(model, res1, res2, band, _up(gain[:, :1], half)))
     return (out, torch.cat([w, gain], 1)) if return_weights else out
 
 

@@ -3,7 +3,7 @@ the box filter it is built from), the Denoiser's guided pipeline, the sampling i
 the sample allocation, the temporal accumulation and the path tracer, float32.
 
 One file per op family, in Python and in C: :mod:`.filters` (``atrous.c``, ``guided.c``),
-:mod:`.pipeline` (``pipeline.c``), :mod:`.sampling` (``importance.c``, ``allocate.c``),
+:mod:`.pipeline` (``pipeline.c``), :mod:`.pyramid` (``pyramid.c``), :mod:`.sampling` (``importance.c``, ``allocate.c``),
 :mod:`.accumulation` (``accumulate.c``), :mod:`.tracer` (``tracer.c``, embree 4 through
 :mod:`.embree`); :mod:`.build` compiles and loads the library (``native.c`` includes the family
 files and ``common.h``), :mod:`.runtime` holds how a call is cut into bands. This module is
@@ -31,6 +31,8 @@ Example:
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from torchgi.backends.base import (
@@ -40,11 +42,13 @@ from torchgi.backends.base import (
     BoxOp,
     ChooseOp,
     EdgeShareOp,
+    FineBandOp,
     GuidedOp,
     GuideStatsOp,
     ImportanceOp,
     LightInOp,
     LightOutOp,
+    ModelResidualOp,
     RestoreOp,
     UpsampleApplyOp,
     float32_eager,
@@ -54,22 +58,27 @@ from torchgi.backends.c_kernels.accumulation import accumulate
 from torchgi.backends.c_kernels.build import describe, library
 from torchgi.backends.c_kernels.filters import atrous, box, guided, upsample_apply
 from torchgi.backends.c_kernels.pipeline import back_off, choose, edge_share, guide_stats, light_in, light_out, restore
+from torchgi.backends.c_kernels.pyramid import fine_band, model_residual
 from torchgi.backends.c_kernels.runtime import empty_planes, padded
 from torchgi.backends.c_kernels.sampling import allocate, importance
 from torchgi.backends.c_kernels.tracer import _path_support, guide_rays, path
 
 __all__ = [
     "NAME", "accumulate", "allocate", "atrous", "back_off", "box", "choose", "describe", "edge_share", "empty_planes",
-    "guide_rays", "guide_stats", "guided", "importance", "library", "light_in", "light_out", "padded", "path", "restore",
-    "supports",
+    "fine_band", "guide_rays", "guide_stats", "guided", "importance", "library", "light_in", "light_out",
+    "model_residual", "padded", "path", "restore", "supports",
     "upsample_apply",
 ]
 
 NAME = "c"
+# the image tensor of the ops whose kernels walk one image of fewer than 2^31 pixels per call
+_IMAGE = {"accumulate": "x", "restore": "color", "light_in": "color", "light_out": "color", "model_residual": "x",
+          "fine_band": "model"}
 
 
 def supports(op: str, desc: BoxOp | GuidedOp | ATrousOp | ImportanceOp | AllocateOp | GuideStatsOp | EdgeShareOp |
-             RestoreOp | LightInOp | LightOutOp | BackOffOp | ChooseOp | UpsampleApplyOp) -> str | None:
+             RestoreOp | LightInOp | LightOutOp | ModelResidualOp | FineBandOp | BackOffOp | ChooseOp |
+             UpsampleApplyOp) -> str | None:
     """None when the kernels take ``desc``: eager float32 CPU tensors (float32/float64
     importance for the allocation, fewer than 2^31 pixels per image), a built library; else why not.
 
@@ -89,11 +98,11 @@ def supports(op: str, desc: BoxOp | GuidedOp | ATrousOp | ImportanceOp | Allocat
             return why
     if op in ("path", "guide_rays"):
         return _path_support(desc)
-    if op == "accumulate" and (desc.x.numel() == 0 or desc.x.shape[-2] * desc.x.shape[-1] >= 2**31):
-        return "the C accumulation takes non-empty images of fewer than 2^31 pixels"
-    if op in ("restore", "light_in", "light_out") and (desc.color.numel() == 0
-                                                       or desc.color.shape[-2] * desc.color.shape[-1] >= 2**31):
-        return "the C pipeline takes non-empty images of fewer than 2^31 pixels"
+    image = _IMAGE.get(op)
+    if image is not None and (getattr(desc, image).numel() == 0 or math.prod(getattr(desc, image).shape[-2:]) >= 2**31):
+        return f"the C {op} takes non-empty images of fewer than 2^31 pixels"
+    if op == "model_residual" and not 1 <= len(desc.ys) <= 4:
+        return "the C model takes 1 to 4 candidates"
     if op == "upsample_apply":
         C, (n, H, W) = desc.coeffs.shape[2], desc.guide.shape[1:]
         if n > 4 or C > 64 or H * W == 0 or H * W >= 2**31:

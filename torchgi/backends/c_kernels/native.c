@@ -10,7 +10,7 @@
  */
 #include "common.h"
 
-int torchgi_native_version(void) { return 11; }
+int torchgi_native_version(void) { return 12; }
 
 float torchgi_exp_neg(float d) { return exp_neg(d); }
 
@@ -30,5 +30,6 @@ int torchgi_openmp(void) {
 #include "atrous.c"
 #include "guided.c"
 #include "pipeline.c"
+#include "pyramid.c"
 #include "allocate.c"
 #include "accumulate.c"

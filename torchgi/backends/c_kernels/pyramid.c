@@ -1,0 +1,97 @@
+/* The learned pyramid's full-resolution walks (backends.base.ModelResidualOp, FineBandOp;
+ * torchgi.filters.pyramid's mix): the scale-1 candidates mixed into the model and the residual
+ * with its 2 x 2 means, then the finest band of the residual given back. Compiled as part of
+ * native.c, after pipeline.c (pool_row, pool_finish). The bilinear x2 steps are torch's
+ * interpolate (scale_factor 2, align_corners=False) as in upsample_apply_rows: the row of the
+ * lower level interpolated between its two rows first, then along the row. */
+#include "common.h"
+
+/* The column taps of a bilinear x2 step from w to W values. */
+static void up2_columns(int W, int w, int *x0, int *x1, float *lx) {
+    for (int x = 0; x < W; ++x) {
+        float src = 0.5f * (x + 0.5f) - 0.5f;
+        src = src < 0 ? 0 : src;
+        x0[x] = (int)src;
+        x1[x] = x0[x] + (x0[x] < w - 1);
+        lx[x] = src - x0[x];
+    }
+}
+
+/* Row y of a bilinear x2 step of the h x w plane p, before the columns: t (w values). */
+static void up2_row(const float *p, int h, int w, int y, float *t) {
+    float src = 0.5f * (y + 0.5f) - 0.5f;
+    src = src < 0 ? 0 : src;
+    const int ya = (int)src, yb = ya + (ya < h - 1);
+    const float ly = src - ya, *p0 = p + (size_t)ya * w, *p1 = p + (size_t)yb * w;
+    for (int i = 0; i < w; ++i) t[i] = (1.0f - ly) * p0[i] + ly * p1[i];
+}
+
+#define UP2(t, x) ((1.0f - lx[x]) * (t)[x0[x]] + lx[x] * (t)[x1[x]])
+
+/* Low rows [ly0, ly1) (full rows 2 ly, 2 ly + 1): model += Σ_j up2(wgt_j) ys_j (in place), res =
+ * x - model, low = the 2 x 2 means of res. scratch: 2 W ints, W + n w floats. */
+static void model_residual_rows(float *model, const float *const ys[4], int n, const float *wgt, const float *x,
+                                int C, int H, int W, float *res, float *low, void *scratch, int ly0, int ly1) {
+    const int h = (H + 1) / 2, w = (W + 1) / 2;
+    const size_t HW = (size_t)H * W, hw = (size_t)h * w;
+    int *x0 = (int *)scratch, *x1 = x0 + W;
+    float *lx = (float *)(x1 + W), *t = lx + W;
+    up2_columns(W, w, x0, x1, lx);
+    for (int ly = ly0; ly < ly1; ++ly) {
+        const int ya = 2 * ly, yb = ya + 2 < H ? ya + 2 : H;
+        for (int c = 0; c < C; ++c) memset(low + c * hw + (size_t)ly * w, 0, sizeof(float) * w);
+        for (int y = ya; y < yb; ++y) {
+            const size_t row = (size_t)y * W;
+            for (int j = 0; j < n; ++j) up2_row(wgt + j * hw, h, w, y, t + (size_t)j * w);
+            for (int c = 0; c < C; ++c) {
+                float *m = model + c * HW + row, *r = res + c * HW + row;
+                const float *xi = x + c * HW + row;
+                for (int i = 0; i < W; ++i) {
+                    float mix = UP2(t, i) * ys[0][c * HW + row + i];
+                    for (int j = 1; j < n; ++j) mix += UP2(t + (size_t)j * w, i) * ys[j][c * HW + row + i];
+                    m[i] += mix;
+                    r[i] = xi[i] - m[i];
+                }
+                pool_row(r, W, 2, low + c * hw + (size_t)ly * w);
+            }
+        }
+        for (int c = 0; c < C; ++c) pool_finish(low + c * hw + (size_t)ly * w, W, 2, yb - ya);
+    }
+}
+
+/* Rows [y0, y1): out = model + (up2(band) + up2(gain) (res - up2(low))). scratch: 2 W ints,
+ * W + (2 C + 1) w floats. */
+static void fine_band_rows(const float *model, const float *res, const float *low, const float *band, const float *gain,
+                           int C, int H, int W, float *out, void *scratch, int y0, int y1) {
+    const int h = (H + 1) / 2, w = (W + 1) / 2;
+    const size_t HW = (size_t)H * W, hw = (size_t)h * w;
+    int *x0 = (int *)scratch, *x1 = x0 + W;
+    float *lx = (float *)(x1 + W), *tg = lx + W, *tb = tg + w, *tl = tb + w;
+    up2_columns(W, w, x0, x1, lx);
+    for (int y = y0; y < y1; ++y) {
+        const size_t row = (size_t)y * W;
+        up2_row(gain, h, w, y, tg);
+        for (int c = 0; c < C; ++c) {
+            up2_row(band + c * hw, h, w, y, tb);
+            up2_row(low + c * hw, h, w, y, tl);
+            const float *m = model + c * HW + row, *r = res + c * HW + row;
+            float *o = out + c * HW + row;
+            for (int i = 0; i < W; ++i) o[i] = m[i] + (UP2(tb, i) + UP2(tg, i) * (r[i] - UP2(tl, i)));
+        }
+    }
+}
+
+#undef UP2
+
+void torchgi_model_residual(float *model, const float *y0p, const float *y1p, const float *y2p, const float *y3p,
+                            int n, const float *wgt, const float *x, int C, int H, int W, float *res, float *low, int nt,
+                            void *scratch, long long stride) {
+    const float *ys[4] = {y0p, y1p, y2p, y3p};
+    OVER_BANDS((H + 1) / 2, model_residual_rows(model, ys, n, wgt, x, C, H, W, res, low, scr, y0, y1));
+}
+
+void torchgi_fine_band(const float *model, const float *res, const float *low, const float *coarse, const float *gain,
+                       int C, int H, int W, float *out, int nt, void *scratch, long long stride) {
+    /* (not `band`: OVER_BANDS's loop variable) */
+    OVER_BANDS(H, fine_band_rows(model, res, low, coarse, gain, C, H, W, out, scr, y0, y1));
+}

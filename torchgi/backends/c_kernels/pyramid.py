@@ -1,0 +1,52 @@
+"""The C back end's walks of the learned pyramid at full resolution (``pyramid.c``):
+:class:`~torchgi.backends.base.ModelResidualOp` and :class:`~torchgi.backends.base.FineBandOp`."""
+
+from __future__ import annotations
+
+import torch
+
+from torchgi.backends.base import FineBandOp, ModelResidualOp
+from torchgi.backends.c_kernels import build
+from torchgi.backends.c_kernels.runtime import _run
+
+
+def model_residual(desc: ModelResidualOp) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:class:`~torchgi.backends.base.ModelResidualOp` in one walk per image (the model into
+    ``desc.model`` where ``inplace``).
+
+    Example:
+        >>> m, y, x = torch.zeros(1, 3, 4, 4), torch.ones(1, 3, 4, 4), torch.full((1, 3, 4, 4), 3.0)
+        >>> build.library() is None or model_residual(ModelResidualOp(m, (y,), torch.full((1, 1, 2, 2), 2.0), x))[1].min().item()
+        1.0
+    """
+    lib = build.library()
+    model = desc.model if desc.inplace and desc.model.is_contiguous() else desc.model.contiguous().clone()
+    ys = [y.contiguous() for y in desc.ys]
+    wgt, x = desc.weights.contiguous(), desc.x.contiguous()
+    B, C, H, W = x.shape
+    h, w, n = (H + 1) // 2, (W + 1) // 2, len(ys)
+    res = torch.empty_like(x)
+    low = torch.empty(B, C, h, w, dtype=x.dtype)
+    for b in range(B):
+        ptrs = [y[b].data_ptr() for y in ys] + [None] * (4 - n)
+        _run(lib.torchgi_model_residual, h, W, model[b].data_ptr(), *ptrs, n, wgt[b].data_ptr(), x[b].data_ptr(), C,
+             H, W, res[b].data_ptr(), low[b].data_ptr(), 3 * W + n * w)
+    return model, res, low
+
+
+def fine_band(desc: FineBandOp) -> torch.Tensor:
+    """:class:`~torchgi.backends.base.FineBandOp` in one walk per image.
+
+    Example:
+        >>> z = torch.zeros(1, 1, 2, 2)
+        >>> build.library() is None or fine_band(FineBandOp(torch.ones(1, 1, 4, 4), torch.ones(1, 1, 4, 4), z, z, z + 0.5)).max().item()
+        1.5
+    """
+    lib = build.library()
+    model, res, low, band, gain = (t.contiguous() for t in (desc.model, desc.residual, desc.means, desc.band, desc.gain))
+    B, C, H, W = model.shape
+    out = torch.empty_like(model)
+    for b in range(B):
+        _run(lib.torchgi_fine_band, H, W, model[b].data_ptr(), res[b].data_ptr(), low[b].data_ptr(), band[b].data_ptr(),
+             gain[b].data_ptr(), C, H, W, out[b].data_ptr(), 3 * W + 3 * ((W + 1) // 2))
+    return out

@@ -1,0 +1,56 @@
+"""The torch code of the learned pyramid's full-resolution steps (:class:`~torchgi.backends.base.ModelResidualOp`,
+:class:`~torchgi.backends.base.FineBandOp`): the reference (autograd, tracing, any dtype and
+device), and what :func:`torchgi.filters.pyramid.pyramid_mix` computes while training."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+import torch.nn.functional as F
+
+from torchgi.backends.base import FineBandOp, ModelResidualOp
+from torchgi.backends.torch_code.filter_box import block_mean
+
+
+def up2(t: torch.Tensor, size: Sequence[int]) -> torch.Tensor:
+    """Bilinear x2 of ``t (B, C, h, w)`` (torch's interpolate, align_corners=False) cropped to
+    ``size``: a pyramid level brought to the next finer one.
+
+    Example:
+        >>> up2(torch.tensor([[[[0.0, 4.0]]]]), (2, 3))[0, 0, 0].tolist()
+        [0.0, 1.0, 3.0]
+    """
+    return F.interpolate(t, scale_factor=2, mode="bilinear", align_corners=False)[..., : size[0], : size[1]]
+
+
+def model_residual(desc: ModelResidualOp) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:class:`~torchgi.backends.base.ModelResidualOp` in tensor ops (``inplace`` is a permission
+    the torch code does not use).
+
+    Example:
+        >>> m, y, x = torch.zeros(1, 3, 4, 4), torch.ones(1, 3, 4, 4), torch.full((1, 3, 4, 4), 3.0)
+        >>> model, res, low = model_residual(ModelResidualOp(m, (y,), torch.full((1, 1, 2, 2), 2.0), x))
+        >>> float(model.max()), float(res.min()), tuple(low.shape)
+        (2.0, 1.0, (1, 3, 2, 2))
+    """
+    w = up2(desc.weights, desc.x.shape[-2:])
+    mix = w[:, 0:1] * desc.ys[0]
+    for k in range(1, len(desc.ys)):
+        mix = mix + w[:, k : k + 1] * desc.ys[k]
+    model = desc.model + mix
+    res = desc.x - model
+    return model, res, block_mean(res, 2)
+
+
+def fine_band(desc: FineBandOp) -> torch.Tensor:
+    """:class:`~torchgi.backends.base.FineBandOp` in tensor ops.
+
+    Example:
+        >>> z = torch.zeros(1, 1, 2, 2)
+        >>> float(fine_band(FineBandOp(torch.ones(1, 1, 4, 4), torch.ones(1, 1, 4, 4), z, z, z + 0.5)).max())
+        1.5
+    """
+    size = desc.residual.shape[-2:]
+    detail = up2(desc.gain, size) * (desc.residual - up2(desc.means, size))
+    return desc.model + (up2(desc.band, size) + detail)
