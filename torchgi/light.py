@@ -292,8 +292,6 @@ def _remodulated(out: torch.Tensor, color: torch.Tensor, emission: torch.Tensor 
     return out if emission is not None else exported.where(lights, color, out)
 
 
-
-
 def emitting(color: torch.Tensor, emission: torch.Tensor | None, albedo: torch.Tensor, surface: torch.Tensor,
              scene_level: torch.Tensor) -> torch.Tensor:
     """``(B,1,H,W)`` bool: pixels that emit - any ``emission`` (the sky and missed rays included)

@@ -192,38 +192,39 @@ def guide_from(
         >>> guide_from(n, d, depth_scale="image")[:, 3, 0, 0].tolist()   # each image by its own maximum
         [1.0, 1.0]
     """
-    if (isinstance(depth_scale, torch.Tensor) and depth is not None and not is_recording() and not drop_constant
-            and normal.dtype == depth.dtype == depth_scale.dtype
-            and not (normal.requires_grad or depth.requires_grad or depth_scale.requires_grad)):
+    scale = None if depth is None else _depth_scale(depth, hit, depth_scale)
+    if depth is not None and not is_recording() and normal.dtype == depth.dtype == getattr(scale, "dtype", depth.dtype) \
+            and not (normal.requires_grad or depth.requires_grad or getattr(scale, "requires_grad", False)):
         # the same arithmetic written into one tensor (no copies to concatenate: fewer pages to fault in)
-        check_shape(depth_scale, "B 1 1 1", "depth_scale", {"B": depth.shape[0]})
         B, _, H, W = normal.shape
         guide = torch.empty(B, 4, H, W, dtype=normal.dtype, device=normal.device)
         torch.add(normal, 1, out=guide[:, :3]).mul_(0.5)
-        torch.div(depth, depth_scale, out=guide[:, 3:])
-        return guide
-    channels = [(normal + 1) * 0.5]
-    if depth is not None:
-        if isinstance(depth_scale, torch.Tensor):
-            check_shape(depth_scale, "B 1 1 1", "depth_scale", {"B": depth.shape[0]})
-            channels.append(depth / depth_scale)
-        elif depth_scale == "image":
-            channels.append(depth / depth_scales(depth))
-        else:
-            if depth_scale is None:
-                valid = depth if hit is None else torch.where(hit, depth, -torch.inf)
-                depth_scale = float(valid.max()) if valid.numel() else 1.0
-                depth_scale = depth_scale if depth_scale > 0 else 1.0  # (-inf: no hit pixel)
-            elif isinstance(depth_scale, str) or not depth_scale > 0:
-                raise RangeError(f"depth_scale: expected > 0, None or 'image', got {depth_scale!r}")
-            channels.append(depth / depth_scale)
-    guide = torch.cat(channels, 1)
+        torch.div(depth, scale, out=guide[:, 3:])
+    else:
+        guide = torch.cat([(normal + 1) * 0.5] + ([] if depth is None else [depth / scale]), 1)
     if drop_constant:
         flat = guide.flatten(2)
         varying = (flat.amax(dim=(0, 2)) > flat.amin(dim=(0, 2))).nonzero().flatten()
         keep = varying if varying.numel() else torch.zeros(1, dtype=torch.long, device=guide.device)
         guide = guide.index_select(1, keep)
     return guide
+
+
+def _depth_scale(depth: torch.Tensor, hit: torch.Tensor | None,
+                 depth_scale: float | str | torch.Tensor | None) -> float | torch.Tensor:
+    """What :func:`guide_from` divides ``depth`` by, from its ``depth_scale`` argument."""
+    if isinstance(depth_scale, torch.Tensor):
+        check_shape(depth_scale, "B 1 1 1", "depth_scale", {"B": depth.shape[0]})
+        return depth_scale
+    if depth_scale == "image":
+        return depth_scales(depth)
+    if depth_scale is None:
+        valid = depth if hit is None else torch.where(hit, depth, -torch.inf)
+        depth_scale = float(valid.max()) if valid.numel() else 1.0
+        return depth_scale if depth_scale > 0 else 1.0  # (-inf: no hit pixel)
+    if isinstance(depth_scale, str) or not depth_scale > 0:
+        raise RangeError(f"depth_scale: expected > 0, None or 'image', got {depth_scale!r}")
+    return depth_scale
 
 
 def depth_scales(depth: torch.Tensor) -> torch.Tensor:

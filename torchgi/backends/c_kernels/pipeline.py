@@ -106,13 +106,9 @@ def restore(desc: RestoreOp) -> torch.Tensor:
         ...                                        4.0)).shape == (1, 3, 8, 8)
         True
     """
-    from torchgi.core.check import check_finite
-
     lib = build.library()
-    color, albedo = desc.color.contiguous(), desc.albedo.contiguous()
-    emission = None if desc.emission is None else desc.emission.contiguous()
-    kept = None if desc.kept is None else desc.kept.contiguous()
-    hit = None if desc.hit is None else desc.hit.contiguous()
+    light = _light_tensors(desc)
+    color = light[0]
     planes, scale, offset = _spec_planes(desc.spec)
     B, _, H, W = color.shape
     n, s = len(planes), desc.subsample
@@ -128,23 +124,11 @@ def restore(desc: RestoreOp) -> torch.Tensor:
     coef_box = _buffer(ws, "coef_box", (Q, h, w)) if s > 1 else None
     out = torch.empty(B, 3, H, W, dtype=torch.float32)
     eps = torch.full((n,), max(float(desc.eps), torch.finfo(torch.float32).tiny), dtype=torch.float32)
-    unit, floor, k = variance_rounding(torch.float32), float(PIPELINE.albedo_floor), float(desc.firefly)
-    r_light = PIPELINE.light_square // 2
+    unit, k = variance_rounding(torch.float32), float(desc.firefly)
     ones, zeros = torch.ones(n, dtype=torch.float32), torch.zeros(n, dtype=torch.float32)
-    rows = -(-H // _threads(H, H * W)) + 1  # the most rows of one band
     for b in range(B):
-        level = float(desc.level[b].reshape(()))
-        light_in = [color[b].data_ptr(), _ptr(None if emission is None else emission[b]),
-                    _ptr(None if kept is None else kept[b]), albedo[b].data_ptr(), _ptr(None if hit is None else hit[b]),
-                    floor, float(PIPELINE.albedo_ceiling)]
-        seen = _parts(lib.torchgi_lights, H, H * W, *light_in, H, W, PIPELINE.light * level, r_light,
-                      mask.data_ptr(), doubles=1, extra_bytes=12 * W + 3 * (rows + 4 * r_light) * W + W)[0]
-        lights = mask.data_ptr() if seen > 0 else None
-        bad = _parts(lib.torchgi_prepare, H, H * W, *light_in, H, W, lights, level, k * level, x.data_ptr(),
-                     peak.data_ptr(), doubles=4, extra_bytes=21 * W)
-        if bool(bad.any()):  # counted in the walk: the named error (with its counts) from the torch check
-            for name, t in desc.light_inputs():
-                check_finite(t, name)
+        light_in = _light_args(light, b)
+        lights = _demodulate(lib, desc, light_in, b, H, W, mask, x, peak)
         mean = _box(peak, PIPELINE.firefly_radius)
         mean_p = (_parts(lib.torchgi_clamp, h, H * W, x.data_ptr(), mean.data_ptr(), k, H, W, s, _ptr(low_x),
                          doubles=3, extra_bytes=8 * W) / (H * W)).float()
@@ -169,18 +153,36 @@ def restore(desc: RestoreOp) -> torch.Tensor:
     return out
 
 
-def _light_args(desc: LightInOp | LightOutOp, b: int) -> list:
-    """Image ``b``'s light inputs as the C entry points take them (contiguous tensors)."""
-    return [desc.color[b].data_ptr(), _ptr(None if desc.emission is None else desc.emission[b]),
-            _ptr(None if desc.kept is None else desc.kept[b]), desc.albedo[b].data_ptr(),
-            _ptr(None if desc.hit is None else desc.hit[b]), float(PIPELINE.albedo_floor), float(PIPELINE.albedo_ceiling)]
+def _light_tensors(desc: RestoreOp | LightInOp | LightOutOp) -> tuple[torch.Tensor | None, ...]:
+    """The light inputs ``(color, emission, kept, albedo, hit)`` of ``desc``, contiguous."""
+    return tuple(None if t is None else t.contiguous() for t in (desc.color, desc.emission, desc.kept, desc.albedo,
+                                                                  desc.hit))
 
 
-def _contiguous(desc: LightInOp | LightOutOp) -> None:
-    for name in ("color", "emission", "kept", "albedo", "hit"):
-        t = getattr(desc, name)
-        if t is not None:
-            setattr(desc, name, t.contiguous())
+def _light_args(light: tuple[torch.Tensor | None, ...], b: int) -> list:
+    """Image ``b``'s light inputs (:func:`_light_tensors`) as the C entry points take them."""
+    return [None if t is None else t[b].data_ptr() for t in light] + [float(PIPELINE.albedo_floor),
+                                                                        float(PIPELINE.albedo_ceiling)]
+
+
+def _demodulate(lib, desc: RestoreOp | LightInOp, light_in: list, b: int, H: int, W: int, mask: torch.Tensor,
+                x: torch.Tensor, peak: torch.Tensor) -> int | None:
+    """The walks before the firefly clamp for image ``b``: the light-source ``mask (H, W)`` bytes,
+    the demodulated light ``x (3, H, W)`` and its capped ``peak``. Returns the mask's pointer, or
+    None where no light source was found; raises naming an input with NaN/Inf."""
+    from torchgi.core.check import check_finite
+
+    level, k, r = float(desc.level[b].reshape(())), float(desc.firefly), PIPELINE.light_square // 2
+    rows = -(-H // _threads(H, H * W)) + 1  # the most rows of one band
+    seen = _parts(lib.torchgi_lights, H, H * W, *light_in, H, W, PIPELINE.light * level, r, mask.data_ptr(), doubles=1,
+                  extra_bytes=12 * W + 3 * (rows + 4 * r) * W + W)[0]
+    lights = mask.data_ptr() if seen > 0 else None
+    bad = _parts(lib.torchgi_prepare, H, H * W, *light_in, H, W, lights, level, k * level, x.data_ptr(),
+                 peak.data_ptr(), doubles=4, extra_bytes=21 * W)
+    if bool(bad.any()):  # counted in the walk: the named error (with its counts) from the torch check
+        for name, t in desc.light_inputs():
+            check_finite(t, name)
+    return lights
 
 
 def light_in(desc: LightInOp) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -194,30 +196,18 @@ def light_in(desc: LightInOp) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]
         >>> build.library() is None or light_in(LightInOp(c, None, None, a, None, torch.ones(1, 1, 1, 1), 4.0))[2].dtype
         torch.bool
     """
-    from torchgi.core.check import check_finite
-
     lib = build.library()
-    _contiguous(desc)
-    B, _, H, W = desc.color.shape
+    light = _light_tensors(desc)
+    B, _, H, W = light[0].shape
     x, clamped = torch.empty(B, 3, H, W, dtype=torch.float32), torch.empty(B, 3, H, W, dtype=torch.float32)
     mask = torch.empty(B, 1, H, W, dtype=torch.uint8)
     peak = torch.empty(1, 1, H, W, dtype=torch.float32)
-    k, r_light = float(desc.firefly), PIPELINE.light_square // 2
-    rows = -(-H // _threads(H, H * W)) + 1  # the most rows of one band
     for b in range(B):
-        level = float(desc.level[b].reshape(()))
-        light_in_ = _light_args(desc, b)
-        seen = _parts(lib.torchgi_lights, H, H * W, *light_in_, H, W, PIPELINE.light * level, r_light,
-                      mask[b].data_ptr(), doubles=1, extra_bytes=12 * W + 3 * (rows + 4 * r_light) * W + W)[0]
-        bad = _parts(lib.torchgi_prepare, H, H * W, *light_in_, H, W, mask[b].data_ptr() if seen > 0 else None, level,
-                     k * level, x[b].data_ptr(), peak.data_ptr(), doubles=4, extra_bytes=21 * W)
-        if bool(bad.any()):  # counted in the walk: the named error (with its counts) from the torch check
-            for name, t in desc.light_inputs():
-                check_finite(t, name)
+        _demodulate(lib, desc, _light_args(light, b), b, H, W, mask[b], x[b], peak)
         mean = _box(peak, PIPELINE.firefly_radius)
         clamped[b].copy_(x[b])
-        _parts(lib.torchgi_clamp, H, H * W, clamped[b].data_ptr(), mean.data_ptr(), k, H, W, 1, None, doubles=3,
-               extra_bytes=8 * W)
+        _parts(lib.torchgi_clamp, H, H * W, clamped[b].data_ptr(), mean.data_ptr(), float(desc.firefly), H, W, 1, None,
+               doubles=3, extra_bytes=8 * W)
     return clamped, x, mask.view(torch.bool)
 
 
@@ -231,12 +221,12 @@ def light_out(desc: LightOutOp) -> torch.Tensor:
         True
     """
     lib = build.library()
-    _contiguous(desc)
+    light = _light_tensors(desc)
     out = desc.filtered if desc.inplace and desc.filtered.is_contiguous() else desc.filtered.contiguous().clone()
     mask = desc.lights.contiguous().view(torch.uint8)
     B, _, H, W = out.shape
     for b in range(B):
-        _run(lib.torchgi_finish, H, W, out[b].data_ptr(), *_light_args(desc, b), H, W, mask[b].data_ptr(), 3 * W)
+        _run(lib.torchgi_finish, H, W, out[b].data_ptr(), *_light_args(light, b), H, W, mask[b].data_ptr(), 3 * W)
     return out
 
 
