@@ -19,7 +19,8 @@ frame in order: the noisy frame, ``Denoiser()`` per frame, OIDN "high" per frame
 back: the claims take the better of the two by relMSE) and ``TemporalDenoiser()``. Per frame: relMSE and HDR-FLIP; per sequence
 from frame ``--warmup`` on: mean relMSE, tRMAE and tPSNR (:func:`torchgi.metrics.temporal`).
 Time per frame (median over the frames after the first, 2 threads, this process) is measured on
-the same sequences re-rendered at ``--time-size``² (1 spp, no reference). Writes
+the same sequences re-rendered at each of ``--time-sizes`` (1 spp, no reference; ``--time-only``:
+this part alone). Writes
 ``temporal.csv/json/md``, ``temporal_frames.csv``, ``temporal_<sequence>.png`` (error over
 frames) and ``temporal_<sequence>.gif`` (noisy | Denoiser | OIDN | OIDN (em.) | TemporalDenoiser |
 TemporalDenoiser with the learned pyramid as its spatial filter | reference).
@@ -56,21 +57,33 @@ def sky_pan(size: int) -> torchgi.render.Scene:
     return scene
 
 
-def sequence(name: str, size: int) -> torchgi.render.Scene:
+def resolution(size: int | str) -> tuple[int, int]:
+    """``(W, H)`` of a size given as ``512`` (square) or ``"1920x1080"``."""
+    W, _, H = str(size).partition("x")
+    return int(W), int(H or W)
+
+
+def label(size: int | str) -> str:
+    """``"WxH"`` of a size given as :func:`resolution` takes it."""
+    return "x".join(map(str, resolution(size)))
+
+
+def sequence(name: str, size: int | str) -> torchgi.render.Scene:
+    W, H = resolution(size)
     if name == "sky_pan":
-        return sky_pan(size)
-    return torchgi.load_scene(CONFIG_SCENES / "sequences" / f"{name}.yaml").with_resolution(size, size)
+        return sky_pan(W).with_resolution(W, H)
+    return torchgi.load_scene(CONFIG_SCENES / "sequences" / f"{name}.yaml").with_resolution(W, H)
 
 
-def frames(name: str, size: int, count: int, spp: int, seed: int, bounces: int, cache: Path) -> list:
-    """The ``count`` frames of sequence ``name`` (GBuffers), rendered once and cached."""
+def frames(name: str, size: int | str, count: int, spp: int, seed: int, bounces: int, cache: Path) -> list:
+    """The ``count`` frames of sequence ``name`` (GBuffers) at ``size`` (:func:`resolution`), rendered once and cached."""
     path = cache / f"{name}_{size}_{count}f_{spp}spp_b{bounces}_s{seed}.pt"
     if path.exists():
         return [torchgi.GBuffer(**d) for d in torch.load(path)]
     t0 = time.perf_counter()
     out = list(torchgi.render_sequence(sequence(name, size), count, spp=spp, bounces=bounces, seed=seed,
                                        progress=False))
-    print(f"rendered {name} {count} frames {size}² at {spp} spp in {time.perf_counter() - t0:.0f} s", flush=True)
+    print(f"rendered {name} {count} frames {label(size)} at {spp} spp in {time.perf_counter() - t0:.0f} s", flush=True)
     cache.mkdir(parents=True, exist_ok=True)
     torch.save([dict(gb.items()) for gb in out], path)
     return out
@@ -189,13 +202,15 @@ def animation(name: str, outs: dict, refs: torch.Tensor, out: Path) -> None:
     iio.imwrite(out / f"temporal_{name}.gif", frames, duration=80, loop=0)
 
 
-def timing(names: list[str], size: int, count: int, bounces: int, cache: Path) -> list[dict]:
-    """ms per frame at ``size``² (median over frames 2...): the methods side by side, per sequence."""
+def timing(names: list[str], sizes: list[str], count: int, bounces: int, cache: Path) -> list[dict]:
+    """ms per frame at each of ``sizes`` (median over frames 2...): the methods one after another
+    on the same frames, per sequence."""
     rows = []
-    for name in names:
-        noisy = frames(name, size, count, 1, 1, bounces, cache)
-        ms = run_sequence(noisy, methods())["ms"]
-        rows.append({"sequence": name, "size": size, **{f"{m} ms": v for m, v in ms.items()}})
+    for size in sizes:
+        for name in names:
+            noisy = frames(name, size, count, 1, 1, bounces, cache)
+            ms = run_sequence(noisy, methods())["ms"]
+            rows.append({"sequence": name, "size": label(size), **{f"{m} ms": v for m, v in ms.items()}})
     return rows
 
 
@@ -222,7 +237,7 @@ def claims(rows: list[dict], times: list[dict], motion: list[dict]) -> list[str]
     for r in times:
         if "OIDN high ms" in r and "TemporalDenoiser ms" in r:
             f = r["OIDN high ms"] / r["TemporalDenoiser ms"]
-            lines.append(f"{r['sequence']} {r['size']}²: TemporalDenoiser {r['TemporalDenoiser ms']:.1f} ms, OIDN high "
+            lines.append(f"{r['sequence']} {r['size']}: TemporalDenoiser {r['TemporalDenoiser ms']:.1f} ms, OIDN high "
                          f"{r['OIDN high ms']:.0f} ms: {f:.1f}x faster (>= 10: {'holds' if f >= 10 else 'fails'})")
     return lines
 
@@ -235,21 +250,23 @@ def main() -> None:
     p.add_argument("--ref-spp", type=int, default=512)
     p.add_argument("--bounces", type=int, default=2)
     p.add_argument("--warmup", type=int, default=8, help="frames left out of the sequence means")
-    p.add_argument("--time-size", type=int, default=512)
+    p.add_argument("--time-sizes", nargs="*", default=["512", "1920x1080"],
+                   help="sizes timed per frame: 512 (square) or WxH; none: no timing")
     p.add_argument("--time-frames", type=int, default=8)
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--render-only", action="store_true", help="render and cache the data, then stop")
+    p.add_argument("--time-only", action="store_true", help="only the time per frame (no accuracy part)")
     p.add_argument("--out", type=Path, default=Path("out/bench-temporal"))
     args = p.parse_args()
     torch.set_num_threads(args.threads)
     cache = args.out / "data"
-    for name in args.sequences:
+    for name in [] if args.time_only else args.sequences:
         frames(name, args.size, args.frames, 1, 1, args.bounces, cache)
         frames(name, args.size, args.frames, args.ref_spp, 2, args.bounces, cache)
     if args.render_only:
         return
     rows, per_frame, motion, fns = [], [], [], methods()
-    for name in args.sequences:
+    for name in [] if args.time_only else args.sequences:
         noisy = frames(name, args.size, args.frames, 1, 1, args.bounces, cache)
         accuracy = motion_accuracy(name, args.size, args.frames, noisy)
         motion += [accuracy] if accuracy else []
@@ -266,7 +283,7 @@ def main() -> None:
         plot(name, pf, args.out)
         animation(name, res["outputs"], refs, args.out)
         print(markdown_table(r, COLUMNS), flush=True)
-    times = timing(args.sequences, args.time_size, args.time_frames, args.bounces, cache) if args.time_size else []
+    times = timing(args.sequences, args.time_sizes, args.time_frames, args.bounces, cache)
     meta = metadata(args.threads) | {"args": {k: str(v) for k, v in vars(args).items()}}
     write_results(rows, meta, args.out, "temporal")
     write_results(per_frame, meta, args.out, "temporal_frames")
@@ -274,7 +291,7 @@ def main() -> None:
     if motion:
         write_results(motion, meta, args.out, "temporal_motion")
     lines = claims(rows, times, motion)
-    md = [markdown_table(rows, COLUMNS), "",
+    md = [markdown_table(rows, COLUMNS) if rows else "", "",
           markdown_table(times, list(times[0]) if times else []), "", *[f"- {x}" for x in lines]]
     (args.out / "temporal.md").write_text("\n".join(md) + "\n")
     print("\n".join(md))

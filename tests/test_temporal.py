@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 
@@ -230,6 +231,91 @@ def test_compiled_accumulation_matches_float64_torch_code():
         ref = _accumulate(TemporalState(*(t.double() for t in st.tensors())), *(a if a.dtype == torch.bool
                           else a.double() for a in args), bound=bound.double())
     assert c.dtype == torch.float32 and float((c.double() - ref).abs().max() / ref.abs().max()) < 1e-5
+
+
+def _change_and_history_ops(B: int, H: int, W: int, test: bool, seed: int = 0):
+    """A ChangeOp and a HistoryOp on random inputs that reach every branch: drops from 0 to 1 (and
+    changes with no noise), history lengths on both sides of ``variance_history``, pixels with and
+    without a history, surfaces and background, fireflies above the bound."""
+    from torchgi import backends
+
+    g = torch.Generator().manual_seed(seed)
+
+    def r(c: int, lo: float = 0.0, hi: float = 1.0) -> torch.Tensor:
+        return lo + (hi - lo) * torch.rand(B, c, H, W, generator=g)
+
+    step = torch.cat([r(3, 0, 2), r(3, 0, 2), r(1, 0, 1), r(1, 0, 2), (r(1, 0, 8) + 1).round(), r(1, 0, 6).round(),
+                      r(1, 0, 0.5), r(1, 1, 5), r(1, 0, 1)], 1)
+    now = r(1)
+    near = torch.cat([now, now + r(1, -0.15, 0.15), r(1, 0, 0.05) * (r(1) > 0.1)], 1)  # some windows without noise
+    wide = torch.cat([now, now + r(1, -0.02, 0.02), r(1, 0, 0.01)], 1)
+    surface = r(1) > 0.3
+    change = backends.ChangeOp(r(3, 0, 4), r(1, 0.5, 2), step, r(1, 0, 0.2), near if test else None,
+                               wide if test else None, r(3, 0, 1.2), surface, r(3, 0, 0.3) * (r(1) > 0.8), (4, 16), 3.0, 4)
+    history = backends.HistoryOp(r(3, 0, 2), r(3, 0, 0.3) * (r(1) > 0.8), r(3, 0, 1.2), surface, r(1, -0.01, 0.3),
+                                 r(3, 0, 3), (r(1, 0, 8) + 1).round(), r(1, 0, 6).round(), 4.0, 0.1)
+    return change, history
+
+
+@pytest.mark.parametrize("B, H, W, test", [(2, 7, 13, True), (1, 5, 300, True), (1, 6, 9, False)])
+def test_compiled_change_and_history_match_float64_torch_code(B, H, W, test):
+    # The C walks of the change test and the output history (float32, 256-pixel blocks: W = 300
+    # crosses one) against the torch code of the same ops in float64, on inputs reaching every
+    # branch; and the torch code against hand-computed pixels (below).
+    from torchgi import backends
+
+    if not _has_c():
+        pytest.skip("no C compiler")
+    change32, history32 = _change_and_history_ops(B, H, W, test)
+    change64, history64 = (dataclasses.replace(op, **{f.name: getattr(op, f.name).double() for f in dataclasses.fields(op)
+                                                      if torch.is_tensor(getattr(op, f.name))
+                                                      and getattr(op, f.name).is_floating_point()})
+                           for op in (change32, history32))  # the same values in float64
+    mid = backends.run(change32)
+    lit, image = backends.run(history32)
+    assert backends.status()["last"]["change"]["ran"] == "c" and backends.status()["last"]["history"]["ran"] == "c"
+    with backends.use("torch"):
+        mid_ref = backends.run(change64)
+        refs = backends.run(history64)
+    for got, ref in ((mid, mid_ref), (lit, refs[0]), (image, refs[1])):  # (values up to ~5; moments' cancellation)
+        assert got.dtype == torch.float32 and got.shape == ref.shape
+        assert float(((got.double() - ref).abs() / (ref.abs() + 1e-2)).max()) < 1e-5
+    if test:  # the inputs reach every branch of the drop
+        drop = (mid_ref[:, 5:6] - change64.step[:, 8:9]) / (1 - change64.step[:, 8:9])
+        assert float((mid_ref[:, 5:6] == 1).double().mean()) > 0.05 and float((mid_ref[:, 5:6] == change64.step[:, 8:9]).double().mean()) > 0.05
+        assert bool(((drop > 0.01) & (drop < 0.99)).any())
+
+
+def test_change_and_history_by_hand():
+    # One pixel of each op, computed by hand (the torch code; the C walks are held to it above).
+    from torchgi import backends
+    from torchgi.backends import torch_code
+
+    z = lambda c: torch.zeros(1, c, 1, 1, dtype=torch.float64)
+    # light 2 accumulated over 4 frames (length 4, history 3), this frame 6: the luminance moved by
+    # 0.5 in a 1-pixel window whose noise sigma is sqrt(0.01 / 1) = 0.1: 5 sigmas, beyond 3 + 1: a full drop
+    step = torch.cat([z(3) + 2, z(3), z(1) + 2, z(1) + 5, z(1) + 4, z(1) + 3, z(1), z(1) + 4, z(1) + 6], 1)
+    boxed = torch.cat([z(1) + 1.0, z(1) + 0.5, z(1) + 0.01], 1)
+    op = backends.ChangeOp(z(3) + 6, z(1) + 100, step, z(1) + 0.02, boxed, z(3), z(3) + 0.5, z(1) == 0, z(3) + 1,
+                           (0, 0), 3.0, 4)
+    mid = torch_code.change(op)[0, :, 0, 0].tolist()
+    # dropped: the light is the frame's (6), moments (6, 36), length 1, frames 1, so the spatial
+    # variance 0.02 / 1 frame; colour 6 x 0.5 + 1 = 4
+    assert mid == [6, 6, 6, 6, 36, 1, 1, 0.02, 4, 4, 4]
+    # 2.5 sigmas: beyond 3 - 0.5 (no drop); with two windows, the larger drop counts: 0.5 of 4 sigmas
+    near, wide = (torch.tensor([1.0, v, 0.01], dtype=torch.float64).view(1, 3, 1, 1) for v in (0.75, 0.65))
+    op = backends.ChangeOp(z(3) + 6, z(1) + 100, step, z(1) + 0.02, near, wide, z(3) + 0.5, z(1) == 0, z(3), (0, 0),
+                           3.0, 4)
+    mid = torch_code.change(op)[0, :, 0, 0].tolist()
+    assert abs(mid[0] - (2 + 0.5 * 4)) < 1e-12 and abs(mid[5] - (4 - 0.5 * 3)) < 1e-12
+    # the output history: lit (1 - 0) / 0.5 = 2, history 3 clamped to 2 + sqrt(4 x 0.25) = 3,
+    # weight max(1 / 2, 0.1): 2.5, remodulated 1.25; no history (length 0): the frame's light
+    lit, image = torch_code.history(backends.HistoryOp(z(3) + 1, z(3), z(3) + 0.5, z(1) == 0, z(1) + 0.25, z(3) + 3,
+                                                       z(1) + 2, z(1) + 1, 4.0, 0.1))
+    assert lit.flatten().tolist() == [2.5] * 3 and image.flatten().tolist() == [1.25] * 3
+    lit, _ = torch_code.history(backends.HistoryOp(z(3) + 1, z(3), z(3) + 0.5, z(1) == 0, z(1) + 0.25, z(3) + 3,
+                                                   z(1) + 2, z(1), 4.0, 0.1))
+    assert lit.flatten().tolist() == [2.0] * 3
 
 
 def _sequence(size: int, frames: int, spp: int = 1, seed: int = 1):
@@ -472,3 +558,21 @@ def test_history_is_dropped_where_the_light_changed_and_kept_elsewhere(monkeypat
     monkeypatch.setattr(temporal, "TEMPORAL", dataclasses.replace(temporal.TEMPORAL, change_threshold=0.0))
     lagging, _ = run()
     assert float(lagging[..., 56:].mean() / 0.5) < 1.5
+
+
+def test_a_float_surface_mask_is_refused():
+    # the C walks read the surface mask as bytes: temporal_step refuses a float `hit`, naming it,
+    # and the C back end does not take an op whose mask is not bool
+    from torchgi import backends
+    from torchgi.backends import c_kernels
+    from torchgi.core.errors import DTypeError
+    from torchgi.settings import TEMPORAL as T
+
+    gb = _sequence(12, 1)[0]
+    with pytest.raises(DTypeError, match="hit"):
+        temporal_step(gb.color, gb.albedo, gb.normal, gb.depth, gb.motion, hit=gb.hit.float())
+    state = TemporalState.empty(gb.color)
+    op = backends.AccumulateOp(gb.color, gb.color[:, :1] + 1e30, gb.motion, gb.normal, gb.depth, gb.hit.float(),
+                               *state.tensors(), T.alpha, T.max_history, T.normal_tolerance, T.depth_tolerance)
+    assert "bool surface mask" in c_kernels.supports("accumulate", op)
+    assert c_kernels.supports("accumulate", dataclasses.replace(op, surface=gb.hit)) in (None, c_kernels.build._status)

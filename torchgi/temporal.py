@@ -45,7 +45,7 @@ import torch
 from torchgi import backends, light
 from torchgi.buffers import GBuffer
 from torchgi.core.check import check_option, finite_or_sanitized_all, is_recording
-from torchgi.core.errors import ShapeError
+from torchgi.core.errors import DTypeError, ShapeError
 from torchgi.denoise import Denoiser
 from torchgi.filters import box
 from torchgi.settings import GUIDED, PIPELINE, TEMPORAL
@@ -118,47 +118,11 @@ def _blend_fresh(out: torch.Tensor, length: torch.Tensor, inputs: dict[str, torc
     return out
 
 
-def _extent(n: int, r: int, like: torch.Tensor) -> torch.Tensor:
-    """``(n,)`` the number of pixels a window of radius ``r`` covers along an axis of ``n`` (clipped at the edges)."""
-    i = torch.arange(n, device=like.device)
-    return ((i + r).clamp(max=n - 1) - (i - r).clamp(min=0) + 1).to(like.dtype)
-
-
-def _drop_changed(x: torch.Tensor, bound: torch.Tensor, lum: torch.Tensor, spatial_var: torch.Tensor, acc: torch.Tensor,
-                  moments: torch.Tensor, length: torch.Tensor, frames: torch.Tensor, hist_length: torch.Tensor,
-                  ) -> tuple[torch.Tensor, ...]:
-    """Where the light changed (a moving shadow or highlight, a moving light), the history is
-    dropped: the mean luminance of this frame in a ``(2 TEMPORAL.change_radius + 1)²`` window is
-    compared with that of the accumulated light, and again in windows ``TEMPORAL.change_scale``
-    times wider (slow changes over large areas: a moving light); beyond
-    ``TEMPORAL.change_threshold`` times the window mean's noise (this frame's ``7x7`` spatial
-    variance over the window's pixels), the accumulation restarts from this frame (fully one
-    sigma beyond the threshold, linear between), and the history length with it (the output
-    history keeps its weight: less flicker on the tuning sequences). Returns the light, moments, length,
-    temporal variance and frames averaged, updated."""
-    t = TEMPORAL
-    luma = torch.tensor(backends.base.LUMA, dtype=x.dtype, device=x.device).view(1, 3, 1, 1)
-    planes = torch.cat([lum, (acc * luma).sum(1, keepdim=True), spatial_var], 1)
-    drop = torch.zeros_like(lum)
-    H, W = x.shape[-2:]
-    for r in (t.change_radius, t.change_radius * t.change_scale):
-        now, before, var = box(planes, r).split(1, 1)
-        sigma = torch.sqrt(var / (_extent(H, r, x)[:, None] * _extent(W, r, x)))  # over the pixels in the window
-        beyond = ((now - before).abs() - t.change_threshold * sigma) / sigma.clamp_min(torch.finfo(x.dtype).tiny)
-        drop = torch.maximum(drop, beyond.clamp(0, 1))  # without noise (sigma 0) any change drops
-    drop = drop * (hist_length > 0)
-    acc = acc + drop * (light.scaled_to(x, x.amax(1, keepdim=True), bound) - acc)
-    moments = moments + drop * (torch.cat([lum, lum * lum], 1) - moments)
-    length = length + drop * (1 - length)
-    frames = frames + drop * (1 - frames)
-    return acc, moments, length, (moments[:, 1:2] - moments[:, :1].square()).clamp_min(0), frames
-
-
 def temporal_step(
     color: torch.Tensor, albedo: torch.Tensor, normal: torch.Tensor, depth: torch.Tensor, motion: torch.Tensor,
     state: TemporalState | None = None, *, emission: torch.Tensor | None = None, hit: torch.Tensor | None = None,
     spatial: Spatial | None = None, fresh: Spatial | None = None, fresh_share: float = 0.0,
-    spatial_spp: torch.Tensor | None = None,
+    spatial_spp: torch.Tensor | None = None, workspace: dict | None = None,
 ) -> tuple[torch.Tensor, TemporalState]:
     """One frame of temporal denoising (module docstring), stateless: ``(output, next_state)``.
 
@@ -183,6 +147,9 @@ def temporal_step(
         spatial_spp: ``(B,1,H,W)`` int samples per pixel of one frame; given, ``spatial`` is also
             called with ``spp``: this times the frames the accumulated light averages per pixel
             (what a learned spatial filter reads as its noise level). None: not passed.
+        workspace: a dict the CPU kernels keep their buffers in between calls (no fresh pages
+            each frame; :class:`TemporalDenoiser` keeps one), or None. The state returned lives
+            in it: the next call with the same dict overwrites it, so pass that call this state.
 
     Returns:
         The ``(B,3,H,W)`` denoised radiance (input dtype and device) and the state for the next frame.
@@ -196,6 +163,8 @@ def temporal_step(
         (torch.Size([1, 3, 16, 16]), 2)
     """
     t = TEMPORAL
+    if hit is not None and hit.dtype != torch.bool:
+        raise DTypeError(f"hit: expected a bool tensor, got {hit.dtype}")
     spatial = spatial or Denoiser("guided", radius=t.radius, eps=t.eps, subsample=1)
     surface = light.surface_mask(hit, albedo)
     emission = torch.zeros_like(color) if emission is None else emission
@@ -206,31 +175,31 @@ def temporal_step(
     level = light.level(color, emission, None, albedo, surface)
     bound = light.firefly_bound(x.amax(1, keepdim=True), level, GUIDED.firefly, box)
     step = backends.run(backends.AccumulateOp(x, bound, motion, normal, depth, surface, *state.tensors(), t.alpha,
-                                              t.max_history, t.normal_tolerance, t.depth_tolerance))
-    acc, hist_out, moments, length, hist_length, temporal_var, frames, lum = step.split([3, 3, 2, 1, 1, 1, 1, 1], 1)
+                                              t.max_history, t.normal_tolerance, t.depth_tolerance, workspace))
+    hist_out, hist_length, lum = step[:, 3:6], step[:, 9:10], step[:, 12:13]
     m = box(torch.cat([lum, lum * lum], 1), t.variance_radius)
     spatial_var = (m[:, 1:2] - m[:, :1].square()).clamp_min(0)
-    kept = length  # the output history's weight follows the history before any drop (less flicker)
-    if t.change_threshold > 0:
-        acc, moments, length, temporal_var, frames = _drop_changed(x, bound, lum, spatial_var, acc, moments, length, frames,
-                                                                   hist_length)
-    var = torch.where(length >= t.variance_history, temporal_var, spatial_var)
-    inputs = {"color": acc * demod + emission, "emission": emission, "albedo": albedo, "normal": normal,
-              "depth": depth, "hit": hit}
+    near = wide = None
+    radii = (t.change_radius, t.change_radius * t.change_scale)
+    if t.change_threshold > 0:  # the light changed (module docstring): boxes of this frame's and the history's luminance
+        luma = torch.tensor(backends.base.LUMA, dtype=x.dtype, device=x.device).view(1, 3, 1, 1)
+        planes = torch.cat([lum, (step[:, :3] * luma).sum(1, keepdim=True), spatial_var], 1)
+        near, wide = (box(planes, r) for r in radii)
+    mid = backends.run(backends.ChangeOp(x, bound, step, spatial_var, near, wide, albedo, surface, emission, radii,
+                                         t.change_threshold, t.variance_history, workspace))
+    acc, moments, length, frames, spread, color_in = mid.split([3, 2, 1, 1, 1, 3], 1)
+    inputs = {"color": color_in, "emission": emission, "albedo": albedo, "normal": normal, "depth": depth, "hit": hit}
     if spatial_spp is None:
         out = spatial(**inputs)
     else:
         out = spatial(**inputs, spp=(spatial_spp * frames).round().clamp_min(1).to(torch.int64))
     if fresh is not None:
         out = _blend_fresh(out, length, inputs, fresh, fresh_share)
-    # the output history (demodulated), within sqrt(clamp x the accumulated light's noise variance) of this frame's
-    lit = (out - emission) / demod
-    sigma = torch.sqrt(t.clamp * box(var / frames, 1).clamp_min(0))  # the box's sums can cancel below 0
-    h = torch.maximum(torch.minimum(hist_out, lit + sigma), lit - sigma)
-    beta = torch.maximum(1.0 / kept, torch.full((), t.output_alpha, dtype=x.dtype, device=x.device))
-    lit = torch.where(hist_length > 0, h + beta * (lit - h), lit)
-    nxt = TemporalState(acc, lit, moments, torch.round(length), normal, depth, surface.to(x.dtype))
-    return lit * demod + emission, nxt
+    # the output history (demodulated), within sqrt(clamp x the accumulated light's noise variance) of this frame's;
+    # the output history's weight follows the history length before any drop (less flicker)
+    lit, image = backends.run(backends.HistoryOp(out, emission, albedo, surface, box(spread, 1), hist_out,
+                                                 step[:, 8:9], hist_length, t.clamp, t.output_alpha, workspace))
+    return image, TemporalState(acc, lit, moments, torch.round(length), normal, depth, surface.to(x.dtype))
 
 
 def _check_inputs(gb: GBuffer) -> GBuffer:
@@ -255,6 +224,8 @@ class TemporalDenoiser(torch.nn.Module):
     frame's ``(B, 3, H, W)`` denoised radiance in the input dtype and device. :meth:`reset`
     forgets the history (call it at a cut; a cut the motion does not explain is also caught by the
     consistency tests, pixel by pixel). A change of shape, dtype or device starts a new history.
+    Its :attr:`state` lives in buffers it reuses frame after frame (no fresh pages each frame):
+    copy it to keep it past the next call.
 
     Args:
         spatial: the filter of the accumulated light: ``"guided"`` (radius ``TEMPORAL.radius``, ε
@@ -278,6 +249,7 @@ class TemporalDenoiser(torch.nn.Module):
         check_option(spatial, "spatial", SPATIAL)
         self.sanitize, self.spatial_method = sanitize, spatial
         self.state: TemporalState | None = None
+        self._workspace: dict = {}  # the kernels' buffers between frames (the state lives in them)
         # kept between calls (its buffers); called on inputs checked once per frame
         self.spatial = (Denoiser("guided", radius=TEMPORAL.radius, eps=TEMPORAL.eps, subsample=1)
                         if spatial == "guided" else Denoiser(spatial))
@@ -303,7 +275,7 @@ class TemporalDenoiser(torch.nn.Module):
             spp = gb.spp if gb.spp is not None else torch.ones_like(gb.depth, dtype=torch.int64)
         out, self.state = temporal_step(color, gb.albedo, gb.normal, gb.depth, gb.motion, s, emission=emission,
                                         hit=gb.hit, spatial=_checked(self.spatial), fresh=_checked(self.fresh),
-                                        fresh_share=share, spatial_spp=spp)
+                                        fresh_share=share, spatial_spp=spp, workspace=self._workspace)
         return out
 
 

@@ -24,6 +24,7 @@ from typing import Any
 
 import torch
 
+from torchgi.backends.temporal_ops import LUMA, AccumulateOp, ChangeOp, HistoryOp
 from torchgi.backends.tracer_ops import GuideRaysOp, PathOp, TraceSetup, chunks, embree_started, mark_embree_started
 from torchgi.core.check import is_tracing
 from torchgi.core.dtypes import compute_dtype
@@ -38,6 +39,7 @@ __all__ = [
     "AllocateOp",
     "BackOffOp",
     "BoxOp",
+    "ChangeOp",
     "ChooseOp",
     "EdgeShareOp",
     "FineBandOp",
@@ -45,6 +47,7 @@ __all__ = [
     "GuideSpec",
     "GuideStatsOp",
     "GuidedOp",
+    "HistoryOp",
     "ImportanceOp",
     "LightInOp",
     "LightOutOp",
@@ -400,52 +403,14 @@ class ChooseOp:
         return (*self.outs, self.variance)
 
 
-LUMA = (0.2126, 0.7152, 0.0722)  # the luminance AccumulateOp returns and moments are of (Rec. 709 weights)
-
-
-@dataclass(eq=False, slots=True)
-class AccumulateOp:
-    """One frame of :mod:`torchgi.temporal`'s reprojection and accumulation for the light
-    ``x (B,3,H,W)`` (scaled down to ``bound (B,1,H,W)`` where its channel maximum exceeds it),
-    ``motion (B,2,H,W)``, this frame's ``normal (B,3)``, ``depth (B,1)``,
-    ``surface (B,1)`` bool, and the history ``light (B,3)``, ``output (B,3)``, ``moments (B,2)``,
-    ``length (B,1)``, ``prev_normal (B,3)``, ``prev_depth (B,1)``, ``prev_surface (B,1)`` (1.0 on
-    geometry), all of one float dtype and device but ``surface``; ``alpha``, ``max_history``,
-    ``normal_tolerance``, ``depth_tolerance`` as in ``settings.TEMPORAL``. Returns ``(B,12,H,W)``:
-    the accumulated light (3), the reprojected output history (3), the accumulated moments (2),
-    the new history length (1), the reprojected one (1, 0: no history), the moments' variance
-    (1), the number of frames averaged (1) and the clamped light's luminance (1)."""
-
-    x: torch.Tensor
-    bound: torch.Tensor
-    motion: torch.Tensor
-    normal: torch.Tensor
-    depth: torch.Tensor
-    surface: torch.Tensor
-    light: torch.Tensor
-    output: torch.Tensor
-    moments: torch.Tensor
-    length: torch.Tensor
-    prev_normal: torch.Tensor
-    prev_depth: torch.Tensor
-    prev_surface: torch.Tensor
-    alpha: float
-    max_history: int
-    normal_tolerance: float
-    depth_tolerance: float
-
-    def tensors(self) -> tuple[torch.Tensor | None, ...]:
-        return (self.x, self.bound, self.motion, self.normal, self.depth, self.light, self.output, self.moments, self.length,
-                self.prev_normal, self.prev_depth, self.prev_surface)
-
-
 Op = BoxOp | GuidedOp | ATrousOp | ImportanceOp | AllocateOp | GuideStatsOp | EdgeShareOp | RestoreOp | LightInOp | \
-    LightOutOp | ModelResidualOp | FineBandOp | BackOffOp | ChooseOp | AccumulateOp | PathOp | GuideRaysOp
+    LightOutOp | ModelResidualOp | FineBandOp | BackOffOp | ChooseOp | AccumulateOp | ChangeOp | HistoryOp | PathOp | \
+    GuideRaysOp
 _OPS = {BoxOp: "box", GuidedOp: "guided", UpsampleApplyOp: "upsample_apply", ATrousOp: "atrous", ImportanceOp: "importance", AllocateOp: "allocate",
         GuideStatsOp: "guide_stats", EdgeShareOp: "edge_share", RestoreOp: "restore", LightInOp: "light_in",
         LightOutOp: "light_out", ModelResidualOp: "model_residual", FineBandOp: "fine_band", BackOffOp: "back_off",
         ChooseOp: "choose",
-        AccumulateOp: "accumulate", PathOp: "path", GuideRaysOp: "guide_rays"}
+        AccumulateOp: "accumulate", ChangeOp: "change", HistoryOp: "history", PathOp: "path", GuideRaysOp: "guide_rays"}
 
 
 def eager(desc: Op) -> str | None:

@@ -1,6 +1,6 @@
 """The C back end: compiled CPU kernels of the filters (one À-Trous level, the guided filter and
 the box filter it is built from), the Denoiser's guided pipeline, the sampling importance map and
-the sample allocation, the temporal accumulation and the path tracer, float32.
+the sample allocation, the temporal ops and the path tracer, float32.
 
 One file per op family, in Python and in C: :mod:`.filters` (``atrous.c``, ``guided.c``),
 :mod:`.pipeline` (``pipeline.c``), :mod:`.pyramid` (``pyramid.c``), :mod:`.sampling` (``importance.c``, ``allocate.c``),
@@ -54,7 +54,7 @@ from torchgi.backends.base import (
     float32_eager,
 )
 from torchgi.backends.c_kernels import build
-from torchgi.backends.c_kernels.accumulation import accumulate
+from torchgi.backends.c_kernels.accumulation import accumulate, change, history
 from torchgi.backends.c_kernels.build import describe, library
 from torchgi.backends.c_kernels.filters import atrous, box, guided, upsample_apply
 from torchgi.backends.c_kernels.pipeline import back_off, choose, edge_share, guide_stats, light_in, light_out, restore
@@ -64,15 +64,15 @@ from torchgi.backends.c_kernels.sampling import allocate, importance
 from torchgi.backends.c_kernels.tracer import _path_support, guide_rays, path
 
 __all__ = [
-    "NAME", "accumulate", "allocate", "atrous", "back_off", "box", "choose", "describe", "edge_share", "empty_planes",
-    "fine_band", "guide_rays", "guide_stats", "guided", "importance", "library", "light_in", "light_out",
+    "NAME", "accumulate", "allocate", "atrous", "back_off", "box", "change", "choose", "describe", "edge_share", "empty_planes",
+    "fine_band", "guide_rays", "guide_stats", "guided", "history", "importance", "library", "light_in", "light_out",
     "model_residual", "padded", "path", "restore", "supports",
     "upsample_apply",
 ]
 
 NAME = "c"
 # the image tensor of the ops whose kernels walk one image of fewer than 2^31 pixels per call
-_IMAGE = {"accumulate": "x", "restore": "color", "light_in": "color", "light_out": "color", "model_residual": "x",
+_IMAGE = {"accumulate": "x", "change": "x", "history": "out", "restore": "color", "light_in": "color", "light_out": "color", "model_residual": "x",
           "fine_band": "model"}
 
 
@@ -98,9 +98,10 @@ def supports(op: str, desc: BoxOp | GuidedOp | ATrousOp | ImportanceOp | Allocat
             return why
     if op in ("path", "guide_rays"):
         return _path_support(desc)
-    image = _IMAGE.get(op)
-    if image is not None and (getattr(desc, image).numel() == 0 or math.prod(getattr(desc, image).shape[-2:]) >= 2**31):
-        return f"the C {op} takes non-empty images of fewer than 2^31 pixels"
+    image, surface = _IMAGE.get(op), getattr(desc, "surface", None)  # (the temporal ops' mask, read as bytes)
+    if image is not None and (getattr(desc, image).numel() == 0 or math.prod(getattr(desc, image).shape[-2:]) >= 2**31
+                              or (surface is not None and surface.dtype != torch.bool)):
+        return f"the C {op} takes non-empty images of fewer than 2^31 pixels (and a bool surface mask)"
     if op == "model_residual" and not 1 <= len(desc.ys) <= 4:
         return "the C model takes 1 to 4 candidates"
     if op == "upsample_apply":

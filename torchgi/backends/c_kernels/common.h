@@ -8,6 +8,7 @@
 #ifndef TORCHGI_COMMON_H
 #define TORCHGI_COMMON_H
 
+#include <float.h>
 #include <math.h>
 #include <stddef.h>
 #include <stdint.h>

@@ -1,6 +1,6 @@
 /* The CPU kernels of torchgi, float32, one image per call: the filters (box, guided, À-Trous),
  * the Denoiser's guided pipeline, the sampling importance and allocation, the temporal
- * accumulation; the path tracer is tracer.c.
+ * ops; the path tracer is tracer.c.
  *
  * Compiled at first use by torchgi/backends/c_kernels/build.py (gcc/cc, -O3 -march=native,
  * -fopenmp where the compiler has it) and called through ctypes, which releases the GIL; each
@@ -10,7 +10,7 @@
  */
 #include "common.h"
 
-int torchgi_native_version(void) { return 12; }
+int torchgi_native_version(void) { return 13; }
 
 float torchgi_exp_neg(float d) { return exp_neg(d); }
 

@@ -110,7 +110,7 @@ def _buffer(holder: dict | None, name: str, shape: tuple[int, ...], dtype: torch
     """An empty buffer kept in ``holder`` between calls of one shape (no page faults)."""
     if holder is None:
         return torch.empty(shape, dtype=dtype)
-    key = f"restore_{name}"
+    key = f"buffer_{name}"
     buf = holder.get(key)
     if buf is None or buf.shape != shape or buf.dtype != dtype:
         buf = holder[key] = torch.empty(shape, dtype=dtype)

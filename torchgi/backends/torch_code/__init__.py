@@ -3,7 +3,7 @@ export, float64, any device) and the CPU in-place paths used where no compiled k
 
 One file per op family: :mod:`.filter_box`, :mod:`.filter_guided`, :mod:`.filter_atrous` (the
 filters), :mod:`.sampling` (importance, allocation), :mod:`.pipeline` (the Denoiser's guided
-pipeline), :mod:`.pyramid` (the learned pyramid's full-resolution steps), :mod:`.accumulation` (temporal accumulation), :mod:`.tracer` (the renderer's torch
+pipeline), :mod:`.pyramid` (the learned pyramid's full-resolution steps), :mod:`.accumulation` (the temporal ops), :mod:`.tracer` (the renderer's torch
 wavefronts).
 This module is the back end's registry: :func:`supports`, :func:`describe` and one function
 per op name of :mod:`torchgi.backends.base`.
@@ -11,7 +11,7 @@ per op name of :mod:`torchgi.backends.base`.
 
 from __future__ import annotations
 
-from torchgi.backends.torch_code.accumulation import accumulate
+from torchgi.backends.torch_code.accumulation import accumulate, change, history
 from torchgi.backends.torch_code.filter_atrous import atrous, channel_planes, squared_distance
 from torchgi.backends.torch_code.filter_box import PlaneBoxer, block_mean, box, box_pool, in_place
 from torchgi.backends.torch_code.filter_guided import apply_coefficients, guided, guided_filter, solve, upsample_apply
@@ -22,8 +22,8 @@ from torchgi.backends.torch_code.tracer import guide_rays, path
 
 __all__ = [
     "NAME", "PlaneBoxer", "accumulate", "allocate", "apply_coefficients", "atrous", "back_off", "block_mean", "box", "box_pool",
-    "channel_planes", "choose", "describe", "edge_share", "fine_band", "guide_rays", "guide_stats", "guided", "guided_filter",
-    "importance", "in_place", "light_in", "light_out", "model_residual", "path", "restore", "solve", "squared_distance",
+    "change", "channel_planes", "choose", "describe", "edge_share", "fine_band", "guide_rays", "guide_stats", "guided", "guided_filter",
+    "history", "importance", "in_place", "light_in", "light_out", "model_residual", "path", "restore", "solve", "squared_distance",
     "supports", "up2", "upsample_apply",
 ]
 

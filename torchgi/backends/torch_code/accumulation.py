@@ -1,12 +1,17 @@
-"""The torch code of the temporal accumulation (:class:`~torchgi.backends.base.AccumulateOp`)."""
+"""The torch code of the temporal ops: the accumulation (:class:`~torchgi.backends.base.AccumulateOp`),
+the change test after it (:class:`~torchgi.backends.base.ChangeOp`) and the output history
+(:class:`~torchgi.backends.base.HistoryOp`)."""
 
 from __future__ import annotations
 
 import torch
 
+from torchgi import light
 from torchgi.backends.base import (
     LUMA,
     AccumulateOp,
+    ChangeOp,
+    HistoryOp,
 )
 
 
@@ -63,3 +68,64 @@ def accumulate(desc: AccumulateOp) -> torch.Tensor:
     return torch.cat([light, hist[:, 3:6], moments, length, hist_length, var, frames, lum], 1)
 
 
+
+
+def _extent(n: int, r: int, like: torch.Tensor) -> torch.Tensor:
+    """``(n,)`` the number of pixels a window of radius ``r`` covers along an axis of ``n`` (clipped at the edges)."""
+    i = torch.arange(n, device=like.device)
+    return ((i + r).clamp(max=n - 1) - (i - r).clamp(min=0) + 1).to(like.dtype)
+
+
+def change(desc: ChangeOp) -> torch.Tensor:
+    """:class:`~torchgi.backends.base.ChangeOp` by tensor ops: per window radius, the change of the
+    mean luminance (this frame's against the accumulated light's) beyond ``threshold`` sigmas of
+    the window mean's noise (``sqrt(box(spatial_var) / pixels in the window)``) drops the
+    history, fully one sigma further, linearly between; the larger drop of the two radii counts.
+
+    Example:
+        >>> z = lambda c: torch.zeros(1, c, 2, 2)
+        >>> step = torch.cat([z(3) + 2, z(3), z(2), z(1) + 4, z(1) + 3, z(1), z(1) + 4, z(1)], 1)
+        >>> out = change(ChangeOp(z(3), z(1), step, z(1), None, None, z(3) + 0.5, z(1) == 0, z(3), (4, 16), 3.0, 4))
+        >>> out[0, :, 0, 0].tolist()   # no change test: the step's light, remodulated by 0.5
+        [2.0, 2.0, 2.0, 0.0, 0.0, 4.0, 4.0, 0.0, 1.0, 1.0, 1.0]
+    """
+    d = desc
+    acc, _, moments, length, hist_length, temporal_var, frames, lum = d.step.split([3, 3, 2, 1, 1, 1, 1, 1], 1)
+    if d.near is not None:
+        H, W = d.x.shape[-2:]
+        drop = torch.zeros_like(lum)
+        for boxed, r in ((d.near, d.radii[0]), (d.wide, d.radii[1])):
+            now, before, var = boxed.split(1, 1)
+            # over the window's pixels; the box's sums can cancel below 0
+            sigma = torch.sqrt(var.clamp_min(0) / (_extent(H, r, d.x)[:, None] * _extent(W, r, d.x)))
+            beyond = ((now - before).abs() - d.threshold * sigma) / sigma.clamp_min(torch.finfo(d.x.dtype).tiny)
+            drop = torch.maximum(drop, beyond.clamp(0, 1))  # without noise (sigma 0) any change drops
+        drop = drop * (hist_length > 0)
+        acc = acc + drop * (light.scaled_to(d.x, d.x.amax(1, keepdim=True), d.bound) - acc)
+        moments = moments + drop * (torch.cat([lum, lum * lum], 1) - moments)
+        length = length + drop * (1 - length)
+        frames = frames + drop * (1 - frames)
+        temporal_var = (moments[:, 1:2] - moments[:, :1].square()).clamp_min(0)
+    var = torch.where(length >= d.variance_history, temporal_var, d.spatial_var)
+    color = acc * light.demodulator(d.albedo, d.surface) + d.emission
+    return torch.cat([acc, moments, length, frames, var / frames, color], 1)
+
+
+def history(desc: HistoryOp) -> tuple[torch.Tensor, torch.Tensor]:
+    """:class:`~torchgi.backends.base.HistoryOp` by tensor ops.
+
+    Example:
+        >>> z = lambda c: torch.zeros(1, c, 1, 1)
+        >>> out = history(HistoryOp(z(3) + 1, z(3), z(3) + 0.5, z(1) == 0, z(1) + 0.25, z(3) + 3, z(1) + 2, z(1) + 1,
+        ...                         4.0, 0.1))
+        >>> [v[0, :, 0, 0].tolist() for v in out]   # lit 2, history 3 clamped to 2 + sqrt(4 x 0.25) = 3, averaged
+        [[2.5, 2.5, 2.5], [1.25, 1.25, 1.25]]
+    """
+    d = desc
+    demod = light.demodulator(d.albedo, d.surface)
+    lit = (d.out - d.emission) / demod
+    sigma = torch.sqrt(d.clamp * d.spread.clamp_min(0))  # the box's sums can cancel below 0
+    h = torch.maximum(torch.minimum(d.hist_out, lit + sigma), lit - sigma)
+    beta = torch.maximum(1.0 / d.kept, torch.full((), d.output_alpha, dtype=lit.dtype, device=lit.device))
+    lit = torch.where(d.hist_length > 0, h + beta * (lit - h), lit)
+    return lit, lit * demod + d.emission
