@@ -5,8 +5,9 @@ Per size one 1 spp render of a scene (Cornell box by default; ``--spp N`` for N,
 inputs (``color, albedo, normal, depth, emission``):
 ``Denoiser("guided")`` end to end (and forced to full resolution), its guided kernel alone (same radius, eps and guide, full
 resolution, on the colour), the default ``Denoiser()`` when it is another method, the guided
-Denoiser tiled with ``max_memory_mb=256``, ``Denoiser("pyramid")`` untiled and with
-``max_memory_mb=800``, and Intel Open Image Denoise "fast" and "high"
+Denoiser tiled with ``max_memory_mb=256``, ``Denoiser("pyramid")`` (its default
+``max_memory_mb="auto"``: in tiles within twice the inputs from about 4.4 Mpx) and untiled
+(``max_memory_mb=None``), and Intel Open Image Denoise "fast" and "high"
 (pyoidn: colour + albedo + normal, HDR). On CUDA (when a GPU is present) the same on CUDA tensors.
 Peak memory is measured in a fresh process per size and method: the resident set's high-water
 mark during the one call minus the resident set before it (the inputs already loaded).
@@ -37,7 +38,6 @@ from torchgi.denoise import Denoiser
 
 INPUTS = ("color", "albedo", "normal", "depth", "emission")
 TILED_MB = 256
-PYRAMID_TILED_MB = 800  # under 2x the 4K inputs (411 MB): issue 28's memory line
 
 
 def render_inputs(scene: str, H: int, W: int, cache: Path, spp: int = 1) -> dict[str, torch.Tensor]:
@@ -71,8 +71,7 @@ def methods(inputs: dict[str, torch.Tensor], device: str) -> dict:
         f"guided kernel (r={radius})": lambda: guided_filter(x, guide, radius=radius, eps=GUIDED.eps, workspace=ws),
     }
     fns['Denoiser("pyramid")'] = lambda d=Denoiser("pyramid"): d(**inputs)
-    fns[f"pyramid, max_memory_mb={PYRAMID_TILED_MB}"] = lambda d=Denoiser("pyramid", max_memory_mb=PYRAMID_TILED_MB): d(
-        **inputs)
+    fns["pyramid, max_memory_mb=None"] = lambda d=Denoiser("pyramid", max_memory_mb=None): d(**inputs)
     default = Denoiser()
     if default.method != "guided":
         fns[f'Denoiser() ("{default.method}")'] = lambda: default(**inputs)
@@ -135,9 +134,9 @@ def probe(args) -> None:
     out = fn()
     peak = _status_mb()["VmHWM"]
     result = {"extra_mb": peak - before, "output_mb": out.numel() * out.element_size() / 2**20}
-    for method in ("guided", "pyramid"):
-        if args.probe_method.startswith(f"{method}, max_memory_mb"):
-            whole = Denoiser(method)(**inputs)
+    for method in ("guided", "pyramid"):  # tiled (or "auto") against the untiled call
+        if args.probe_method in (f'Denoiser("{method}")', f"{method}, max_memory_mb={TILED_MB}"):
+            whole = Denoiser(method, max_memory_mb=None)(**inputs)
             result["tiled_rel_diff"] = float(((out - whole).abs() / (whole.abs() + 1e-3)).max())
     print(json.dumps(result))
 
@@ -195,11 +194,11 @@ def claims(rows: list[dict]) -> list[str]:
             line += f"; tiled: extra {tiled['extra_mb']:.0f} MB (bound {TILED_MB}), {tiled['median_ms']:.3g} ms, " \
                     f"max rel. diff {tiled['tiled_rel_diff']:.1e} (bound 1e-5)"
         lines.append(line)
-        pyr, pyr_tiled = by.get('Denoiser("pyramid")'), by.get(f"pyramid, max_memory_mb={PYRAMID_TILED_MB}")
+        pyr, pyr_whole = by.get('Denoiser("pyramid")'), by.get("pyramid, max_memory_mb=None")
         if pyr is not None and "OIDN high" in by:  # issue 28's speed and memory lines
             line = f"{size}: Denoiser(\"pyramid\") {pyr['median_ms']:.3g} ms, OIDN high " \
                    f"{by['OIDN high']['median_ms'] / pyr['median_ms']:.2f}x slower (bound 5x)"
-            for label, r in (("untiled", pyr), (f"max_memory_mb={PYRAMID_TILED_MB}", pyr_tiled)):
+            for label, r in (('default ("auto")', pyr), ("untiled", pyr_whole)):
                 if r is not None and "extra_mb" in r:
                     line += f"; {label}: peak extra {r['extra_mb']:.0f} MB = {r['extra_mb'] / r['inputs_mb']:.2f}x " \
                             f"inputs (bound 2x), {r['median_ms']:.3g} ms"

@@ -140,6 +140,13 @@ def test_denoise_command_on_a_mitsuba_render(tmp_path, capsys):
     tiled = tmp_path / "tiled.exr"
     assert main(["denoise", str(tmp_path / "noisy.exr"), "--max-memory-mb", "1", "--out", str(tiled)]) == 0
     assert float((read_aovs(tiled)["color"][None] - den).abs().max()) <= 1e-5 * float(den.abs().max())
+    assert main(["denoise", str(tmp_path / "noisy.exr"), "--max-memory-mb", "none", "--out", str(tiled),
+                 "--overwrite"]) == 0  # untiled, as the default ("auto") at this size
+    assert torch.equal(read_aovs(tiled)["color"][None], den)
+    for bad in ("0", "-3", "inf", "lots"):
+        with pytest.raises(SystemExit):
+            main(["denoise", str(tmp_path / "noisy.exr"), "--max-memory-mb", bad, "--out", str(tiled)])
+    assert "expected MB > 0, 'auto' or 'none', got lots" in capsys.readouterr().err
     capsys.readouterr()
     assert main(["denoise", str(tmp_path / "noisy.exr"), "--out", str(out)]) == 2  # never overwrites
     err = capsys.readouterr().err

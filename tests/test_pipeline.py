@@ -148,12 +148,52 @@ def test_tiles_give_the_untiled_result(render, subsample, crop, spp):
     assert float(((tiled - whole).abs() / (whole.abs() + 1e-3)).max()) < 1e-9
 
 
+@pytest.mark.parametrize("method", ["guided", "pyramid"])
+def test_auto_memory_tiles_only_calls_estimated_above_the_threshold(render, monkeypatch, method):
+    """max_memory_mb="auto" (the default): untiled while the estimate (a tile's bytes per pixel
+    over the image, and the output) is at most PIPELINE.auto_tiles_from_mb, above it in tiles of
+    auto_budget (2) x the inputs' memory, at least auto_floor_mb; None never tiles. The estimate by hand: the
+    guided pipeline 4 (19 + 22) B per pixel at B = 1 (tiles.guided_bytes), the pyramid 480; the
+    five float32 inputs 13 x 4 B per pixel, the output 12."""
+    import dataclasses
+
+    from torchgi import denoise
+    from torchgi.core import tiles
+    from torchgi.settings import PIPELINE
+
+    inputs = {k: getattr(render, k) for k in ("color", "albedo", "normal", "depth", "emission")}
+    px = render.color.shape[-2] * render.color.shape[-1]
+    whole = ({"guided": 164, "pyramid": 480}[method] + 12) * px / 2**20
+    budgets = []
+    real = tiles.tile_side
+    for module in (denoise, tiles):  # the pyramid's call and tiled()'s
+        monkeypatch.setattr(module, "tile_side", lambda color, mb, *a: budgets.append(mb) or real(color, mb, *a))
+
+    def run(threshold: float, floor: float = 0.0, times: float = 2.0, **kw) -> torch.Tensor:
+        budgets.clear()
+        monkeypatch.setattr(denoise, "PIPELINE", dataclasses.replace(
+            PIPELINE, auto_tiles_from_mb=threshold, auto_floor_mb=floor, auto_budget=times))
+        return Denoiser(method, **kw)(**inputs)
+
+    untiled = run(whole * 1.001)
+    assert budgets == []
+    if method == "guided":  # a budget of 6x the inputs: 2x2 tiles (the pyramid's 208 px overlap needs 100 MB)
+        tiled = run(whole * 0.999, times=6.0)
+        assert budgets == [pytest.approx(6 * 13 * 4 * px / 2**20)]
+        assert float(((tiled - untiled).abs() / (untiled.abs() + 1e-3)).max()) < 1e-5
+    run(0.0, floor=300.0)  # the floor: one tile
+    assert budgets == [300.0]
+    run(0.0, max_memory_mb=None)
+    assert budgets == []
+    assert Denoiser(method).max_memory_mb == "auto" and "max_memory_mb" not in repr(Denoiser(method))
+
+
 def test_memory_bounds_and_sanitize_are_checked(render):
     with pytest.raises(ValueError, match="at least"):
         Denoiser("guided", max_memory_mb=0.01)(render)
     with pytest.raises(ValueError, match="max_memory_mb"):
         Denoiser("atrous", max_memory_mb=100)
-    for bad_mb in (-1, 0, float("inf"), float("nan"), True, "10"):
+    for bad_mb in (-1, 0, float("inf"), float("nan"), True, "10", "none"):
         with pytest.raises(ValueError, match="max_memory_mb"):
             Denoiser("guided", max_memory_mb=bad_mb)
     bad = render.replace(color=render.color.clone())

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
+import math
 import os
 import platform
 import sys
@@ -146,7 +147,8 @@ def cmd_denoise(args: argparse.Namespace) -> int:
     method, quality = args.method or "guided", args.quality or "balanced"
     params = {} if args.radius is None else {"radius": args.radius}
     t0 = time.perf_counter()
-    out = Denoiser(method, quality, max_memory_mb=args.max_memory_mb, **params)(gb)
+    memory = {None: "auto", "none": None}.get(args.max_memory_mb, args.max_memory_mb)  # None: no flag
+    out = Denoiser(method, quality, max_memory_mb=memory, **params)(gb)
     seconds = time.perf_counter() - t0
     path = write_exr(args.out, {"color": out[0]}, overwrite=args.overwrite)
     print(f"denoised {args.input[0]} ({gb.shape[2]}x{gb.shape[1]}) with {method} in {seconds * 1e3:.1f} ms; "
@@ -283,6 +285,19 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def _memory_mb(text: str) -> float | str:
+    """``--max-memory-mb``: MB > 0, ``auto`` or ``none`` (never in tiles)."""
+    if text in ("auto", "none"):
+        return text
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not 0 < value < math.inf:
+        raise argparse.ArgumentTypeError(f"expected MB > 0, 'auto' or 'none', got {text}")
+    return value
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     """Path-trace the Cornell box at low and high spp, round-trip the buffers through
     multi-layer EXR, denoise with every method of the Denoiser and report the errors; writes
@@ -348,7 +363,9 @@ def _denoise_and_export_parsers(sub: argparse._SubParsersAction) -> None:
                    help="the motion layer's convention (default: from its name: motion torchgi, Vector Cycles, "
                    "motionvector Arnold)")
     p.add_argument("--sanitize", action="store_true", help="replace NaN/Inf in the input by 0 (with a warning)")
-    p.add_argument("--max-memory-mb", type=float, help="most MB denoising adds beyond the input (tiles; guided and pyramid)")
+    p.add_argument("--max-memory-mb", type=_memory_mb, default=None, help="most MB denoising adds beyond the input "
+                   "(tiles; guided and pyramid): a number, 'none' (never tiles) or 'auto' (the default: tiles "
+                   "only calls estimated above 2 GB, then within twice the input)")
     p.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar (--temporal)")
     p.set_defaults(func=cmd_denoise)
 

@@ -44,7 +44,7 @@ from torchgi.core.check import check_finite, check_option, finite_or_sanitized_a
 from torchgi.core.dtypes import compute_dtype
 from torchgi.core.errors import ShapeError
 from torchgi.core.registry import Registry
-from torchgi.core.tiles import tile_side, tiled, tiles
+from torchgi.core.tiles import auto_budget, check_budget, guided_bytes, tile_side, tiled, tiles
 from torchgi.deployed import EXPORTABLE, FIREFLY, UNCLAMPED, DeployedDenoiser, DeployedDenoiserWithoutEmission, deployed
 from torchgi.filters import atrous, box, cross_bilateral, guide_from, guided
 from torchgi.filters.blend import blend, default_net
@@ -90,12 +90,12 @@ class Denoiser(torch.nn.Module):
             setting, noise-free direct light).
         sanitize: NaN/Inf in an input raises :class:`~torchgi.core.NonFiniteError` naming it
             (False) or is replaced by 0 with a warning (True).
-        max_memory_mb: None, or the most memory (MB) a call may add beyond its inputs, the
-            output included (OIDN's ``maxMemoryMB``): methods "guided" and "pyramid" then run in
-            tiles whose overlap covers their footprint, so the result is that of one pass (to
-            rounding). The pyramid's tiles overlap by its network's reach (208 px): with
-            ``max_memory_mb=800`` they took 1.8-1.9x its untiled time at 1920x1080 and 0.8-1.3x
-            at 3840x2160 (docs/pyramid.md).
+        max_memory_mb: the most memory (MB) a call may add beyond its inputs, the output
+            included (OIDN's ``maxMemoryMB``): methods "guided" and "pyramid" then run in tiles
+            whose overlap covers their footprint, the result that of one pass (to rounding); None:
+            never in tiles; "auto": in tiles where the untiled call is estimated above 2 GB (the
+            pyramid from about 4.4 Mpx per image, "guided" from 12 Mpx), within twice the inputs'
+            memory (``PIPELINE.auto_*``; docs/pipeline.md, docs/pyramid.md: the time it costs).
         **filter_params: override the automatic choices: ``radius``, ``eps``, ``subsample`` (guided);
             ``iterations``, ``sigma_normal``, ``sigma_position``, ``sigma_color`` (À-Trous);
             ``radius``, ``sigma_space``, ``sigma_color`` (bilateral).
@@ -121,7 +121,7 @@ class Denoiser(torch.nn.Module):
         input_scale: float | None = None,
         filter_direct: bool = True,
         sanitize: bool = False,
-        max_memory_mb: float | None = None,
+        max_memory_mb: float | str | None = "auto",
         **filter_params: Any,
     ) -> None:
         super().__init__()
@@ -139,13 +139,7 @@ class Denoiser(torch.nn.Module):
             check_option(key, f"filter parameter for method={method!r}", known)
         if input_scale is not None and not input_scale > 0:
             raise ValueError(f"input_scale: expected > 0 or None, got {input_scale!r}")
-        if max_memory_mb is not None and (isinstance(max_memory_mb, bool) or not isinstance(max_memory_mb, (int, float))
-                                          or not 0 < max_memory_mb < math.inf):
-            raise ValueError(f"max_memory_mb: expected a finite number of MB > 0, or None for no limit; "
-                             f"got {max_memory_mb!r}")
-        if max_memory_mb is not None and method not in ("guided", "pyramid"):
-            raise ValueError(f"max_memory_mb: tiles are implemented for methods 'guided' and 'pyramid' only, "
-                             f"not {method!r}")
+        check_budget(max_memory_mb, method, ("guided", "pyramid"))
         eps = filter_params.get("eps", GUIDED.eps)
         if method == "guided" and (isinstance(eps, bool) or not isinstance(eps, (int, float)) or not 0 <= eps < math.inf):
             raise ValueError(f"eps: expected a finite float >= 0, got {eps!r}")
@@ -231,7 +225,7 @@ class Denoiser(torch.nn.Module):
 
     def extra_repr(self) -> str:
         params = "".join(f", {k}={v!r}" for k, v in self.filter_params.items())
-        memory = "" if self.max_memory_mb is None else f", max_memory_mb={self.max_memory_mb}"
+        memory = "" if self.max_memory_mb == "auto" else f", max_memory_mb={self.max_memory_mb!r}"
         return (f"method={self.method!r}, quality={self.quality!r}, hdr={self.hdr}, input_scale={self.input_scale}, "
                 f"filter_direct={self.filter_direct}, sanitize={self.sanitize}{memory}{params}")
 
@@ -296,10 +290,11 @@ class Denoiser(torch.nn.Module):
         # light and guide centred by constants of each image, so that tiles compute the untiled sums
         centres = (light.centre(gb.color, gb.emission, kept, gb.albedo, surface, GUIDED.firefly * level), guide_means)
 
-        if self.max_memory_mb is None:
+        per_pixel = guided_bytes(gb.color.shape[0], kept is not None, gb.variance is not None, len(radii))
+        budget = self._budget(gb, per_pixel)
+        if budget is None:
             return op(workspace=self._workspace)
-        return tiled(op, gb.color, self.max_memory_mb, _footprint(max(radii), s, len(radii) > 1), s, kept is not None,
-                      gb.variance is not None, len(radii))
+        return tiled(op, gb.color, budget, _footprint(max(radii), s, len(radii) > 1), s, per_pixel)
 
     def _pyramid_pipeline(self, gb: GBuffer, kept: torch.Tensor | None, surface: torch.Tensor) -> torch.Tensor:
         """Method "pyramid": the steps of :func:`torchgi.light.restore` (``backends.LightInOp`` /
@@ -334,15 +329,16 @@ class Denoiser(torch.nn.Module):
             out = backends.run(backends.LightOutOp(out, c, e, k, a, hit, lights, inplace=True))
             return _back_off(out, gb, surface, level, rows, cols)
 
-        if self.max_memory_mb is None:
+        per_pixel = _PYRAMID_BYTES * gb.color.shape[0] * torch.finfo(compute_dtype(gb.color.dtype)).bits / 32
+        budget = self._budget(gb, per_pixel)
+        if budget is None:
             out = op(workspace=self._workspace)
             if self._capture is not None:
                 self._capture["weights"] = self._capture.pop("tiles")[0]
             return out
         reach = PIPELINE.firefly_radius + 2 * (PIPELINE.light_square // 2)  # the light's before the filter
         halo = -(-(reach + REACH + PIPELINE.backoff_radius) // ALIGN) * ALIGN
-        per_pixel = _PYRAMID_BYTES * gb.color.shape[0] * torch.finfo(compute_dtype(gb.color.dtype)).bits / 32
-        side = tile_side(gb.color, self.max_memory_mb, per_pixel, halo, ALIGN)
+        side = tile_side(gb.color, budget, per_pixel, halo, ALIGN)
         stats: dict[str, torch.Tensor] = {}
         for rows, cols, core_rows, core_cols, _, _ in tiles(*gb.color.shape[-2:], side, reach, ALIGN):
             op(rows, cols, sums=[(core_rows, core_cols), stats])
@@ -360,6 +356,12 @@ class Denoiser(torch.nn.Module):
                 w[..., q(out_rows), q(out_cols)] = part[..., q(core_rows), q(core_cols)]
             self._capture["weights"] = w
         return out
+
+    def _budget(self, gb: GBuffer, per_pixel: float) -> float | None:
+        """The budget (MB) of this call's tiles of ``per_pixel`` bytes per pixel; None: untiled."""
+        inputs = sum(t.numel() * t.element_size() for n in GBuffer.fields() if (t := getattr(gb, n)) is not None)
+        return self.max_memory_mb if self.max_memory_mb != "auto" else auto_budget(
+            gb.color, inputs, per_pixel, PIPELINE.auto_tiles_from_mb, PIPELINE.auto_budget, PIPELINE.auto_floor_mb)
 
     def _radii(self, radius: int, s: int, gb: GBuffer) -> tuple[int, ...]:
         """The guided filter's radii: ``(radius,)``, or ``(radius // 2 (>= 1), 2 radius)``

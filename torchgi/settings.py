@@ -48,6 +48,15 @@ class PipelineSettings:
                                      "the residual must exceed (1 + this / sqrt(spp - 1)) x the measured variance: "
                                      "a variance from few samples is itself noisy (tuning set: at most 3.1 % above "
                                      "the filter alone at 2 spp)")
+    auto_tiles_from_mb: float = _setting(2048.0, 0.0, math.inf, "MB", "max_memory_mb='auto' (the default) tiles a "
+                                         "call whose untiled pipeline is estimated to add more than this: the pyramid "
+                                         "runs 1920x1080 (about 1 GB estimated) and 2560x1440 whole, where tiles cost "
+                                         "1.1-1.9x its time, and 3840x2160 (about 4 GB) in tiles (docs/pyramid.md)")
+    auto_budget: float = _setting(2.0, 0.0, math.inf, "x inputs", "those tiles hold at most this multiple of the "
+                                  "inputs' memory (issue 28's line at 4K), and at least auto_floor_mb")
+    auto_floor_mb: float = _setting(512.0, 0.0, math.inf, "MB", "the least budget of automatic tiles: smaller "
+                                    "tiles repeat the pyramid's 208 px overlap too often (400 MB at 4K: 2.4x the time "
+                                    "of 800 MB)")
     fast: float = _setting(0.5, 0.0, math.inf, "x", "quality 'fast' scales radii and footprints by this")
     balanced: float = _setting(1.0, 0.0, math.inf, "x", "quality 'balanced'")
     high: float = _setting(1.5, 0.0, math.inf, "x", "quality 'high'")
