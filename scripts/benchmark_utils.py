@@ -16,6 +16,19 @@ import torch.utils.benchmark as tb
 SIZES = {"512²": (512, 512), "1024x768": (768, 1024), "720p": (720, 1280), "1080p": (1080, 1920), "4K": (2160, 3840)}
 
 
+def cpu_model() -> str:
+    """The CPU's model name and its widest vector units (OIDN's oneDNN and our -march=native
+    kernels gain differently from AVX-512 and AMX: ratios to OIDN differ between machines)."""
+    try:
+        info = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return platform.processor() or platform.machine()
+    name = next((ln.split(":", 1)[1].strip() for ln in info.splitlines() if ln.startswith("model name")), "unknown")
+    flags = set(next((ln.split(":", 1)[1].split() for ln in info.splitlines() if ln.startswith("flags")), []))
+    units = [u for u in ("avx2", "avx512f", "amx_tile") if u in flags]
+    return f"{name} ({', '.join(units) or 'no AVX2'})"
+
+
 def metadata(threads: int) -> dict:
     """Commit, versions and device, written beside every result."""
     try:
@@ -32,7 +45,7 @@ def metadata(threads: int) -> dict:
         "torchgi": torchgi.__version__,
         "torch": torch.__version__,
         "python": platform.python_version(),
-        "cpu": platform.processor() or platform.machine(),
+        "cpu": cpu_model(),
         "threads": threads,
         "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
     }
