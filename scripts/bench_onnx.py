@@ -1,6 +1,7 @@
 """The exported default Denoiser in onnxruntime against the eager one (issue 32): relMSE and ms.
 
     python scripts/bench_onnx.py --out out/bench-onnx [--sizes 512 1080p] [--spp 1 4] [--ref-spp 256]
+        [--method guided|pyramid|blend]
 
 For each judged scene (``configs/scenes/sets.yaml``; torchgi renders only), size and spp: a noisy
 render and a ``--ref-spp`` reference; the default ``Denoiser()`` exported with the choices it
@@ -15,6 +16,7 @@ alone: onnxruntime's threads spin on past the next torch call), and
 onnxruntime's largest difference from the eager call over the eager
 output's largest value. Writes ``onnx.csv``, ``onnx.json``, ``onnx.md``. torch on 2 threads,
 onnxruntime with its default (one per core: 2 on the project's benchmark machine).
+``--method`` exports and runs another method than "guided" (the default Denoiser's) the same way.
 """
 
 from __future__ import annotations
@@ -47,11 +49,11 @@ def run(args) -> list[dict]:
                 gb = torchgi.render(scene, spp=spp, bounces=args.bounces, seed=1)
                 for emission in (True, False):
                     same = gb if emission else gb.replace(emission=None)  # what both are fed
-                    key = (repr(Denoiser().deploy(frame=same, emission=emission)), emission)
+                    key = (repr(Denoiser(args.method).deploy(frame=same, emission=emission)), emission)
                     if key not in graphs:  # one export per distinct set of fixed choices
                         graphs[key] = OrtDenoiser(export_denoiser(
-                            "guided", tmp / f"g{len(graphs)}.onnx", frame=same, emission=emission))
-                    d, ort = Denoiser(), graphs[key]
+                            args.method, tmp / f"g{len(graphs)}.onnx", frame=same, emission=emission))
+                    d, ort = Denoiser(args.method), graphs[key]
                     fns = {"eager": lambda d=d, g=same: d(g), "onnxruntime": lambda o=ort, g=same: o(g)}
                     outs = {k: f() for k, f in fns.items()}
                     eager = outs["eager"]
@@ -77,6 +79,8 @@ def main() -> None:
     ap.add_argument("--ref-spp", type=int, default=256)
     ap.add_argument("--bounces", type=int, default=2)
     ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--method", default="guided", choices=("guided", "pyramid", "blend"),
+                    help="the Denoiser method exported and compared (default: guided, the default Denoiser's)")
     args = ap.parse_args()
     args.scenes = args.scenes or scene_sets()[args.set]
     torch.set_num_threads(2)

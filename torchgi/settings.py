@@ -51,7 +51,8 @@ class PipelineSettings:
     auto_tiles_from_mb: float = _setting(2048.0, 0.0, math.inf, "MB", "max_memory_mb='auto' (the default) tiles a "
                                          "call whose untiled pipeline is estimated to add more than this: the pyramid "
                                          "runs 1920x1080 (about 1 GB estimated) and 2560x1440 whole, where tiles cost "
-                                         "1.1-1.9x its time, and 3840x2160 (about 4 GB) in tiles (docs/pyramid.md)")
+                                         "1.1-1.9x its time, and 3840x2160 (about 4 GB) in tiles, at 0.6-1.5x its untiled time "
+                                         "(docs/pyramid.md)")
     auto_budget: float = _setting(2.0, 0.0, math.inf, "x inputs", "those tiles hold at most this multiple of the "
                                   "inputs' memory (issue 28's line at 4K), and at least auto_floor_mb")
     auto_floor_mb: float = _setting(512.0, 0.0, math.inf, "MB", "the least budget of automatic tiles: smaller "
