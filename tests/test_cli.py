@@ -111,7 +111,7 @@ def test_denoise_command_gives_the_python_call_bit_for_bit(tmp_path, method):
     assert got.dtype == want.dtype and torch.equal(got, want)
 
 
-def test_denoise_command_on_a_mitsuba_render(tmp_path, capsys):
+def test_denoise_command_on_a_mitsuba_render(tmp_path, capsys, monkeypatch):
     # A Mitsuba 3 render with AOVs written by Mitsuba's own Bitmap, denoised from the command line.
     # Two nested integrators on the same samples give a colour and an exact emission layer.
     mi = pytest.importorskip("mitsuba")
@@ -143,6 +143,19 @@ def test_denoise_command_on_a_mitsuba_render(tmp_path, capsys):
     assert main(["denoise", str(tmp_path / "noisy.exr"), "--max-memory-mb", "none", "--out", str(tiled),
                  "--overwrite"]) == 0  # untiled, as the default ("auto") at this size
     assert torch.equal(read_aovs(tiled)["color"][None], den)
+    import dataclasses
+
+    from torchgi import denoise
+    from torchgi.core import tiles
+
+    budgets = []
+    real = tiles.tile_side
+    monkeypatch.setattr(tiles, "tile_side", lambda color, mb, *a: budgets.append(mb) or real(color, mb, *a))
+    monkeypatch.setattr(denoise, "PIPELINE", dataclasses.replace(denoise.PIPELINE, auto_tiles_from_mb=0.0))
+    for flag, tiled_by in (([], [512.0]), (["--max-memory-mb", "none"], []), (["--max-memory-mb", "auto"], [512.0])):
+        budgets.clear()  # with every call "large": the default and "auto" tile (the floor's budget), "none" does not
+        assert main(["denoise", str(tmp_path / "noisy.exr"), *flag, "--out", str(tiled), "--overwrite"]) == 0
+        assert budgets == tiled_by, flag
     for bad in ("0", "-3", "inf", "lots"):
         with pytest.raises(SystemExit):
             main(["denoise", str(tmp_path / "noisy.exr"), "--max-memory-mb", bad, "--out", str(tiled)])
