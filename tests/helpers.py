@@ -26,6 +26,24 @@ def rel_range(out: torch.Tensor, ref: torch.Tensor | np.ndarray) -> float:
     return rel_error(out, ref, "range")
 
 
+def tile_budgets(monkeypatch, **pipeline: float) -> list[float]:
+    """The memory budget (MB) of every tiled Denoiser call from now on, appended to the list
+    returned (``tile_side`` spied on where the pyramid and ``tiled`` call it); ``pipeline``: fields
+    of ``settings.PIPELINE`` replaced for the Denoiser (e.g. ``auto_tiles_from_mb=0.0``)."""
+    import dataclasses
+
+    from torchgi import denoise
+    from torchgi.core import tiles
+
+    budgets: list[float] = []
+    real = tiles.tile_side
+    for module in (denoise, tiles):
+        monkeypatch.setattr(module, "tile_side", lambda color, mb, *a: budgets.append(mb) or real(color, mb, *a))
+    if pipeline:
+        monkeypatch.setattr(denoise, "PIPELINE", dataclasses.replace(denoise.PIPELINE, **pipeline))
+    return budgets
+
+
 def scene_fingerprint(scene) -> tuple[tuple, frozenset]:
     """A scene's camera (position, target, up, field of view, to 1e-6) and its geometry (one
     SHA-256 per mesh of its world-space vertices to 1e-5 and its faces), independent of file

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 
+from tests.helpers import tile_budgets
 from torchgi.cli import main
 from torchgi.io import write_exr
 
@@ -143,15 +144,7 @@ def test_denoise_command_on_a_mitsuba_render(tmp_path, capsys, monkeypatch):
     assert main(["denoise", str(tmp_path / "noisy.exr"), "--max-memory-mb", "none", "--out", str(tiled),
                  "--overwrite"]) == 0  # untiled, as the default ("auto") at this size
     assert torch.equal(read_aovs(tiled)["color"][None], den)
-    import dataclasses
-
-    from torchgi import denoise
-    from torchgi.core import tiles
-
-    budgets = []
-    real = tiles.tile_side
-    monkeypatch.setattr(tiles, "tile_side", lambda color, mb, *a: budgets.append(mb) or real(color, mb, *a))
-    monkeypatch.setattr(denoise, "PIPELINE", dataclasses.replace(denoise.PIPELINE, auto_tiles_from_mb=0.0))
+    budgets = tile_budgets(monkeypatch, auto_tiles_from_mb=0.0)
     for flag, tiled_by in (([], [512.0]), (["--max-memory-mb", "none"], []), (["--max-memory-mb", "auto"], [512.0])):
         budgets.clear()  # with every call "large": the default and "auto" tile (the floor's budget), "none" does not
         assert main(["denoise", str(tmp_path / "noisy.exr"), *flag, "--out", str(tiled), "--overwrite"]) == 0

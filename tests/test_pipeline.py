@@ -9,7 +9,7 @@ import pytest
 import torch
 
 import torchgi
-from tests.helpers import last_backend
+from tests.helpers import last_backend, tile_budgets
 from tests.oracles import box_oracle
 from torchgi import backends
 from torchgi.core import NonFiniteError
@@ -155,36 +155,22 @@ def test_auto_memory_tiles_only_calls_estimated_above_the_threshold(render, monk
     auto_budget (2) x the inputs' memory, at least auto_floor_mb; None never tiles. The estimate by hand: the
     guided pipeline 4 (19 + 22) B per pixel at B = 1 (tiles.guided_bytes), the pyramid 480; the
     five float32 inputs 13 x 4 B per pixel, the output 12."""
-    import dataclasses
-
-    from torchgi import denoise
-    from torchgi.core import tiles
-    from torchgi.settings import PIPELINE
-
     inputs = {k: getattr(render, k) for k in ("color", "albedo", "normal", "depth", "emission")}
     px = render.color.shape[-2] * render.color.shape[-1]
     whole = ({"guided": 164, "pyramid": 480}[method] + 12) * px / 2**20
-    budgets = []
-    real = tiles.tile_side
-    for module in (denoise, tiles):  # the pyramid's call and tiled()'s
-        monkeypatch.setattr(module, "tile_side", lambda color, mb, *a: budgets.append(mb) or real(color, mb, *a))
 
-    def run(threshold: float, floor: float = 0.0, times: float = 2.0, **kw) -> torch.Tensor:
-        budgets.clear()
-        monkeypatch.setattr(denoise, "PIPELINE", dataclasses.replace(
-            PIPELINE, auto_tiles_from_mb=threshold, auto_floor_mb=floor, auto_budget=times))
-        return Denoiser(method, **kw)(**inputs)
+    def run(threshold: float, floor: float = 0.0, times: float = 2.0, **kw) -> tuple[torch.Tensor, list[float]]:
+        budgets = tile_budgets(monkeypatch, auto_tiles_from_mb=threshold, auto_floor_mb=floor, auto_budget=times)
+        return Denoiser(method, **kw)(**inputs), budgets
 
-    untiled = run(whole * 1.001)
+    untiled, budgets = run(whole * 1.001)
     assert budgets == []
     if method == "guided":  # a budget of 6x the inputs: 2x2 tiles (the pyramid's 208 px overlap needs 100 MB)
-        tiled = run(whole * 0.999, times=6.0)
+        tiled, budgets = run(whole * 0.999, times=6.0)
         assert budgets == [pytest.approx(6 * 13 * 4 * px / 2**20)]
         assert float(((tiled - untiled).abs() / (untiled.abs() + 1e-3)).max()) < 1e-5
-    run(0.0, floor=300.0)  # the floor: one tile
-    assert budgets == [300.0]
-    run(0.0, max_memory_mb=None)
-    assert budgets == []
+    assert run(0.0, floor=300.0)[1] == [300.0]  # the floor: one tile
+    assert run(0.0, max_memory_mb=None)[1] == []
     assert Denoiser(method).max_memory_mb == "auto" and "max_memory_mb" not in repr(Denoiser(method))
 
 
