@@ -407,3 +407,31 @@ def test_full_resolution_walks_match_the_float64_torch_code(monkeypatch, threads
         ref_out = backends.run(backends.FineBandOp(*ref, d(band), d(gain)))
     for a, b in zip((*got, out), (*ref, ref_out), strict=True):
         assert rel(a, b) < 1e-6
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+@pytest.mark.parametrize("s", [2, 3, 4])
+def test_block_means_match_the_float64_torch_code(monkeypatch, threads, s):
+    """BlockMeanOp (the pyramid's levels and views): the C walk against the float64 average pool,
+    odd sizes (a partial last block of rows and of columns), a batch, a transposed (non-contiguous)
+    input, one and two bands of block rows; and a hand-computed row."""
+    from torchgi import backends
+    from torchgi.backends import c_kernels
+
+    if not backends.status()["c"].startswith("compiled kernels in use"):
+        pytest.skip(f"c: {backends.status()['c']}")
+    monkeypatch.setattr(c_kernels.runtime, "_MIN_BAND_PIXELS", 16)
+    x = torch.rand(2, 3, 37, 50, generator=torch.Generator().manual_seed(s)) * 4
+    count = torch.get_num_threads()
+    try:
+        torch.set_num_threads(threads)
+        with backends.use("c"):
+            got = [backends.run(backends.BlockMeanOp(t, s)) for t in (x, x.transpose(2, 3))]
+            assert backends.status()["last"]["block_means"]["ran"] == "c"
+            row = backends.run(backends.BlockMeanOp(torch.tensor([[[[1.0, 2.0, 4.0, 8.0, 16.0]]]]), 2))
+    finally:
+        torch.set_num_threads(count)
+    for t, g in zip((x, x.transpose(2, 3)), got, strict=True):
+        ref = torch.nn.functional.avg_pool2d(t.double(), s, ceil_mode=True, count_include_pad=False)
+        assert g.shape == ref.shape and rel(g, ref) < 1e-6
+    assert row.tolist() == [[[[1.5, 6.0, 16.0]]]]  # (1 + 2) / 2, (4 + 8) / 2, the last column alone

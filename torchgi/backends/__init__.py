@@ -1,7 +1,7 @@
 """Back ends: every kernel of torchgi chosen in one place.
 
 An op (box, guided, the upsampling and application of linear-model coefficients, atrous, importance, allocate, the Denoiser's guide statistics, edge share
-and restore pipeline, the temporal accumulation, and a tile of the renderer's path tracer) is described by a small dataclass in one
+and restore pipeline, the pyramid's block means, the temporal accumulation, and a tile of the renderer's path tracer) is described by a small dataclass in one
 convention (:class:`BoxOp`, :class:`GuidedOp`, :class:`ATrousOp`, :class:`ImportanceOp`,
 :class:`AllocateOp`); :func:`run` hands it to the first back end that supports it, in the
 order ``c`` (compiled CPU kernels, :mod:`torchgi.backends.c_kernels`), ``triton`` (CUDA,
@@ -28,6 +28,7 @@ from torchgi.backends.base import (
     AllocateOp,
     ATrousOp,
     BackOffOp,
+    BlockMeanOp,
     BoxOp,
     ChangeOp,
     ChooseOp,
@@ -64,6 +65,7 @@ __all__ = [
     "AccumulateOp",
     "AllocateOp",
     "BackOffOp",
+    "BlockMeanOp",
     "BoxOp",
     "ChangeOp",
     "ChooseOp",

@@ -352,6 +352,18 @@ class ModelResidualOp:
 
 
 @dataclass(eq=False, slots=True)
+class BlockMeanOp:
+    """The means of the ``s x s`` blocks of ``x (B,C,H,W)``: ``(B,C,⌈H/s⌉,⌈W/s⌉)``, a last
+    partial block averaged over the pixels it has (the learned pyramid's levels and views)."""
+
+    x: torch.Tensor
+    s: int
+
+    def tensors(self) -> tuple[torch.Tensor | None, ...]:
+        return (self.x,)
+
+
+@dataclass(eq=False, slots=True)
 class FineBandOp:
     """The learned pyramid's output from its finest band: ``model + (up(band) + up(gain) (residual
     - up(means)))`` with ``model``, ``residual (B,C,H,W)`` and ``means (B,C,h,w)`` from
@@ -404,11 +416,11 @@ class ChooseOp:
 
 
 Op = BoxOp | GuidedOp | ATrousOp | ImportanceOp | AllocateOp | GuideStatsOp | EdgeShareOp | RestoreOp | LightInOp | \
-    LightOutOp | ModelResidualOp | FineBandOp | BackOffOp | ChooseOp | AccumulateOp | ChangeOp | HistoryOp | PathOp | \
+    LightOutOp | ModelResidualOp | FineBandOp | BlockMeanOp | BackOffOp | ChooseOp | AccumulateOp | ChangeOp | HistoryOp | PathOp | \
     GuideRaysOp
 _OPS = {BoxOp: "box", GuidedOp: "guided", UpsampleApplyOp: "upsample_apply", ATrousOp: "atrous", ImportanceOp: "importance", AllocateOp: "allocate",
         GuideStatsOp: "guide_stats", EdgeShareOp: "edge_share", RestoreOp: "restore", LightInOp: "light_in",
-        LightOutOp: "light_out", ModelResidualOp: "model_residual", FineBandOp: "fine_band", BackOffOp: "back_off",
+        LightOutOp: "light_out", ModelResidualOp: "model_residual", FineBandOp: "fine_band", BlockMeanOp: "block_means", BackOffOp: "back_off",
         ChooseOp: "choose",
         AccumulateOp: "accumulate", ChangeOp: "change", HistoryOp: "history", PathOp: "path", GuideRaysOp: "guide_rays"}
 

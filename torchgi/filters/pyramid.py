@@ -71,7 +71,7 @@ project-rendered scenes that are never benchmark scenes; the weights ship beside
 (``pyramid_weights.json``) with their training config, commit and data hash.
 :func:`pyramid_inputs` and :func:`pyramid_mix` are the two halves training uses.
 
-Tensor code around the seam's ``GuidedOp``, ``UpsampleApplyOp``, ``ModelResidualOp`` and ``FineBandOp``
+Tensor code around the seam's ``GuidedOp``, ``UpsampleApplyOp``, ``ModelResidualOp``, ``FineBandOp``, ``BlockMeanOp``
 (compiled back ends run them eagerly, the torch code under autograd, tracing and export):
 differentiable in the light, the guide and the weights, float16 in and out (computed in float32).
 """
@@ -116,9 +116,9 @@ REACH = 192
 ALIGN = 16  # tile origins on multiples of this: the blocks of every level are the untiled ones
 
 
-def _down(t: torch.Tensor) -> torch.Tensor:
-    """2 x 2 means (a last odd row / column averaged over what it has)."""
-    return block_mean(t, 2)
+def _blocks(t: torch.Tensor, s: int = 2) -> torch.Tensor:
+    """``s x s`` block means (a last partial block averaged over what it has) through the seam."""
+    return backends.run(backends.BlockMeanOp(t, s))
 
 
 _up = up2  # bilinear x2 of (B, C, h, w) cropped to a size: the pyramid's next finer level
@@ -165,7 +165,7 @@ def _levels(t: torch.Tensor, top: int) -> dict[int, torch.Tensor]:
     out = {1: t}
     s = 1
     while s < top:
-        out[2 * s] = _down(out[s])
+        out[2 * s] = _blocks(out[s])
         s *= 2
     return out
 
@@ -249,8 +249,8 @@ class PyramidNet(SavedNet):
 
     def forward(self, features: torch.Tensor) -> torch.Tensor:
         e1 = self.enc1((features - self.shift[:, None, None]) * self.scale[:, None, None])
-        e2 = self.enc2(_down(e1))
-        e3 = self.enc3(_down(e2))
+        e2 = self.enc2(block_mean(e1, 2))
+        e3 = self.enc3(block_mean(e2, 2))
         d2 = self.dec2(torch.cat([_up(e3, e2.shape[-2:]), e2], 1))
         d1 = self.dec1(torch.cat([_up(d2, e1.shape[-2:]), e1], 1))
         return self.head(d1)
@@ -289,9 +289,9 @@ def _features(x: torch.Tensor, xs: dict[int, torch.Tensor], gs: dict[int, torch.
     light4 = xs[FEATURE_SCALE] + mean_p
     lum = _luminance(x) / m  # relative to the mean before squaring: no overflow at 1e20, no underflow at 1e-20
     lum4 = _luminance(light4) / m
-    var = (block_mean(lum.square(), FEATURE_SCALE) - lum4.square()).clamp_min(0)
+    var = (_blocks(lum.square(), FEATURE_SCALE) - lum4.square()).clamp_min(0)
     g4 = gs[FEATURE_SCALE]
-    edge = (block_mean(gs[1].square().sum(1, keepdim=True), FEATURE_SCALE)
+    edge = (_blocks(gs[1].square().sum(1, keepdim=True), FEATURE_SCALE)
             - g4.square().sum(1, keepdim=True)).clamp_min(0)
     if isinstance(spp, torch.Tensor):
         level = torch.log2(spp.to(x.dtype).reshape(-1, 1, 1, 1).expand(B, 1, 1, 1))
@@ -373,11 +373,11 @@ def pyramid_inputs(
         c = backends.run(backends.GuidedOp(levels[s], xs[s], zero, torch.zeros_like(mean_p), r, eps,
                                            coefficients_only=s > 1, workspace=workspaces.setdefault(s, {})))
         if s == 1:
-            views.append(block_mean(c, FEATURE_SCALE))
+            views.append(_blocks(c, FEATURE_SCALE))
             return c
         # what the candidate makes of the light at 1/4 resolution (a feature)
         if s < FEATURE_SCALE:  # finer: applied at its scale, then averaged down
-            views.append(block_mean(apply_coefficients(c, levels[s]), FEATURE_SCALE // s))
+            views.append(_blocks(apply_coefficients(c, levels[s]), FEATURE_SCALE // s))
             return c
         c = _finer(c, s, FEATURE_SCALE, xs)
         views.append(apply_coefficients(c, levels[FEATURE_SCALE]))
@@ -401,13 +401,13 @@ def pyramid_inputs(
     feats = _features(x, xs, gs, mean_p, m, spp, views)
     if net.direct:  # the light the firefly clamp took away, at 1/4 and 1/16
         r4 = (torch.zeros_like(xs[FEATURE_SCALE]) if raw is None
-              else block_mean((raw - x).clamp_min(0), FEATURE_SCALE))
+              else _blocks((raw - x).clamp_min(0), FEATURE_SCALE))
         # at most the block's own (clamped) light: a rare huge sample adds at most that, spread
         lr, lx = _luminance(r4), _luminance((xs[FEATURE_SCALE] + mean_p).clamp_min(0))
         r4 = r4 * (lx / lr.clamp_min(torch.finfo(x.dtype).tiny)).clamp(max=1)
-        r16 = block_mean(r4, 4)
+        r16 = _blocks(r4, 4)
         rest["removed4"] = r4
-        r16up = _up(_up(r16, _down(r4).shape[-2:]), r4.shape[-2:])
+        r16up = _up(_up(r16, _blocks(r4).shape[-2:]), r4.shape[-2:])
         feats = torch.cat([feats, torch.log1p(_luminance(r4) / m), torch.log1p(_luminance(r16up) / m)], 1)
     return feats, coeffs, rest
 
@@ -463,17 +463,17 @@ def pyramid_mix(
         model, res1, res2 = backends.run(backends.ModelResidualOp(model, ys, w_half, x, inplace=True))
     else:
         res1 = x - model
-        res2 = _down(res1)
+        res2 = _blocks(res1)
     gain = torch.sigmoid(head[:, K : K + len(BANDS)])  # at 1/4
-    gains = {2: _up(gain[:, 1:2], half), 4: gain[:, 2:3], 8: _down(gain[:, 3:])}
+    gains = {2: _up(gain[:, 1:2], half), 4: gain[:, 2:3], 8: _blocks(gain[:, 3:])}
     res = {1: res1} | {2 * s: lv for s, lv in _levels(res2, BANDS[-1] // 2).items()}  # res2's levels at their scales
     lift = None
     if net.direct:  # the correction at 1/4, in units of the image's mean luminance (module docstring)
         j = K + len(BANDS)
         lift = _luminance(rest["mean"]) * head[:, j : j + 3] + torch.sigmoid(head[:, j + 3 : j + 4]) * rest["removed4"]
-        r16 = block_mean(rest["removed4"], 4)
-        g16 = block_mean(torch.sigmoid(head[:, j + 4 : j + 5]), 4)
-        lift = lift + _up(_up(g16 * r16, _down(lift).shape[-2:]), lift.shape[-2:])
+        r16 = _blocks(rest["removed4"], 4)
+        g16 = _blocks(torch.sigmoid(head[:, j + 4 : j + 5]), 4)
+        lift = lift + _up(_up(g16 * r16, _blocks(lift).shape[-2:]), lift.shape[-2:])
     band = gains[8] * res[8]
     for s in BANDS[-2:0:-1]:
         size = res[s].shape[-2:]

@@ -39,6 +39,7 @@ from torchgi.backends.base import (
     AllocateOp,
     ATrousOp,
     BackOffOp,
+    BlockMeanOp,
     BoxOp,
     ChooseOp,
     EdgeShareOp,
@@ -58,14 +59,14 @@ from torchgi.backends.c_kernels.accumulation import accumulate, change, history
 from torchgi.backends.c_kernels.build import describe, library
 from torchgi.backends.c_kernels.filters import atrous, box, guided, upsample_apply
 from torchgi.backends.c_kernels.pipeline import back_off, choose, edge_share, guide_stats, light_in, light_out, restore
-from torchgi.backends.c_kernels.pyramid import fine_band, model_residual
+from torchgi.backends.c_kernels.pyramid import block_means, fine_band, model_residual
 from torchgi.backends.c_kernels.runtime import empty_planes, padded
 from torchgi.backends.c_kernels.sampling import allocate, importance
 from torchgi.backends.c_kernels.tracer import _path_support, guide_rays, path
 
 __all__ = [
-    "NAME", "accumulate", "allocate", "atrous", "back_off", "box", "change", "choose", "describe", "edge_share", "empty_planes",
-    "fine_band", "guide_rays", "guide_stats", "guided", "history", "importance", "library", "light_in", "light_out",
+    "NAME", "accumulate", "allocate", "atrous", "back_off", "block_means", "box", "change", "choose", "describe", "edge_share",
+    "empty_planes", "fine_band", "guide_rays", "guide_stats", "guided", "history", "importance", "library", "light_in", "light_out",
     "model_residual", "padded", "path", "restore", "supports",
     "upsample_apply",
 ]
@@ -73,12 +74,12 @@ __all__ = [
 NAME = "c"
 # the image tensor of the ops whose kernels walk one image of fewer than 2^31 pixels per call
 _IMAGE = {"accumulate": "x", "change": "x", "history": "out", "restore": "color", "light_in": "color", "light_out": "color", "model_residual": "x",
-          "fine_band": "model"}
+          "fine_band": "model", "block_means": "x"}
 
 
 def supports(op: str, desc: BoxOp | GuidedOp | ATrousOp | ImportanceOp | AllocateOp | GuideStatsOp | EdgeShareOp |
-             RestoreOp | LightInOp | LightOutOp | ModelResidualOp | FineBandOp | BackOffOp | ChooseOp |
-             UpsampleApplyOp) -> str | None:
+             RestoreOp | LightInOp | LightOutOp | ModelResidualOp | FineBandOp | BlockMeanOp | BackOffOp |
+             ChooseOp | UpsampleApplyOp) -> str | None:
     """None when the kernels take ``desc``: eager float32 CPU tensors (float32/float64
     importance for the allocation, fewer than 2^31 pixels per image), a built library; else why not.
 

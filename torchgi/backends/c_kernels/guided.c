@@ -37,8 +37,8 @@ static void guide_centres(const guide_t *g, const float *meanI, float *centre) {
     for (int k = 0; k < 4; ++k) centre[k] = k < g->n ? g->offset[k] - meanI[k] : 0.0f;
 }
 
-/* Row sums of the vertical window: acc[k][x] += sign * value_k(yy, x) for the K planes the
- * callback-free layout below describes. */
+/* The column sums slide down one row: acc[k][x] += value_k(yin, x) - value_k(yout, x) for the K
+ * planes the layout below describes, in one pass over acc; a row < 0 is left out. */
 typedef struct {
     int n, Cs, K;
     const guide_t *G;     /* guide (n channels) */
@@ -49,42 +49,65 @@ typedef struct {
     int W;
 } products_t;
 
-/* value k of row yy, centred: I_i (k < n), p_c, I_i I_j (j <= i), I_i p_c */
-static void add_products(const products_t *P, int yy, double sign, double *acc) {
+/* s[x] += E(rin) - E(rout) over the row, or ± E of the one row given (E a macro of the row's
+ * offset, reading x) */
+#define SLIDE(s, W, rin, rout, E)                                                      \
+    do {                                                                               \
+        if ((rin) != (size_t)-1 && (rout) != (size_t)-1) {                             \
+            for (int x = 0; x < (W); ++x) (s)[x] += (double)E(rin) - (double)E(rout);  \
+        } else {                                                                       \
+            const size_t r1_ = (rin) != (size_t)-1 ? (rin) : (rout);                   \
+            const double sign_ = (rin) != (size_t)-1 ? 1.0 : -1.0;                     \
+            for (int x = 0; x < (W); ++x) (s)[x] += sign_ * E(r1_);                    \
+        }                                                                              \
+    } while (0)
+
+/* value k of a row, centred: I_i (k < n), p_c, I_i I_j (j <= i), I_i p_c */
+static void add_products(const products_t *P, int yin, int yout, double *acc) {
     const int n = P->n, Cs = P->Cs, W = P->W;
-    const size_t row = (size_t)yy * W;
+    const size_t rin = yin >= 0 ? (size_t)yin * W : (size_t)-1, rout = yout >= 0 ? (size_t)yout * W : (size_t)-1;
     const guide_t *G = P->G;
     int k = 0;
     for (int i = 0; i < n; ++i, ++k) {
         double *s = acc + (size_t)k * ACC_STRIDE(W);
-        for (int x = 0; x < W; ++x) s[x] += sign * GUIDE(G, i, row, x, P->cI);
+#define E_I(row) GUIDE(G, i, row, x, P->cI)
+        SLIDE(s, W, rin, rout, E_I);
     }
     for (int c = 0; c < Cs; ++c, ++k) {
-        const float *a = P->p + c * P->HW + row, ma = P->mp[c];
+        const float *a = P->p + c * P->HW, ma = P->mp[c];
         double *s = acc + (size_t)k * ACC_STRIDE(W);
-        for (int x = 0; x < W; ++x) s[x] += sign * (a[x] - ma);
+#define E_P(row) (a[(row) + x] - ma)
+        SLIDE(s, W, rin, rout, E_P);
     }
     for (int i = 0; i < n; ++i)
         for (int j = 0; j <= i; ++j, ++k) {
             double *s = acc + (size_t)k * ACC_STRIDE(W);
-            for (int x = 0; x < W; ++x)
-                s[x] += sign * ((double)GUIDE(G, i, row, x, P->cI) * GUIDE(G, j, row, x, P->cI));
+#define E_II(row) ((double)GUIDE(G, i, row, x, P->cI) * GUIDE(G, j, row, x, P->cI))
+            SLIDE(s, W, rin, rout, E_II);
         }
     for (int i = 0; i < n; ++i)
         for (int c = 0; c < Cs; ++c, ++k) {
-            const float *b = P->p + c * P->HW + row, mb = P->mp[c];
+            const float *b = P->p + c * P->HW, mb = P->mp[c];
             double *s = acc + (size_t)k * ACC_STRIDE(W);
-            for (int x = 0; x < W; ++x) s[x] += sign * ((double)GUIDE(G, i, row, x, P->cI) * (b[x] - mb));
+#define E_IP(row) ((double)GUIDE(G, i, row, x, P->cI) * (b[(row) + x] - mb))
+            SLIDE(s, W, rin, rout, E_IP);
         }
 }
 
-static void add_planes(const float *planes, int K, size_t HW, int W, int yy, double sign, double *acc) {
+static void add_planes(const float *planes, int K, size_t HW, int W, int yin, int yout, double *acc) {
+    const size_t rin = yin >= 0 ? (size_t)yin * W : (size_t)-1, rout = yout >= 0 ? (size_t)yout * W : (size_t)-1;
     for (int k = 0; k < K; ++k) {
-        const float *a = planes + k * HW + (size_t)yy * W;
+        const float *a = planes + k * HW;
         double *s = acc + (size_t)k * ACC_STRIDE(W);
-        for (int x = 0; x < W; ++x) s[x] += sign * a[x];
+#define E_A(row) a[(row) + x]
+        SLIDE(s, W, rin, rout, E_A);
     }
 }
+#undef E_I
+#undef E_P
+#undef E_II
+#undef E_IP
+#undef E_A
 
 /* 8 doubles, for the prefix sums along a row */
 typedef double vd __attribute__((vector_size(64)));
@@ -99,9 +122,32 @@ INLINE vd vd_scan(vd v) {
     return v;
 }
 
+/* Interior box means of a small constant radius R: m[x] = Σ_{|d| <= R} a[x + d] · inv for x in
+ * [x0, x1), the window inside the row (a direct sum: fewer operations than the prefix sums for
+ * the radii the pipelines use most, and each sum exact up to one rounding per term). */
+INLINE void row_means_direct(const double *a, const int R, int x0, int x1, double inv, float *m) {
+#pragma GCC ivdep
+    for (int x = x0; x < x1; ++x) {
+        double s = a[x - R];
+        FOR8(d, 2 * R, s += a[x - R + 1 + d]);
+        m[x] = (float)(s * inv);
+    }
+}
+
+/* Box means at x in [x0, x1) of windows clipped to the row (the borders). */
+static void row_means_clipped(const double *a, int W, int r, int x0, int x1, const double *inv_cx, double inv_cy,
+                              float *m) {
+    for (int x = x0; x < x1; ++x) {
+        const int hi = x + r < W ? x + r : W - 1, lo = x - r > 0 ? x - r : 0;
+        double s = 0.0;
+        for (int q = lo; q <= hi; ++q) s += a[q];
+        m[x] = (float)(s * (inv_cx[x] * inv_cy));
+    }
+}
+
 /* Box means along the row of K rows of column sums (acc) that cover cy image rows: mean[k][x]
- * = (sum of acc[k] over the window at x) / (pixels in the window), from prefix sums pre (W + 1
- * doubles) computed eight at a time. */
+ * = (sum of acc[k] over the window at x) / (pixels in the window): direct sums for r <= 3, else
+ * from prefix sums pre (W + 1 doubles) computed eight at a time. */
 static void row_means(const double *acc, int K, int W, int r, int cy, const double *inv_cx, double *pre,
                       float *mean) {
     const double inv_cy = 1.0 / cy;
@@ -110,6 +156,18 @@ static void row_means(const double *acc, int K, int W, int r, int cy, const doub
     for (int k = 0; k < K; ++k) {
         const double *a = acc + (size_t)k * ACC_STRIDE(W);
         float *m = mean + (size_t)k * MEAN_STRIDE(W);
+        if (r <= 3) {
+            const double inv = inv_cy / (2 * r + 1);
+            row_means_clipped(a, W, r, 0, mid0, inv_cx, inv_cy, m);
+            row_means_clipped(a, W, r, mid1, W, inv_cx, inv_cy, m);
+            switch (r) { /* the interior */
+                case 1: row_means_direct(a, 1, mid0, mid1, inv, m); break;
+                case 2: row_means_direct(a, 2, mid0, mid1, inv, m); break;
+                case 3: row_means_direct(a, 3, mid0, mid1, inv, m); break;
+                default: row_means_direct(a, 0, mid0, mid1, inv, m); break;
+            }
+            continue;
+        }
         vd carry = {0};
         int x = 0;
         pre[0] = 0.0;
@@ -224,11 +282,10 @@ static void coefficients_rows(const guide_t *G, const float *meanI, int n, const
     guide_centres(G, meanI, P.cI);
     memset(acc, 0, sizeof(double) * (size_t)K * ACC_STRIDE(W));
     /* before row y the sums hold rows [y - 1 - r, y - 1 + r] of the image */
-    for (int yy = y0 - r - 1 > 0 ? y0 - r - 1 : 0; yy <= y0 + r - 1 && yy < H; ++yy) add_products(&P, yy, 1.0, acc);
+    for (int yy = y0 - r - 1 > 0 ? y0 - r - 1 : 0; yy <= y0 + r - 1 && yy < H; ++yy) add_products(&P, yy, -1, acc);
     for (int y = y0; y < y1; ++y) {
         /* the window's rows are [y - r, y + r] clipped to the image */
-        if (y + r < H) add_products(&P, y + r, 1.0, acc);
-        if (y - r - 1 >= 0) add_products(&P, y - r - 1, -1.0, acc);
+        if (y + r < H || y - r - 1 >= 0) add_products(&P, y + r < H ? y + r : -1, y - r - 1, acc);
         const int cy = (y + r < H ? y + r : H - 1) - (y - r > 0 ? y - r : 0) + 1;
         row_means(acc, K, W, r, cy, inv_cx, pre, m);
         for (int c0 = 0; c0 < Cs; c0 += 3) /* source channels three at a time */
@@ -258,10 +315,9 @@ static void apply_rows(const float *coef, int n, int Cs, const guide_t *G, const
     column_counts(W, r, inv_cx);
     memset(acc, 0, sizeof(double) * (size_t)Q * ACC_STRIDE(W));
     for (int yy = y0 - r - 1 > 0 ? y0 - r - 1 : 0; yy <= y0 + r - 1 && yy < H; ++yy)
-        add_planes(coef, Q, HW, W, yy, 1.0, acc);
+        add_planes(coef, Q, HW, W, yy, -1, acc);
     for (int y = y0; y < y1; ++y) {
-        if (y + r < H) add_planes(coef, Q, HW, W, y + r, 1.0, acc);
-        if (y - r - 1 >= 0) add_planes(coef, Q, HW, W, y - r - 1, -1.0, acc);
+        if (y + r < H || y - r - 1 >= 0) add_planes(coef, Q, HW, W, y + r < H ? y + r : -1, y - r - 1, acc);
         const int cy = (y + r < H ? y + r : H - 1) - (y - r > 0 ? y - r : 0) + 1;
         row_means(acc, Q, W, r, cy, inv_cx, pre, m);
         if (L) demod_row(L, y, ad);

@@ -10,7 +10,7 @@
  */
 #include "common.h"
 
-int torchgi_native_version(void) { return 13; }
+int torchgi_native_version(void) { return 14; }
 
 float torchgi_exp_neg(float d) { return exp_neg(d); }
 

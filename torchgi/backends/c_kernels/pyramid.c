@@ -1,6 +1,7 @@
-/* The learned pyramid's full-resolution walks (backends.base.ModelResidualOp, FineBandOp;
- * torchgi.filters.pyramid's mix): the scale-1 candidates mixed into the model and the residual
- * with its 2 x 2 means, then the finest band of the residual given back. Compiled as part of
+/* The learned pyramid's full-resolution walks (backends.base.ModelResidualOp, FineBandOp,
+ * BlockMeanOp; torchgi.filters.pyramid): the scale-1 candidates mixed into the model and the
+ * residual with its 2 x 2 means, then the finest band of the residual given back; the block means
+ * of its levels and views. Compiled as part of
  * native.c, after pipeline.c (pool_row, pool_finish). The bilinear x2 steps are torch's
  * interpolate (scale_factor 2, align_corners=False) as in upsample_apply_rows: the row of the
  * lower level interpolated between its two rows first, then along the row. */
@@ -83,6 +84,38 @@ static void fine_band_rows(const float *model, const float *res, const float *lo
 
 #undef UP2
 
+/* Low rows [ly0, ly1) of the s x s block means of P planes of H x W into out (P planes of h x w),
+ * a last partial block averaged over the pixels it has: the block's rows summed into t (W
+ * floats of scratch), then its columns. */
+static void block_mean_rows(const float *x, int P, int H, int W, int s, float *out, float *t, int ly0, int ly1) {
+    const int h = (H + s - 1) / s, w = (W + s - 1) / s, full = W / s;
+    for (int p = 0; p < P; ++p)
+        for (int ly = ly0; ly < ly1; ++ly) {
+            const float *a = x + (size_t)p * H * W + (size_t)ly * s * W;
+            const int rows = ly * s + s < H ? s : H - ly * s;
+            memcpy(t, a, sizeof(float) * W);
+            for (int y = 1; y < rows; ++y)
+                for (int i = 0; i < W; ++i) t[i] += a[(size_t)y * W + i];
+            float *l = out + (size_t)p * h * w + (size_t)ly * w;
+            const float inv = 1.0f / (float)(s * rows);
+            if (s == 2)
+                for (int lx = 0; lx < full; ++lx) l[lx] = (t[2 * lx] + t[2 * lx + 1]) * inv;
+            else if (s == 4)
+                for (int lx = 0; lx < full; ++lx) l[lx] = ((t[4 * lx] + t[4 * lx + 1]) + (t[4 * lx + 2] + t[4 * lx + 3])) * inv;
+            else
+                for (int lx = 0; lx < full; ++lx) {
+                    float v = 0.0f;
+                    for (int j = 0; j < s; ++j) v += t[lx * s + j];
+                    l[lx] = v * inv;
+                }
+            if (full < w) {
+                float v = 0.0f;
+                for (int i = full * s; i < W; ++i) v += t[i];
+                l[full] = v / (float)((W - full * s) * rows);
+            }
+        }
+}
+
 void torchgi_model_residual(float *model, const float *y0p, const float *y1p, const float *y2p, const float *y3p,
                             int n, const float *wgt, const float *x, int C, int H, int W, float *res, float *low, int nt,
                             void *scratch, long long stride) {
@@ -94,4 +127,8 @@ void torchgi_fine_band(const float *model, const float *res, const float *low, c
                        int C, int H, int W, float *out, int nt, void *scratch, long long stride) {
     /* (not `band`: OVER_BANDS's loop variable) */
     OVER_BANDS(H, fine_band_rows(model, res, low, coarse, gain, C, H, W, out, scr, y0, y1));
+}
+
+void torchgi_block_mean(const float *x, int P, int H, int W, int s, float *out, int nt, void *scratch, long long stride) {
+    OVER_BANDS((H + s - 1) / s, block_mean_rows(x, P, H, W, s, out, (float *)scr, y0, y1));
 }

@@ -1,11 +1,12 @@
 """The C back end's walks of the learned pyramid at full resolution (``pyramid.c``):
-:class:`~torchgi.backends.base.ModelResidualOp` and :class:`~torchgi.backends.base.FineBandOp`."""
+:class:`~torchgi.backends.base.ModelResidualOp`, :class:`~torchgi.backends.base.FineBandOp` and
+:class:`~torchgi.backends.base.BlockMeanOp`."""
 
 from __future__ import annotations
 
 import torch
 
-from torchgi.backends.base import FineBandOp, ModelResidualOp
+from torchgi.backends.base import BlockMeanOp, FineBandOp, ModelResidualOp
 from torchgi.backends.c_kernels import build
 from torchgi.backends.c_kernels.runtime import _run
 
@@ -49,4 +50,20 @@ def fine_band(desc: FineBandOp) -> torch.Tensor:
     for b in range(B):
         _run(lib.torchgi_fine_band, H, W, model[b].data_ptr(), res[b].data_ptr(), low[b].data_ptr(), band[b].data_ptr(),
              gain[b].data_ptr(), C, H, W, out[b].data_ptr(), 3 * W + 3 * ((W + 1) // 2))
+    return out
+
+
+def block_means(desc: BlockMeanOp) -> torch.Tensor:
+    """:class:`~torchgi.backends.base.BlockMeanOp` in one walk over the block rows of every plane.
+
+    Example:
+        >>> build.library() is None or block_means(BlockMeanOp(torch.arange(3.0).view(1, 1, 1, 3), 2)).tolist()
+        [[[[0.5, 2.0]]]]
+    """
+    lib = build.library()
+    x, s = desc.x.contiguous(), desc.s
+    B, C, H, W = x.shape
+    h, w = -(-H // s), -(-W // s)
+    out = torch.empty(B, C, h, w, dtype=x.dtype)
+    _run(lib.torchgi_block_mean, h, B * C * W * s, x.data_ptr(), B * C, H, W, s, out.data_ptr(), W)
     return out

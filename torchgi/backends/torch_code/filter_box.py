@@ -12,6 +12,7 @@ import torch
 import torch.nn.functional as F
 
 from torchgi.backends.base import (
+    BlockMeanOp,
     BoxOp,
     GuidedOp,
     eager,
@@ -71,6 +72,16 @@ def block_mean(x: torch.Tensor, s: int) -> torch.Tensor:
         tensor([[[[0.5000, 2.0000]]]])
     """
     return F.avg_pool2d(x, s, ceil_mode=True, count_include_pad=False)
+
+
+def block_means(desc: BlockMeanOp) -> torch.Tensor:
+    """:class:`~torchgi.backends.base.BlockMeanOp` in torch: :func:`block_mean`.
+
+    Example:
+        >>> block_means(BlockMeanOp(torch.arange(3.0).view(1, 1, 1, 3), 2))
+        tensor([[[[0.5000, 2.0000]]]])
+    """
+    return block_mean(desc.x, desc.s)
 
 
 def _segments(n: int, r: int) -> list[tuple[int, int]]:
