@@ -435,3 +435,32 @@ def test_block_means_match_the_float64_torch_code(monkeypatch, threads, s):
         ref = torch.nn.functional.avg_pool2d(t.double(), s, ceil_mode=True, count_include_pad=False)
         assert g.shape == ref.shape and rel(g, ref) < 1e-6
     assert row.tolist() == [[[[1.5, 6.0, 16.0]]]]  # (1 + 2) / 2, (4 + 8) / 2, the last column alone
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+@pytest.mark.parametrize(("B", "h", "w", "n"), [(1, 19, 25, 3), (2, 32, 15, 1), (1, 10, 10, 2)])
+def test_half_resolution_mix_matches_the_float64_torch_code(monkeypatch, threads, B, h, w, n):
+    """MixHalfOp (the candidates' coefficients mixed at 1/2): the C walk against the torch code in
+    float64 (the path training takes), odd sizes (a cropped bilinear step), a batch, 1 to 3
+    candidates, one and two bands of rows."""
+    from torchgi import backends
+    from torchgi.backends import c_kernels
+
+    if not backends.status()["c"].startswith("compiled kernels in use"):
+        pytest.skip(f"c: {backends.status()['c']}")
+    monkeypatch.setattr(c_kernels.runtime, "_MIN_BAND_PIXELS", 16)
+    g = torch.Generator().manual_seed(h + n)
+    h4, w4 = (h + 1) // 2, (w + 1) // 2
+    coarse, weights = torch.randn(B, 5, 3, h4, w4, generator=g), torch.rand(B, n, h4, w4, generator=g)
+    fines = tuple(torch.randn(B, 5, 3, h, w, generator=g) for _ in range(n))
+    count = torch.get_num_threads()
+    try:
+        torch.set_num_threads(threads)
+        with backends.use("c"):
+            got = backends.run(backends.MixHalfOp(coarse, weights, fines))
+            assert backends.status()["last"]["mix_half"]["ran"] == "c"
+    finally:
+        torch.set_num_threads(count)
+    with backends.use("torch"):
+        ref = backends.run(backends.MixHalfOp(coarse.double(), weights.double(), tuple(f.double() for f in fines)))
+    assert got.shape == ref.shape == (B, 5, 3, h, w) and rel(got, ref) < 1e-6

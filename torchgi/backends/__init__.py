@@ -1,7 +1,7 @@
 """Back ends: every kernel of torchgi chosen in one place.
 
 An op (box, guided, the upsampling and application of linear-model coefficients, atrous, importance, allocate, the Denoiser's guide statistics, edge share
-and restore pipeline, the pyramid's block means, the temporal accumulation, and a tile of the renderer's path tracer) is described by a small dataclass in one
+and restore pipeline, the pyramid's block means and mixes, the temporal accumulation, and a tile of the renderer's path tracer) is described by a small dataclass in one
 convention (:class:`BoxOp`, :class:`GuidedOp`, :class:`ATrousOp`, :class:`ImportanceOp`,
 :class:`AllocateOp`); :func:`run` hands it to the first back end that supports it, in the
 order ``c`` (compiled CPU kernels, :mod:`torchgi.backends.c_kernels`), ``triton`` (CUDA,
@@ -42,6 +42,7 @@ from torchgi.backends.base import (
     ImportanceOp,
     LightInOp,
     LightOutOp,
+    MixHalfOp,
     ModelResidualOp,
     PathOp,
     RestoreOp,
@@ -79,6 +80,7 @@ __all__ = [
     "ImportanceOp",
     "LightInOp",
     "LightOutOp",
+    "MixHalfOp",
     "ModelResidualOp",
     "PathOp",
     "RestoreOp",

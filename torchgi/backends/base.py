@@ -332,6 +332,23 @@ class LightOutOp:
 
 
 @dataclass(eq=False, slots=True)
+class MixHalfOp:
+    """The learned pyramid's coefficients mixed at half resolution
+    (:func:`torchgi.filters.pyramid.pyramid_mix`): ``up(coarse) + Σ_j up(weights_j) fines_j`` with
+    ``coarse (B,n+1,C,h4,w4)`` the coarser candidates' mix at 1/4, ``weights (B,k,h4,w4)`` the
+    ``fines`` (1 to 4 ``(B,n+1,C,h,w)`` coefficients of the scale-2 candidates) at 1/4, ``h =
+    2 h4`` or ``2 h4 - 1`` and ``up`` the bilinear x2 step cropped to ``h x w``. One float dtype
+    and device. Returns ``(B,n+1,C,h,w)``."""
+
+    coarse: torch.Tensor
+    weights: torch.Tensor
+    fines: tuple[torch.Tensor, ...]
+
+    def tensors(self) -> tuple[torch.Tensor | None, ...]:
+        return (self.coarse, self.weights, *self.fines)
+
+
+@dataclass(eq=False, slots=True)
 class ModelResidualOp:
     """The learned pyramid's model and residual at full resolution
     (:func:`torchgi.filters.pyramid.pyramid_mix`): ``model (B,C,H,W)`` plus ``Σ_j up(weights_j)
@@ -416,11 +433,11 @@ class ChooseOp:
 
 
 Op = BoxOp | GuidedOp | ATrousOp | ImportanceOp | AllocateOp | GuideStatsOp | EdgeShareOp | RestoreOp | LightInOp | \
-    LightOutOp | ModelResidualOp | FineBandOp | BlockMeanOp | BackOffOp | ChooseOp | AccumulateOp | ChangeOp | HistoryOp | PathOp | \
+    LightOutOp | MixHalfOp | ModelResidualOp | FineBandOp | BlockMeanOp | BackOffOp | ChooseOp | AccumulateOp | ChangeOp | HistoryOp | PathOp | \
     GuideRaysOp
 _OPS = {BoxOp: "box", GuidedOp: "guided", UpsampleApplyOp: "upsample_apply", ATrousOp: "atrous", ImportanceOp: "importance", AllocateOp: "allocate",
         GuideStatsOp: "guide_stats", EdgeShareOp: "edge_share", RestoreOp: "restore", LightInOp: "light_in",
-        LightOutOp: "light_out", ModelResidualOp: "model_residual", FineBandOp: "fine_band", BlockMeanOp: "block_means", BackOffOp: "back_off",
+        LightOutOp: "light_out", MixHalfOp: "mix_half", ModelResidualOp: "model_residual", FineBandOp: "fine_band", BlockMeanOp: "block_means", BackOffOp: "back_off",
         ChooseOp: "choose",
         AccumulateOp: "accumulate", ChangeOp: "change", HistoryOp: "history", PathOp: "path", GuideRaysOp: "guide_rays"}
 

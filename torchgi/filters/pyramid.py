@@ -439,12 +439,12 @@ def pyramid_mix(
     mixed = {}
     for group in ("geometric", "colour"):
         coarse, fine = f"{group}@{FEATURE_SCALE}", f"{group}@{MIX_SCALE}"
-        out = 0
-        if coarse in coeffs:
-            out = _up5(_weighted(w[:, groups[coarse], None, None], coeffs[coarse]), half)
-        if fine in coeffs:
-            fine_mix = _weighted(_up(w[:, groups[fine]], half)[:, :, None, None], coeffs[fine])
-            out = fine_mix if isinstance(out, int) else _add(out, fine_mix)
+        out = _weighted(w[:, groups[coarse], None, None], coeffs[coarse]) if coarse in coeffs else 0
+        if fine in coeffs:  # up(out) + Σ up(w_k) fine_k in one walk (out 0: no coarser candidate)
+            out = torch.zeros_like(coeffs[fine][0][..., : w.shape[-2], : w.shape[-1]]) if isinstance(out, int) else out
+            out = backends.run(backends.MixHalfOp(out, w[:, groups[fine]], tuple(coeffs[fine])))
+        elif coarse in coeffs:
+            out = _up5(out, half)
         mixed[group] = out
     G, keep = rest["guide"].shape[1], min(rest["guide"].shape[1], 3)
     geo, col = mixed["geometric"], mixed["colour"]

@@ -49,6 +49,7 @@ from torchgi.backends.base import (
     ImportanceOp,
     LightInOp,
     LightOutOp,
+    MixHalfOp,
     ModelResidualOp,
     RestoreOp,
     UpsampleApplyOp,
@@ -59,7 +60,7 @@ from torchgi.backends.c_kernels.accumulation import accumulate, change, history
 from torchgi.backends.c_kernels.build import describe, library
 from torchgi.backends.c_kernels.filters import atrous, box, guided, upsample_apply
 from torchgi.backends.c_kernels.pipeline import back_off, choose, edge_share, guide_stats, light_in, light_out, restore
-from torchgi.backends.c_kernels.pyramid import block_means, fine_band, model_residual
+from torchgi.backends.c_kernels.pyramid import block_means, fine_band, mix_half, model_residual
 from torchgi.backends.c_kernels.runtime import empty_planes, padded
 from torchgi.backends.c_kernels.sampling import allocate, importance
 from torchgi.backends.c_kernels.tracer import _path_support, guide_rays, path
@@ -67,7 +68,7 @@ from torchgi.backends.c_kernels.tracer import _path_support, guide_rays, path
 __all__ = [
     "NAME", "accumulate", "allocate", "atrous", "back_off", "block_means", "box", "change", "choose", "describe", "edge_share",
     "empty_planes", "fine_band", "guide_rays", "guide_stats", "guided", "history", "importance", "library", "light_in", "light_out",
-    "model_residual", "padded", "path", "restore", "supports",
+    "mix_half", "model_residual", "padded", "path", "restore", "supports",
     "upsample_apply",
 ]
 
@@ -78,7 +79,7 @@ _IMAGE = {"accumulate": "x", "change": "x", "history": "out", "restore": "color"
 
 
 def supports(op: str, desc: BoxOp | GuidedOp | ATrousOp | ImportanceOp | AllocateOp | GuideStatsOp | EdgeShareOp |
-             RestoreOp | LightInOp | LightOutOp | ModelResidualOp | FineBandOp | BlockMeanOp | BackOffOp |
+             RestoreOp | LightInOp | LightOutOp | MixHalfOp | ModelResidualOp | FineBandOp | BlockMeanOp | BackOffOp |
              ChooseOp | UpsampleApplyOp) -> str | None:
     """None when the kernels take ``desc``: eager float32 CPU tensors (float32/float64
     importance for the allocation, fewer than 2^31 pixels per image), a built library; else why not.
@@ -103,8 +104,8 @@ def supports(op: str, desc: BoxOp | GuidedOp | ATrousOp | ImportanceOp | Allocat
     if image is not None and (getattr(desc, image).numel() == 0 or math.prod(getattr(desc, image).shape[-2:]) >= 2**31
                               or (surface is not None and surface.dtype != torch.bool)):
         return f"the C {op} takes non-empty images of fewer than 2^31 pixels (and a bool surface mask)"
-    if op == "model_residual" and not 1 <= len(desc.ys) <= 4:
-        return "the C model takes 1 to 4 candidates"
+    if op in ("model_residual", "mix_half") and not 1 <= len(desc.ys if op == "model_residual" else desc.fines) <= 4:
+        return f"the C {op} takes 1 to 4 candidates"
     if op == "upsample_apply":
         C, (n, H, W) = desc.coeffs.shape[2], desc.guide.shape[1:]
         if n > 4 or C > 64 or H * W == 0 or H * W >= 2**31:

@@ -1,7 +1,7 @@
-/* The learned pyramid's full-resolution walks (backends.base.ModelResidualOp, FineBandOp,
- * BlockMeanOp; torchgi.filters.pyramid): the scale-1 candidates mixed into the model and the
- * residual with its 2 x 2 means, then the finest band of the residual given back; the block means
- * of its levels and views. Compiled as part of
+/* The learned pyramid's walks (backends.base.MixHalfOp, ModelResidualOp, FineBandOp, BlockMeanOp;
+ * torchgi.filters.pyramid): the candidates' coefficients mixed at half resolution, the scale-1
+ * candidates mixed into the model and the residual with its 2 x 2 means, then the finest band of
+ * the residual given back; the block means of its levels and views. Compiled as part of
  * native.c, after pipeline.c (pool_row, pool_finish). The bilinear x2 steps are torch's
  * interpolate (scale_factor 2, align_corners=False) as in upsample_apply_rows: the row of the
  * lower level interpolated between its two rows first, then along the row. */
@@ -28,6 +28,36 @@ static void up2_row(const float *p, int h, int w, int y, float *t) {
 }
 
 #define UP2(t, x) ((1.0f - lx[x]) * (t)[x0[x]] + lx[x] * (t)[x1[x]])
+
+/* Rows [y0, y1) of out = up2(coarse) + Σ_j up2(wgt_j) fs_j, Q planes of h x w from h4 x w4: the
+ * weights' rows brought up once per row (u, n w floats), each coarse plane's row then (uc).
+ * scratch: 2 w ints, w + (n + 1) w4 + (n + 1) w floats. */
+static void mix_half_rows(const float *coarse, const float *wgt, const float *const fs[4], int n, int Q, int h, int w,
+                          int h4, int w4, float *out, void *scratch, int y0, int y1) {
+    const size_t hw = (size_t)h * w, hw4 = (size_t)h4 * w4;
+    int *x0 = (int *)scratch, *x1 = x0 + w;
+    float *lx = (float *)(x1 + w), *t = lx + w, *u = t + (size_t)(n + 1) * w4, *uc = u + (size_t)n * w;
+    up2_columns(w, w4, x0, x1, lx);
+    for (int y = y0; y < y1; ++y) {
+        const size_t row = (size_t)y * w;
+        for (int j = 0; j < n; ++j) {
+            up2_row(wgt + j * hw4, h4, w4, y, t);
+            for (int i = 0; i < w; ++i) u[(size_t)j * w + i] = UP2(t, i);
+        }
+        for (int q = 0; q < Q; ++q) {
+            up2_row(coarse + q * hw4, h4, w4, y, t);
+            for (int i = 0; i < w; ++i) uc[i] = UP2(t, i);
+            float *o = out + q * hw + row;
+            const float *f0 = fs[0] + q * hw + row;
+            for (int i = 0; i < w; ++i) o[i] = u[i] * f0[i];
+            for (int j = 1; j < n; ++j) {
+                const float *fj = fs[j] + q * hw + row, *uj = u + (size_t)j * w;
+                for (int i = 0; i < w; ++i) o[i] += uj[i] * fj[i];
+            }
+            for (int i = 0; i < w; ++i) o[i] = uc[i] + o[i];
+        }
+    }
+}
 
 /* Low rows [ly0, ly1) (full rows 2 ly, 2 ly + 1): model += Σ_j up2(wgt_j) ys_j (in place), res =
  * x - model, low = the 2 x 2 means of res. scratch: 2 W ints, W + n w floats. */
@@ -114,6 +144,13 @@ static void block_mean_rows(const float *x, int P, int H, int W, int s, float *o
                 l[full] = v / (float)((W - full * s) * rows);
             }
         }
+}
+
+void torchgi_mix_half(const float *coarse, const float *wgt, const float *f0, const float *f1, const float *f2,
+                      const float *f3, int n, int Q, int h, int w, int h4, int w4, float *out, int nt, void *scratch,
+                      long long stride) {
+    const float *fs[4] = {f0, f1, f2, f3};
+    OVER_BANDS(h, mix_half_rows(coarse, wgt, fs, n, Q, h, w, h4, w4, out, scr, y0, y1));
 }
 
 void torchgi_model_residual(float *model, const float *y0p, const float *y1p, const float *y2p, const float *y3p,

@@ -1,14 +1,34 @@
 """The C back end's walks of the learned pyramid at full resolution (``pyramid.c``):
-:class:`~torchgi.backends.base.ModelResidualOp`, :class:`~torchgi.backends.base.FineBandOp` and
-:class:`~torchgi.backends.base.BlockMeanOp`."""
+:class:`~torchgi.backends.base.MixHalfOp`, :class:`~torchgi.backends.base.ModelResidualOp`,
+:class:`~torchgi.backends.base.FineBandOp` and :class:`~torchgi.backends.base.BlockMeanOp`."""
 
 from __future__ import annotations
 
 import torch
 
-from torchgi.backends.base import BlockMeanOp, FineBandOp, ModelResidualOp
+from torchgi.backends.base import BlockMeanOp, FineBandOp, MixHalfOp, ModelResidualOp
 from torchgi.backends.c_kernels import build
 from torchgi.backends.c_kernels.runtime import _run
+
+
+def mix_half(desc: MixHalfOp) -> torch.Tensor:
+    """:class:`~torchgi.backends.base.MixHalfOp` in one walk per image.
+
+    Example:
+        >>> c, w, f = torch.ones(1, 2, 1, 2, 2), torch.full((1, 1, 2, 2), 0.5), torch.full((1, 2, 1, 4, 3), 2.0)
+        >>> build.library() is None or mix_half(MixHalfOp(c, w, (f,))).unique().tolist()
+        [2.0]
+    """
+    lib = build.library()
+    coarse, wgt = desc.coarse.contiguous(), desc.weights.contiguous()
+    fs = [f.contiguous() for f in desc.fines]
+    B, Q, (h, w), (h4, w4), n = fs[0].shape[0], fs[0].shape[1] * fs[0].shape[2], fs[0].shape[-2:], wgt.shape[-2:], len(fs)
+    out = torch.empty_like(fs[0])
+    for b in range(B):
+        ptrs = [f[b].data_ptr() for f in fs] + [None] * (4 - n)
+        _run(lib.torchgi_mix_half, h, w * Q, coarse[b].data_ptr(), wgt[b].data_ptr(), *ptrs, n, Q, h, w, h4, w4,
+             out[b].data_ptr(), 2 * w + w + (n + 1) * w4 + (n + 1) * w)
+    return out
 
 
 def model_residual(desc: ModelResidualOp) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

@@ -1,5 +1,5 @@
-"""The torch code of the learned pyramid's full-resolution steps (:class:`~torchgi.backends.base.ModelResidualOp`,
-:class:`~torchgi.backends.base.FineBandOp`): the reference (autograd, tracing, any dtype and
+"""The torch code of the learned pyramid's steps at full and half resolution (:class:`~torchgi.backends.base.MixHalfOp`,
+:class:`~torchgi.backends.base.ModelResidualOp`, :class:`~torchgi.backends.base.FineBandOp`): the reference (autograd, tracing, any dtype and
 device), and what :func:`torchgi.filters.pyramid.pyramid_mix` computes while training."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from collections.abc import Sequence
 import torch
 import torch.nn.functional as F
 
-from torchgi.backends.base import FineBandOp, ModelResidualOp
+from torchgi.backends.base import FineBandOp, MixHalfOp, ModelResidualOp
 from torchgi.backends.torch_code.filter_box import block_mean
 
 
@@ -22,6 +22,22 @@ def up2(t: torch.Tensor, size: Sequence[int]) -> torch.Tensor:
         [0.0, 1.0, 3.0]
     """
     return F.interpolate(t, scale_factor=2, mode="bilinear", align_corners=False)[..., : size[0], : size[1]]
+
+
+def mix_half(desc: MixHalfOp) -> torch.Tensor:
+    """:class:`~torchgi.backends.base.MixHalfOp` in tensor ops, term by term.
+
+    Example:
+        >>> c, w, f = torch.ones(1, 2, 1, 2, 2), torch.full((1, 1, 2, 2), 0.5), torch.full((1, 2, 1, 4, 3), 2.0)
+        >>> mix_half(MixHalfOp(c, w, (f,))).unique().tolist()
+        [2.0]
+    """
+    size = desc.fines[0].shape[-2:]
+    w = up2(desc.weights, size)[:, :, None, None]
+    fine = w[:, 0] * desc.fines[0]
+    for k in range(1, len(desc.fines)):
+        fine = fine + w[:, k] * desc.fines[k]
+    return up2(desc.coarse.flatten(1, 2), size).unflatten(1, desc.coarse.shape[1:3]) + fine
 
 
 def model_residual(desc: ModelResidualOp) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
