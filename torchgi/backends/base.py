@@ -98,7 +98,9 @@ class GuidedOp:
     both centred inside by ``mean_src`` / ``mean_guide`` ``(B,C,1,1)``; ``eps (B,n,1,1)`` >= 0.
     Returns ``(B,Cs,H,W)`` (``mean_src`` added back) or, with ``coefficients_only``, the
     box-filtered coefficients ``(B,n+1,Cs,H,W)`` (``a_0..a_{n-1}, b``). ``workspace`` keeps a
-    back end's buffers between calls of one size (the :class:`~torchgi.filters.Guided` module's)."""
+    back end's buffers between calls of one size (the :class:`~torchgi.filters.Guided` module's);
+    ``out``, a buffer of the result's shape the compiled back ends may write the result into (and
+    return) instead of new memory (the torch code returns a new tensor)."""
 
     guide: torch.Tensor
     src: torch.Tensor
@@ -108,6 +110,7 @@ class GuidedOp:
     eps: torch.Tensor
     coefficients_only: bool = False
     workspace: dict | None = None
+    out: torch.Tensor | None = None
 
     def tensors(self) -> tuple[torch.Tensor | None, ...]:
         return (self.guide, self.src, self.eps)
@@ -118,10 +121,11 @@ class UpsampleApplyOp:
     """Linear-model coefficients ``coeffs (B,n+1,Cs,h,w)`` (``a_0..a_{n-1}, b``) at half
     resolution, ``h, w = ⌈H/2⌉, ⌈W/2⌉``, upsampled bilinearly x2 (torch's ``interpolate``,
     ``align_corners=False``, cropped to ``H x W``) and applied to the centred ``guide (B,n,H,W)``
-    (n <= 4): returns ``b + Σ_i a_i guide_i``, ``(B,Cs,H,W)``."""
+    (n <= 4): returns ``b + Σ_i a_i guide_i``, ``(B,Cs,H,W)`` (in ``out`` as :class:`GuidedOp`'s)."""
 
     coeffs: torch.Tensor
     guide: torch.Tensor
+    out: torch.Tensor | None = None
 
     def tensors(self) -> tuple[torch.Tensor | None, ...]:
         return (self.coeffs, self.guide)
@@ -338,11 +342,12 @@ class MixHalfOp:
     ``coarse (B,n+1,C,h4,w4)`` the coarser candidates' mix at 1/4, ``weights (B,k,h4,w4)`` the
     ``fines`` (1 to 4 ``(B,n+1,C,h,w)`` coefficients of the scale-2 candidates) at 1/4, ``h =
     2 h4`` or ``2 h4 - 1`` and ``up`` the bilinear x2 step cropped to ``h x w``. One float dtype
-    and device. Returns ``(B,n+1,C,h,w)``."""
+    and device. Returns ``(B,n+1,C,h,w)`` (in ``out`` as :class:`GuidedOp`'s)."""
 
     coarse: torch.Tensor
     weights: torch.Tensor
     fines: tuple[torch.Tensor, ...]
+    out: torch.Tensor | None = None
 
     def tensors(self) -> tuple[torch.Tensor | None, ...]:
         return (self.coarse, self.weights, *self.fines)
@@ -356,13 +361,14 @@ class ModelResidualOp:
     theirs at half resolution, ``h = ⌈H/2⌉``, ``up`` the bilinear x2 step), the residual ``x -
     model`` and its 2 x 2 means ``(B,C,h,w)``. One float dtype and device. ``inplace``: the model
     may be written into ``model`` (the caller does not read it again). Returns ``(model,
-    residual, means)``."""
+    residual, means)``, the residual in ``out`` as :class:`GuidedOp`'s result."""
 
     model: torch.Tensor
     ys: tuple[torch.Tensor, ...]
     weights: torch.Tensor
     x: torch.Tensor
     inplace: bool = False
+    out: torch.Tensor | None = None
 
     def tensors(self) -> tuple[torch.Tensor | None, ...]:
         return (self.model, *self.ys, self.weights, self.x)

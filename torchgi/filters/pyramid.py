@@ -80,14 +80,11 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from pathlib import Path
-from typing import Any
 
 import torch
 from torch import nn
 
 from torchgi import backends
-from torchgi.backends.torch_code.filter_box import block_mean
 from torchgi.backends.torch_code.filter_guided import apply_coefficients
 from torchgi.backends.torch_code.pyramid import up2
 from torchgi.core.check import (
@@ -100,20 +97,29 @@ from torchgi.core.check import (
 )
 from torchgi.core.dtypes import compute_dtype
 from torchgi.core.errors import RangeError, ShapeError
-from torchgi.filters.learned import SavedNet, shipped
+from torchgi.filters.pyramid_net import BANDS, WEIGHTS, PyramidNet, default_net
 
 __all__ = ["Pyramid", "PyramidNet", "default_net", "pyramid", "pyramid_inputs", "pyramid_mix", "pyramid_stats"]
 
-WEIGHTS = Path(__file__).with_name("pyramid_weights.json")
 FEATURE_SCALE = 4  # the network's resolution: 1/4
 MIX_SCALE = 2  # where the coefficients are mixed: 1/2
-BANDS = (1, 2, 4, 8)  # the residual's bands (the last one its low-pass), one gain each
 # How far (px) the shipped network's output reaches into its input, rounded up to the 16 x 16
 # blocks of its coarsest level: features up to 1/8 (a scale-8 fit of radius 4 and its bilinear
 # step, ~80 px), the U-Net's receptive field (~110 px) and the mix's bilinear steps (~20 px).
 # Tiles with this much overlap compute the untiled output up to float rounding (docs/pyramid.md).
 REACH = 192
 ALIGN = 16  # tile origins on multiples of this: the blocks of every level are the untiled ones
+
+
+def _kept(workspace: dict | None, key: str, shape: Sequence[int], like: torch.Tensor) -> torch.Tensor | None:
+    """A float32 CPU buffer of ``shape`` kept in ``workspace`` under ``key`` for an op's result
+    between calls (remade when the size changes; None without a workspace or where gradients
+    flow): no fresh pages each call. Every key is written once per call and read in that call."""
+    if workspace is None or like.dtype != torch.float32 or like.device.type != "cpu" or not _reusable(like):
+        return None
+    if workspace.get(key) is None or tuple(workspace[key].shape) != tuple(shape):
+        workspace[key] = torch.empty(tuple(shape), dtype=torch.float32)
+    return workspace[key]
 
 
 def _blocks(t: torch.Tensor, s: int = 2) -> torch.Tensor:
@@ -174,102 +180,6 @@ def _luminance(x: torch.Tensor) -> torch.Tensor:
     return x.mean(1, keepdim=True)
 
 
-def _triples(values: Sequence[Sequence[float]], name: str) -> tuple[tuple[int, int, float], ...]:
-    """Checked ``(scale, radius, eps)`` triples: scale a power of two in [1, 64], radius an int
-    >= 1, eps > 0."""
-    out = []
-    for c in values:
-        s, r, e = int(c[0]), int(c[1]), float(c[2])
-        if not 1 <= s <= 64 or s & (s - 1) or r < 1 or c[1] != r or not 0 < e < math.inf:
-            raise RangeError(f"{name}: expected (scale: a power of two in [1, 64], radius: int >= 1, "
-                             f"eps > 0), got {tuple(c)}")
-        out.append((s, r, e))
-    return tuple(out)
-
-
-class PyramidNet(SavedNet):
-    """The network of :func:`pyramid`: features ``(B, F, h, w)`` at 1/4 resolution → ``(B, K +
-    4, h, w)`` (``K + 9`` with ``direct``): logits over the ``K`` candidates (``candidates`` then
-    ``colour``), then the gain logits of the residual's bands (:data:`BANDS`), then with
-    ``direct`` the correction ``δ`` (3) and the logits of the clamped light's gains at 1/4 and
-    1/16; and the candidate set it was trained for.
-
-    Args:
-        candidates: ``(scale, radius, eps)`` per candidate on the guide: the pyramid scale (2, 4,
-            8, ...: a power of two >= 2), the window radius in pixels of that scale and ε (guide
-            units²).
-        colour: the same for the colour candidates (module docstring; none by default).
-        colour_scale: λ, the colour channel's guide units per e-fold of luminance.
-        widths: channels of the U-Net's three levels (1/4, 1/8, 1/16 resolution).
-        direct: the direct term (module docstring): two more features, five more outputs.
-
-    Example:
-        >>> net = PyramidNet()
-        >>> net(torch.rand(1, net.features, 16, 16)).shape
-        torch.Size([1, 13, 16, 16])
-        >>> PyramidNet(direct=True).features, PyramidNet(direct=True).head.out_channels
-        (21, 18)
-    """
-
-    def __init__(self, *, candidates: Sequence[Sequence[float]] = ((2, 1, 1e-5), (2, 2, 1e-5), (2, 2, 1e-6),
-                                                                    (4, 2, 1e-5), (4, 4, 1e-5), (8, 2, 1e-5),
-                                                                    (8, 4, 1e-5), (1, 1, 1e-5), (1, 2, 1e-6)),
-                 colour: Sequence[Sequence[float]] = (),
-                 colour_scale: float = 0.1, widths: Sequence[int] = (16, 24, 32), direct: bool = False) -> None:
-        super().__init__()
-        self.geometric = _triples(candidates, "candidates")
-        self.colour = _triples(colour, "colour")
-        self.candidates = self.geometric + self.colour
-        if not self.geometric or len(widths) != 3 or not 0 < colour_scale < math.inf:
-            raise RangeError(f"candidates, widths, colour_scale: expected at least one candidate, three widths and "
-                             f"a scale > 0, got {len(self.geometric)}, {list(widths)} and {colour_scale!r}")
-        self.colour_scale = float(colour_scale)
-        self.widths = tuple(int(w) for w in widths)
-        self.direct = bool(direct)
-        self.top = max(s for s, _, _ in self.candidates)
-        self.features = 10 + len(self.candidates) + 2 * self.direct
-        w1, w2, w3 = self.widths
-        conv = lambda i, o, k=3: nn.Conv2d(i, o, k, padding=k // 2)
-        self.enc1 = nn.Sequential(conv(self.features, w1), nn.ReLU(), conv(w1, w1), nn.ReLU())
-        self.enc2 = nn.Sequential(conv(w1, w2), nn.ReLU(), conv(w2, w2), nn.ReLU())
-        self.enc3 = nn.Sequential(conv(w2, w3), nn.ReLU(), conv(w3, w3), nn.ReLU())
-        self.dec2 = nn.Sequential(conv(w3 + w2, w2), nn.ReLU())
-        self.dec1 = nn.Sequential(conv(w2 + w1, w1), nn.ReLU())
-        # candidate logits, then gain logits, then (direct) a low-frequency correction per channel
-        # and the gains of the clamped-away light at 1/4 and 1/16
-        self.head = conv(w1, len(self.candidates) + len(BANDS) + 5 * self.direct, 1)
-        if self.direct:  # no correction to begin with
-            with torch.no_grad():
-                self.head.weight[-5:].zero_()
-                self.head.bias[-5:-2].zero_()
-                self.head.bias[-2:].fill_(-4.0)
-        # the features' standardisation, set from the training data (scripts/train_pyramid.py)
-        self.register_buffer("shift", torch.zeros(self.features))
-        self.register_buffer("scale", torch.ones(self.features))
-
-    def forward(self, features: torch.Tensor) -> torch.Tensor:
-        e1 = self.enc1((features - self.shift[:, None, None]) * self.scale[:, None, None])
-        e2 = self.enc2(block_mean(e1, 2))
-        e3 = self.enc3(block_mean(e2, 2))
-        d2 = self.dec2(torch.cat([_up(e3, e2.shape[-2:]), e2], 1))
-        d1 = self.dec1(torch.cat([_up(d2, e1.shape[-2:]), e1], 1))
-        return self.head(d1)
-
-    def config(self) -> dict[str, Any]:
-        """The constructor arguments (what the weights file records)."""
-        return {"candidates": [list(c) for c in self.geometric], "colour": [list(c) for c in self.colour],
-                "colour_scale": self.colour_scale, "widths": list(self.widths), "direct": self.direct}
-
-
-_DEFAULT: dict[torch.device, PyramidNet] = {}
-
-
-def default_net(device: torch.device | str = "cpu") -> PyramidNet:
-    """The shipped network (``pyramid_weights.json``) on ``device``: read once per process, one
-    copy per device."""
-    return shipped(PyramidNet, WEIGHTS, device, _DEFAULT, "the pyramid's weights", "scripts/train_pyramid.py")
-
-
 def _groups(net: PyramidNet) -> dict[str, list[int]]:
     """The candidates' indices (into ``net.candidates``) by group and mixing scale: "geometric@1",
     "geometric@2", "geometric@4", "colour@1", ... (scale 1 is mixed as outputs at full
@@ -281,17 +191,19 @@ def _groups(net: PyramidNet) -> dict[str, list[int]]:
 
 
 def _features(x: torch.Tensor, xs: dict[int, torch.Tensor], gs: dict[int, torch.Tensor], mean_p: torch.Tensor,
-              m: torch.Tensor, spp: float | torch.Tensor, views: list[torch.Tensor]) -> torch.Tensor:
+              m: torch.Tensor, spp: float | torch.Tensor, views: list[torch.Tensor],
+              workspace: dict | None = None) -> torch.Tensor:
     """The network's features at 1/4 resolution (module docstring) from the light ``x``, the
     pyramids of the centred light and guide, the light's mean ``mean_p`` and mean luminance
-    ``m`` and the candidates' ``views``."""
+    ``m`` and the candidates' ``views`` (full-resolution temporaries kept in ``workspace``)."""
     B = x.shape[0]
     light4 = xs[FEATURE_SCALE] + mean_p
     lum = _luminance(x) / m  # relative to the mean before squaring: no overflow at 1e20, no underflow at 1e-20
     lum4 = _luminance(light4) / m
     var = (_blocks(lum.square(), FEATURE_SCALE) - lum4.square()).clamp_min(0)
     g4 = gs[FEATURE_SCALE]
-    edge = (_blocks(gs[1].square().sum(1, keepdim=True), FEATURE_SCALE)
+    edge = (_blocks(torch.square(gs[1], out=_kept(workspace, "square", gs[1].shape, gs[1])).sum(1, keepdim=True),
+                    FEATURE_SCALE)
             - g4.square().sum(1, keepdim=True)).clamp_min(0)
     if isinstance(spp, torch.Tensor):
         level = torch.log2(spp.to(x.dtype).reshape(-1, 1, 1, 1).expand(B, 1, 1, 1))
@@ -359,7 +271,8 @@ def pyramid_inputs(
     stats = pyramid_stats(x, guide) if stats is None else stats
     mean_p, mean_g = stats["mean"], stats["guide_mean"]
     top = max(net.top, FEATURE_SCALE)
-    xs, gs = _levels(x - mean_p, top), _levels(guide - mean_g, top)
+    xs = _levels(torch.sub(x, mean_p, out=_kept(workspace, "x", x.shape, x)), top)  # (out=None: a new tensor)
+    gs = _levels(torch.sub(guide, mean_g, out=_kept(workspace, "guide", guide.shape, guide)), top)
     m = stats["level"].clamp_min(torch.finfo(x.dtype).tiny)  # each image's mean light level
     coeffs, views = {}, []
     workspaces = {} if workspace is None else workspace  # one per scale: the fits of one size share scratch planes
@@ -367,11 +280,12 @@ def pyramid_inputs(
     def fit(levels: dict[int, torch.Tensor], s: int, r: int, e: float) -> torch.Tensor:
         """One candidate's coefficients at its mixing scale (at scale 1 its centred output); its
         view at 1/4 appended to ``views``."""
-        n = levels[s].shape[1]
+        (n, h, w), C = levels[s].shape[1:], x.shape[1]
         eps = torch.full((B, n, 1, 1), e, dtype=x.dtype, device=x.device)
         zero = torch.zeros((B, n, 1, 1), dtype=x.dtype, device=x.device)
+        into = _kept(workspace, f"fit{len(views)}", (B, n + 1, C, h, w) if s > 1 else (B, C, h, w), x)
         c = backends.run(backends.GuidedOp(levels[s], xs[s], zero, torch.zeros_like(mean_p), r, eps,
-                                           coefficients_only=s > 1, workspace=workspaces.setdefault(s, {})))
+                                           coefficients_only=s > 1, workspace=workspaces.setdefault(s, {}), out=into))
         if s == 1:
             views.append(_blocks(c, FEATURE_SCALE))
             return c
@@ -398,10 +312,10 @@ def pyramid_inputs(
     coeffs = {k: v for k, v in coeffs.items() if v}
     order = [k for key in groups.values() for k in key]  # the views were made in group order
     views = [views[order.index(k)] for k in range(len(net.candidates))]
-    feats = _features(x, xs, gs, mean_p, m, spp, views)
+    feats = _features(x, xs, gs, mean_p, m, spp, views, workspace)
     if net.direct:  # the light the firefly clamp took away, at 1/4 and 1/16
         r4 = (torch.zeros_like(xs[FEATURE_SCALE]) if raw is None
-              else _blocks((raw - x).clamp_min(0), FEATURE_SCALE))
+              else _blocks(torch.sub(raw, x, out=_kept(workspace, "removed", x.shape, x)).clamp_min_(0), FEATURE_SCALE))
         # at most the block's own (clamped) light: a rare huge sample adds at most that, spread
         lr, lx = _luminance(r4), _luminance((xs[FEATURE_SCALE] + mean_p).clamp_min(0))
         r4 = r4 * (lx / lr.clamp_min(torch.finfo(x.dtype).tiny)).clamp(max=1)
@@ -414,14 +328,14 @@ def pyramid_inputs(
 
 def pyramid_mix(
     net: PyramidNet, head: torch.Tensor, coeffs: dict[str, list[torch.Tensor]], x: torch.Tensor,
-    rest: dict[str, torch.Tensor], return_weights: bool = False,
+    rest: dict[str, torch.Tensor], return_weights: bool = False, workspace: dict | None = None,
 ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
     """The second half of :func:`pyramid`: ``head = net(features)`` at 1/4 resolution; the
     softmax of its candidate logits mixes the candidates' ``coeffs`` (:func:`pyramid_inputs`),
     those of scale >= 4 at 1/4, those of scale 2 at 1/2 with the weights upsampled; the mix is
     upsampled to full resolution and applied to the guide and its colour channel, and the
     residual of the light ``x (B, C, H, W)`` is given back band by band with the sigmoid of the
-    gain logits (module docstring). Returns ``(B, C, H, W)`` and, with ``return_weights``, the
+    gain logits (module docstring); ``workspace`` as :func:`pyramid`'s. Returns ``(B, C, H, W)`` and, with ``return_weights``, the
     weights ``(B, K + 4, ⌈H/4⌉, ⌈W/4⌉)`` at 1/4 resolution: the candidates', then the four gains.
 
     Example:
@@ -442,7 +356,8 @@ def pyramid_mix(
         out = _weighted(w[:, groups[coarse], None, None], coeffs[coarse]) if coarse in coeffs else 0
         if fine in coeffs:  # up(out) + Σ up(w_k) fine_k in one walk (out 0: no coarser candidate)
             out = torch.zeros_like(coeffs[fine][0][..., : w.shape[-2], : w.shape[-1]]) if isinstance(out, int) else out
-            out = backends.run(backends.MixHalfOp(out, w[:, groups[fine]], tuple(coeffs[fine])))
+            into = _kept(workspace, f"mix_{group}", coeffs[fine][0].shape, x)
+            out = backends.run(backends.MixHalfOp(out, w[:, groups[fine]], tuple(coeffs[fine]), into))
         elif coarse in coeffs:
             out = _up5(out, half)
         mixed[group] = out
@@ -454,13 +369,14 @@ def pyramid_mix(
         model = backends.run(backends.UpsampleApplyOp(slope, rest["colour"]))
     else:
         model = 0
-    applied = backends.run(backends.UpsampleApplyOp(geo, rest["guide"]))
+    applied = backends.run(backends.UpsampleApplyOp(geo, rest["guide"], _kept(workspace, "applied", x.shape, x)))
     model = _add(applied if isinstance(model, int) else _add(applied, model), rest["mean"])
     outputs = [k for k in ("geometric@1", "colour@1") if k in coeffs]  # scale 1: outputs, mixed at full resolution
     ys = tuple(y for k in outputs for y in coeffs[k])
     if ys:  # mixed into the model with their weights brought to full resolution, the residual and its 2 x 2 means
         w_half = _up(w[:, [k for key in outputs for k in groups[key]]], half)
-        model, res1, res2 = backends.run(backends.ModelResidualOp(model, ys, w_half, x, inplace=True))
+        into = _kept(workspace, "residual", x.shape, x)
+        model, res1, res2 = backends.run(backends.ModelResidualOp(model, ys, w_half, x, inplace=True, out=into))
     else:
         res1 = x - model
         res2 = _blocks(res1)
@@ -509,8 +425,9 @@ def pyramid(
             choice: the candidates' in ``net.candidates`` order, then the gains of the
             residual's bands at scales 1, 2, 4 and its low-pass at 8, all at 1/4 resolution).
         workspace: None, or a dict in which the CPU path keeps the guided fits' scratch planes
-            between calls (as :func:`~torchgi.filters.guided`'s; at 1920x1080 about 150 MB, which
-            a new call would otherwise fault in page by page).
+            and the results of its steps at full and half resolution between calls (overwritten
+            by the next call; at 1920x1080 about 330 MB, which a new call would otherwise fault
+            in page by page).
         stats: None (computed from ``x`` and ``guide``), or :func:`pyramid_stats` of the whole
             image this ``x`` is a tile of (float32, or float64 for float64 input): a tile whose
             origin is on multiples of :data:`ALIGN` px with :data:`REACH` px of the image around
@@ -556,7 +473,7 @@ def pyramid(
         head = net(feats.contiguous(memory_format=torch.channels_last)).contiguous()
     else:
         head = net(feats)
-    out, w = pyramid_mix(net, head.to(ct), coeffs, xs, rest, return_weights=True)
+    out, w = pyramid_mix(net, head.to(ct), coeffs, xs, rest, return_weights=True, workspace=workspace)
     out = out.to(x.dtype)
     return (out, w.to(x.dtype)) if return_weights else out
 

@@ -22,6 +22,7 @@ from torchgi.backends.c_kernels.runtime import (
     _taps,
     empty_planes,
     padded,
+    result,
 )
 from torchgi.backends.levels import colour_scale, iterate_levels, scaled_guides
 from torchgi.core.dtypes import variance_rounding
@@ -79,13 +80,14 @@ def _box(x: torch.Tensor, r: int) -> torch.Tensor:
 
 def _guided(
     I: torch.Tensor, p: torch.Tensor, mean_I: torch.Tensor, mean_p: torch.Tensor, offset: torch.Tensor, r: int,
-    eps: torch.Tensor, coefficients_only: bool = False, holder: dict | None = None,
+    eps: torch.Tensor, coefficients_only: bool = False, holder: dict | None = None, into: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Guided filter of ``p (B,Cs,H,W)`` by ``I (B,n,H,W)`` (n <= 4), both centred inside by
     ``mean_p``, ``mean_I`` (``(B,C,1,1)``), ``eps (B,n,1,1)`` (>= 0), radius ``r``;
     ``offset (B,Cs,1,1)`` is added to the output. Returns ``(B,Cs,H,W)``, or the box-filtered
     coefficients ``(B,n+1,Cs,H,W)`` (``a_0..a_{n-1}, b``). ``holder`` keeps the coefficient
-    planes between calls of one size (no page faults)."""
+    planes between calls of one size (no page faults); the result goes into ``into`` where it fits
+    (:func:`result`)."""
     lib = build.library()
     B, n, H, W = I.shape
     Cs = p.shape[1]
@@ -99,7 +101,7 @@ def _guided(
         coef = torch.empty(Q, H, W, dtype=torch.float32)
         if holder is not None:
             holder["native_key"], holder["native_coef"] = key, coef
-    out = torch.empty((B, n + 1, Cs, H, W) if coefficients_only else (B, Cs, H, W), dtype=torch.float32)
+    out = result(into, (B, n + 1, Cs, H, W) if coefficients_only else (B, Cs, H, W))
     eps = eps.reshape(B, n).to(torch.float32).clamp_min(torch.finfo(torch.float32).tiny).contiguous()
     offset = offset.reshape(B, Cs).to(torch.float32).contiguous()
     mean_I = mean_I.reshape(B, n).to(torch.float32).contiguous()
@@ -131,7 +133,7 @@ def upsample_apply(desc: UpsampleApplyOp) -> torch.Tensor:
     coeffs, guide = desc.coeffs.contiguous(), desc.guide.contiguous()
     B, n, H, W = guide.shape
     Cs, w = coeffs.shape[2], coeffs.shape[-1]
-    out = torch.empty(B, Cs, H, W, dtype=torch.float32)
+    out = result(desc.out, (B, Cs, H, W))
     for b in range(B):
         planes = [guide[b, i].data_ptr() for i in range(n)] + [None] * (4 - n)
         _run(lib.torchgi_upsample_apply, H, W, coeffs[b].data_ptr(), n, Cs, *planes, H, W, out[b].data_ptr(),
@@ -161,7 +163,7 @@ def guided(desc: GuidedOp) -> torch.Tensor:
         True
     """
     return _guided(desc.guide, desc.src, desc.mean_guide, desc.mean_src, desc.mean_src, desc.radius, desc.eps,
-                   coefficients_only=desc.coefficients_only, holder=desc.workspace)
+                   coefficients_only=desc.coefficients_only, holder=desc.workspace, into=desc.out)
 
 
 def atrous(desc: ATrousOp) -> tuple[torch.Tensor, list[torch.Tensor]]:

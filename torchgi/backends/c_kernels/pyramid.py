@@ -8,7 +8,7 @@ import torch
 
 from torchgi.backends.base import BlockMeanOp, FineBandOp, MixHalfOp, ModelResidualOp
 from torchgi.backends.c_kernels import build
-from torchgi.backends.c_kernels.runtime import _run
+from torchgi.backends.c_kernels.runtime import _run, result
 
 
 def mix_half(desc: MixHalfOp) -> torch.Tensor:
@@ -23,7 +23,7 @@ def mix_half(desc: MixHalfOp) -> torch.Tensor:
     coarse, wgt = desc.coarse.contiguous(), desc.weights.contiguous()
     fs = [f.contiguous() for f in desc.fines]
     B, Q, (h, w), (h4, w4), n = fs[0].shape[0], fs[0].shape[1] * fs[0].shape[2], fs[0].shape[-2:], wgt.shape[-2:], len(fs)
-    out = torch.empty_like(fs[0])
+    out = result(desc.out, tuple(fs[0].shape))
     for b in range(B):
         ptrs = [f[b].data_ptr() for f in fs] + [None] * (4 - n)
         _run(lib.torchgi_mix_half, h, w * Q, coarse[b].data_ptr(), wgt[b].data_ptr(), *ptrs, n, Q, h, w, h4, w4,
@@ -46,7 +46,7 @@ def model_residual(desc: ModelResidualOp) -> tuple[torch.Tensor, torch.Tensor, t
     wgt, x = desc.weights.contiguous(), desc.x.contiguous()
     B, C, H, W = x.shape
     h, w, n = (H + 1) // 2, (W + 1) // 2, len(ys)
-    res = torch.empty_like(x)
+    res = result(desc.out, tuple(x.shape))
     low = torch.empty(B, C, h, w, dtype=x.dtype)
     for b in range(B):
         ptrs = [y[b].data_ptr() for y in ys] + [None] * (4 - n)

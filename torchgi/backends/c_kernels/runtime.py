@@ -29,6 +29,21 @@ def _run(fn, H: int, W: int, *args) -> None:
     fn(*args, threads, None if bufs is None else bufs.data_ptr(), 4 * scratch)
 
 
+def result(out: torch.Tensor | None, shape: tuple[int, ...]) -> torch.Tensor:
+    """``out`` when it is a contiguous float32 CPU tensor of ``shape`` (an op's result buffer the
+    caller keeps between calls: no fresh pages to fault in), else a new tensor of that shape.
+
+    Example:
+        >>> buf = torch.empty(2, 3)
+        >>> result(buf, (2, 3)) is buf, result(buf, (3, 2)).shape
+        (True, torch.Size([3, 2]))
+    """
+    if out is not None and tuple(out.shape) == tuple(shape) and out.dtype == torch.float32 and out.device.type == "cpu" \
+            and out.is_contiguous():
+        return out
+    return torch.empty(shape, dtype=torch.float32)
+
+
 def _ptr(t: torch.Tensor | None) -> int | None:
     return None if t is None else t.data_ptr()
 
