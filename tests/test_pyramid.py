@@ -464,3 +464,19 @@ def test_half_resolution_mix_matches_the_float64_torch_code(monkeypatch, threads
     with backends.use("torch"):
         ref = backends.run(backends.MixHalfOp(coarse.double(), weights.double(), tuple(f.double() for f in fines)))
     assert got.shape == ref.shape == (B, 5, 3, h, w) and rel(got, ref) < 1e-6
+
+
+def test_the_denoiser_keeps_its_buffers_without_leaking_between_calls():
+    """Denoiser("pyramid") keeps its steps' results between calls (its workspace: the light steps'
+    outputs, the fits' coefficients and outputs, the mixes): renders of two sizes and two scenes
+    in turn, every output kept, each the result of a fresh Denoiser on the same render, bit for
+    bit."""
+    pytest.importorskip("embreex", reason="the render extra is not installed")
+    a = torchgi.render(torchgi.scenes.cornell(72).with_resolution(72, 60), spp=1, bounces=1, seed=4)
+    b = torchgi.render(torchgi.scenes.BUILTINS["sky"](48), spp=2, bounces=1, seed=5)
+    den = Denoiser("pyramid")
+    calls = (a, b, a, a.replace(color=a.color * 3.0))
+    outs = [den(gb) for gb in calls]
+    assert len(den._workspace) > 10  # the kept buffers are there
+    for gb, out in zip(calls, outs, strict=True):
+        assert torch.equal(out, Denoiser("pyramid")(gb))

@@ -314,7 +314,7 @@ class Denoiser(torch.nn.Module):
                                      for t in (gb.color, gb.emission, kept, gb.albedo, gb.hit, gb.normal, gb.depth))
             guide = guide_from(n, d, depth_scale=depth_scale)
             # light.restore's steps around the filter, fused in the C back end
-            x, raw, lights = backends.run(backends.LightInOp(c, e, k, a, hit, level, FIREFLY["pyramid"]))
+            x, raw, lights = backends.run(backends.LightInOp(c, e, k, a, hit, level, FIREFLY["pyramid"], workspace))
             if sums is not None:  # the first pass: only the core's statistics
                 core = (..., *sums[0])
                 ct = compute_dtype(x.dtype)

@@ -295,7 +295,9 @@ class LightInOp:
     fireflies clamped at ``firefly`` x their local level. ``color``, ``emission`` / ``kept`` (or
     None), ``albedo`` ``(B,3,H,W)``, ``hit (B,1,H,W)`` bool or None, ``level (B,1,1,1)``; one
     float dtype and device. Returns ``(clamped, x, lights)``: the filter's input and the light
-    before the clamp ``(B,3,H,W)``, the light-source mask ``(B,1,H,W)`` bool."""
+    before the clamp ``(B,3,H,W)``, the light-source mask ``(B,1,H,W)`` bool. ``workspace``: a dict
+    in which the compiled back ends keep these results' buffers between calls (the caller is done
+    with them before its next call with it: no fresh pages each call)."""
 
     color: torch.Tensor
     emission: torch.Tensor | None
@@ -304,6 +306,7 @@ class LightInOp:
     hit: torch.Tensor | None
     level: torch.Tensor
     firefly: float
+    workspace: dict | None = None
 
     def tensors(self) -> tuple[torch.Tensor | None, ...]:
         return (self.color, self.emission, self.kept, self.albedo, self.level)

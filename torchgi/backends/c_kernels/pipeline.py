@@ -199,9 +199,10 @@ def light_in(desc: LightInOp) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]
     lib = build.library()
     light = _light_tensors(desc)
     B, _, H, W = light[0].shape
-    x, clamped = torch.empty(B, 3, H, W, dtype=torch.float32), torch.empty(B, 3, H, W, dtype=torch.float32)
-    mask = torch.empty(B, 1, H, W, dtype=torch.uint8)
-    peak = torch.empty(1, 1, H, W, dtype=torch.float32)
+    ws = desc.workspace
+    x, clamped = _buffer(ws, "light_in_x", (B, 3, H, W)), _buffer(ws, "light_in_clamped", (B, 3, H, W))
+    mask = _buffer(ws, "light_in_mask", (B, 1, H, W), torch.uint8)
+    peak = _buffer(ws, "light_in_peak", (1, 1, H, W))
     for b in range(B):
         _demodulate(lib, desc, _light_args(light, b), b, H, W, mask[b], x[b], peak)
         mean = _box(peak, PIPELINE.firefly_radius)
