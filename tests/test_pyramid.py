@@ -480,3 +480,29 @@ def test_the_denoiser_keeps_its_buffers_without_leaking_between_calls():
     assert len(den._workspace) > 10  # the kept buffers are there
     for gb, out in zip(calls, outs, strict=True):
         assert torch.equal(out, Denoiser("pyramid")(gb))
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+@pytest.mark.parametrize("s", [2, 4])
+def test_applied_means_match_the_float64_torch_code(monkeypatch, threads, s):
+    """AppliedMeansOp (the views of the finer candidates: linear models applied, then block means):
+    the C walk against the torch code in float64, odd sizes, a batch, four guide channels."""
+    from torchgi import backends
+    from torchgi.backends import c_kernels
+
+    if not backends.status()["c"].startswith("compiled kernels in use"):
+        pytest.skip(f"c: {backends.status()['c']}")
+    monkeypatch.setattr(c_kernels.runtime, "_MIN_BAND_PIXELS", 16)
+    g = torch.Generator().manual_seed(s)
+    coeffs, guide = torch.randn(2, 5, 3, 37, 50, generator=g), torch.randn(2, 4, 37, 50, generator=g)
+    count = torch.get_num_threads()
+    try:
+        torch.set_num_threads(threads)
+        with backends.use("c"):
+            got = backends.run(backends.AppliedMeansOp(coeffs, guide, s))
+            assert backends.status()["last"]["applied_means"]["ran"] == "c"
+    finally:
+        torch.set_num_threads(count)
+    with backends.use("torch"):
+        ref = backends.run(backends.AppliedMeansOp(coeffs.double(), guide.double(), s))
+    assert got.shape == ref.shape == (2, 3, -(-37 // s), -(-50 // s)) and rel(got, ref) < 1e-6

@@ -24,6 +24,7 @@ from typing import Any
 
 import torch
 
+from torchgi.backends.pyramid_ops import AppliedMeansOp, BlockMeanOp, FineBandOp, MixHalfOp, ModelResidualOp
 from torchgi.backends.temporal_ops import LUMA, AccumulateOp, ChangeOp, HistoryOp
 from torchgi.backends.tracer_ops import GuideRaysOp, PathOp, TraceSetup, chunks, embree_started, mark_embree_started
 from torchgi.core.check import is_tracing
@@ -37,7 +38,9 @@ __all__ = [
     "ATrousOp",
     "AccumulateOp",
     "AllocateOp",
+    "AppliedMeansOp",
     "BackOffOp",
+    "BlockMeanOp",
     "BoxOp",
     "ChangeOp",
     "ChooseOp",
@@ -51,6 +54,7 @@ __all__ = [
     "ImportanceOp",
     "LightInOp",
     "LightOutOp",
+    "MixHalfOp",
     "ModelResidualOp",
     "PathOp",
     "RestoreOp",
@@ -339,74 +343,6 @@ class LightOutOp:
 
 
 @dataclass(eq=False, slots=True)
-class MixHalfOp:
-    """The learned pyramid's coefficients mixed at half resolution
-    (:func:`torchgi.filters.pyramid.pyramid_mix`): ``up(coarse) + Σ_j up(weights_j) fines_j`` with
-    ``coarse (B,n+1,C,h4,w4)`` the coarser candidates' mix at 1/4, ``weights (B,k,h4,w4)`` the
-    ``fines`` (1 to 4 ``(B,n+1,C,h,w)`` coefficients of the scale-2 candidates) at 1/4, ``h =
-    2 h4`` or ``2 h4 - 1`` and ``up`` the bilinear x2 step cropped to ``h x w``. One float dtype
-    and device. Returns ``(B,n+1,C,h,w)`` (in ``out`` as :class:`GuidedOp`'s)."""
-
-    coarse: torch.Tensor
-    weights: torch.Tensor
-    fines: tuple[torch.Tensor, ...]
-    out: torch.Tensor | None = None
-
-    def tensors(self) -> tuple[torch.Tensor | None, ...]:
-        return (self.coarse, self.weights, *self.fines)
-
-
-@dataclass(eq=False, slots=True)
-class ModelResidualOp:
-    """The learned pyramid's model and residual at full resolution
-    (:func:`torchgi.filters.pyramid.pyramid_mix`): ``model (B,C,H,W)`` plus ``Σ_j up(weights_j)
-    ys_j`` (``ys``: 1 to 4 ``(B,C,H,W)`` outputs of its scale-1 candidates, ``weights (B,n,h,w)``
-    theirs at half resolution, ``h = ⌈H/2⌉``, ``up`` the bilinear x2 step), the residual ``x -
-    model`` and its 2 x 2 means ``(B,C,h,w)``. One float dtype and device. ``inplace``: the model
-    may be written into ``model`` (the caller does not read it again). Returns ``(model,
-    residual, means)``, the residual in ``out`` as :class:`GuidedOp`'s result."""
-
-    model: torch.Tensor
-    ys: tuple[torch.Tensor, ...]
-    weights: torch.Tensor
-    x: torch.Tensor
-    inplace: bool = False
-    out: torch.Tensor | None = None
-
-    def tensors(self) -> tuple[torch.Tensor | None, ...]:
-        return (self.model, *self.ys, self.weights, self.x)
-
-
-@dataclass(eq=False, slots=True)
-class BlockMeanOp:
-    """The means of the ``s x s`` blocks of ``x (B,C,H,W)``: ``(B,C,⌈H/s⌉,⌈W/s⌉)``, a last
-    partial block averaged over the pixels it has (the learned pyramid's levels and views)."""
-
-    x: torch.Tensor
-    s: int
-
-    def tensors(self) -> tuple[torch.Tensor | None, ...]:
-        return (self.x,)
-
-
-@dataclass(eq=False, slots=True)
-class FineBandOp:
-    """The learned pyramid's output from its finest band: ``model + (up(band) + up(gain) (residual
-    - up(means)))`` with ``model``, ``residual (B,C,H,W)`` and ``means (B,C,h,w)`` from
-    :class:`ModelResidualOp`, ``band (B,C,h,w)`` the coarser bands given back so far and ``gain
-    (B,1,h,w)`` the finest band's gain, both at half resolution. Returns ``(B,C,H,W)``."""
-
-    model: torch.Tensor
-    residual: torch.Tensor
-    means: torch.Tensor
-    band: torch.Tensor
-    gain: torch.Tensor
-
-    def tensors(self) -> tuple[torch.Tensor | None, ...]:
-        return (self.model, self.residual, self.means, self.band, self.gain)
-
-
-@dataclass(eq=False, slots=True)
 class BackOffOp:
     """:func:`torchgi.light.back_off`: ``out (B,3,H,W)`` (a filter's output) moved toward ``color
     (B,3,H,W)`` where the residual exceeds the noise ``variance (B,1|3,H,W)`` (of the mean, not
@@ -442,11 +378,11 @@ class ChooseOp:
 
 
 Op = BoxOp | GuidedOp | ATrousOp | ImportanceOp | AllocateOp | GuideStatsOp | EdgeShareOp | RestoreOp | LightInOp | \
-    LightOutOp | MixHalfOp | ModelResidualOp | FineBandOp | BlockMeanOp | BackOffOp | ChooseOp | AccumulateOp | ChangeOp | HistoryOp | PathOp | \
+    LightOutOp | MixHalfOp | ModelResidualOp | FineBandOp | BlockMeanOp | AppliedMeansOp | BackOffOp | ChooseOp | AccumulateOp | ChangeOp | HistoryOp | PathOp | \
     GuideRaysOp
 _OPS = {BoxOp: "box", GuidedOp: "guided", UpsampleApplyOp: "upsample_apply", ATrousOp: "atrous", ImportanceOp: "importance", AllocateOp: "allocate",
         GuideStatsOp: "guide_stats", EdgeShareOp: "edge_share", RestoreOp: "restore", LightInOp: "light_in",
-        LightOutOp: "light_out", MixHalfOp: "mix_half", ModelResidualOp: "model_residual", FineBandOp: "fine_band", BlockMeanOp: "block_means", BackOffOp: "back_off",
+        LightOutOp: "light_out", MixHalfOp: "mix_half", ModelResidualOp: "model_residual", FineBandOp: "fine_band", BlockMeanOp: "block_means", AppliedMeansOp: "applied_means", BackOffOp: "back_off",
         ChooseOp: "choose",
         AccumulateOp: "accumulate", ChangeOp: "change", HistoryOp: "history", PathOp: "path", GuideRaysOp: "guide_rays"}
 

@@ -291,7 +291,7 @@ def pyramid_inputs(
             return c
         # what the candidate makes of the light at 1/4 resolution (a feature)
         if s < FEATURE_SCALE:  # finer: applied at its scale, then averaged down
-            views.append(_blocks(apply_coefficients(c, levels[s]), FEATURE_SCALE // s))
+            views.append(backends.run(backends.AppliedMeansOp(c, levels[s], FEATURE_SCALE // s)))
             return c
         c = _finer(c, s, FEATURE_SCALE, xs)
         views.append(apply_coefficients(c, levels[FEATURE_SCALE]))

@@ -37,6 +37,7 @@ import torch
 
 from torchgi.backends.base import (
     AllocateOp,
+    AppliedMeansOp,
     ATrousOp,
     BackOffOp,
     BlockMeanOp,
@@ -60,13 +61,13 @@ from torchgi.backends.c_kernels.accumulation import accumulate, change, history
 from torchgi.backends.c_kernels.build import describe, library
 from torchgi.backends.c_kernels.filters import atrous, box, guided, upsample_apply
 from torchgi.backends.c_kernels.pipeline import back_off, choose, edge_share, guide_stats, light_in, light_out, restore
-from torchgi.backends.c_kernels.pyramid import block_means, fine_band, mix_half, model_residual
+from torchgi.backends.c_kernels.pyramid import applied_means, block_means, fine_band, mix_half, model_residual
 from torchgi.backends.c_kernels.runtime import empty_planes, padded
 from torchgi.backends.c_kernels.sampling import allocate, importance
 from torchgi.backends.c_kernels.tracer import _path_support, guide_rays, path
 
 __all__ = [
-    "NAME", "accumulate", "allocate", "atrous", "back_off", "block_means", "box", "change", "choose", "describe", "edge_share",
+    "NAME", "accumulate", "allocate", "applied_means", "atrous", "back_off", "block_means", "box", "change", "choose", "describe", "edge_share",
     "empty_planes", "fine_band", "guide_rays", "guide_stats", "guided", "history", "importance", "library", "light_in", "light_out",
     "mix_half", "model_residual", "padded", "path", "restore", "supports",
     "upsample_apply",
@@ -75,12 +76,12 @@ __all__ = [
 NAME = "c"
 # the image tensor of the ops whose kernels walk one image of fewer than 2^31 pixels per call
 _IMAGE = {"accumulate": "x", "change": "x", "history": "out", "restore": "color", "light_in": "color", "light_out": "color", "model_residual": "x",
-          "fine_band": "model", "block_means": "x"}
+          "fine_band": "model", "block_means": "x", "applied_means": "guide"}
 
 
 def supports(op: str, desc: BoxOp | GuidedOp | ATrousOp | ImportanceOp | AllocateOp | GuideStatsOp | EdgeShareOp |
-             RestoreOp | LightInOp | LightOutOp | MixHalfOp | ModelResidualOp | FineBandOp | BlockMeanOp | BackOffOp |
-             ChooseOp | UpsampleApplyOp) -> str | None:
+             RestoreOp | LightInOp | LightOutOp | MixHalfOp | ModelResidualOp | FineBandOp | BlockMeanOp | AppliedMeansOp |
+             BackOffOp | ChooseOp | UpsampleApplyOp) -> str | None:
     """None when the kernels take ``desc``: eager float32 CPU tensors (float32/float64
     importance for the allocation, fewer than 2^31 pixels per image), a built library; else why not.
 

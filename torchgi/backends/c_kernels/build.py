@@ -53,6 +53,7 @@ _SIGNATURES = {
     "torchgi_model_residual": ([_P, _P, _P, _P, _P, _I, _P, _P, _I, _I, _I, _P, _P, *_BANDS], None),
     "torchgi_fine_band": ([_P, _P, _P, _P, _P, _I, _I, _I, _P, *_BANDS], None),
     "torchgi_mix_half": ([_P, _P, _P, _P, _P, _P, _I, _I, _I, _I, _I, _I, _P, *_BANDS], None),
+    "torchgi_applied_means": ([_P, _P, _I, _I, _I, _I, _I, _P, *_BANDS], None),
     "torchgi_block_mean": ([_P, _I, _I, _I, _I, _P, *_BANDS], None),
     "torchgi_restore_coefficients": ([_I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _I, _I, _I, _I, _P, _F, _P, *_BANDS],
                                      None),

@@ -1,7 +1,7 @@
 /* The learned pyramid's walks (backends.base.MixHalfOp, ModelResidualOp, FineBandOp, BlockMeanOp;
  * torchgi.filters.pyramid): the candidates' coefficients mixed at half resolution, the scale-1
  * candidates mixed into the model and the residual with its 2 x 2 means, then the finest band of
- * the residual given back; the block means of its levels and views. Compiled as part of
+ * the residual given back; the block means of its levels and views (of linear models applied). Compiled as part of
  * native.c, after pipeline.c (pool_row, pool_finish). The bilinear x2 steps are torch's
  * interpolate (scale_factor 2, align_corners=False) as in upsample_apply_rows: the row of the
  * lower level interpolated between its two rows first, then along the row. */
@@ -114,11 +114,33 @@ static void fine_band_rows(const float *model, const float *res, const float *lo
 
 #undef UP2
 
+/* l[lx] = the means of the s-column blocks of t (the sums of `rows` image rows, W values), a last
+ * partial block averaged over the columns it has. */
+static void pool_columns(const float *t, int W, int s, int rows, float *l) {
+    const int full = W / s;
+    const float inv = 1.0f / (float)(s * rows);
+    if (s == 2)
+        for (int lx = 0; lx < full; ++lx) l[lx] = (t[2 * lx] + t[2 * lx + 1]) * inv;
+    else if (s == 4)
+        for (int lx = 0; lx < full; ++lx) l[lx] = ((t[4 * lx] + t[4 * lx + 1]) + (t[4 * lx + 2] + t[4 * lx + 3])) * inv;
+    else
+        for (int lx = 0; lx < full; ++lx) {
+            float v = 0.0f;
+            for (int j = 0; j < s; ++j) v += t[lx * s + j];
+            l[lx] = v * inv;
+        }
+    if (full * s < W) {
+        float v = 0.0f;
+        for (int i = full * s; i < W; ++i) v += t[i];
+        l[full] = v / (float)((W - full * s) * rows);
+    }
+}
+
 /* Low rows [ly0, ly1) of the s x s block means of P planes of H x W into out (P planes of h x w),
  * a last partial block averaged over the pixels it has: the block's rows summed into t (W
  * floats of scratch), then its columns. */
 static void block_mean_rows(const float *x, int P, int H, int W, int s, float *out, float *t, int ly0, int ly1) {
-    const int h = (H + s - 1) / s, w = (W + s - 1) / s, full = W / s;
+    const int h = (H + s - 1) / s, w = (W + s - 1) / s;
     for (int p = 0; p < P; ++p)
         for (int ly = ly0; ly < ly1; ++ly) {
             const float *a = x + (size_t)p * H * W + (size_t)ly * s * W;
@@ -126,23 +148,35 @@ static void block_mean_rows(const float *x, int P, int H, int W, int s, float *o
             memcpy(t, a, sizeof(float) * W);
             for (int y = 1; y < rows; ++y)
                 for (int i = 0; i < W; ++i) t[i] += a[(size_t)y * W + i];
-            float *l = out + (size_t)p * h * w + (size_t)ly * w;
-            const float inv = 1.0f / (float)(s * rows);
-            if (s == 2)
-                for (int lx = 0; lx < full; ++lx) l[lx] = (t[2 * lx] + t[2 * lx + 1]) * inv;
-            else if (s == 4)
-                for (int lx = 0; lx < full; ++lx) l[lx] = ((t[4 * lx] + t[4 * lx + 1]) + (t[4 * lx + 2] + t[4 * lx + 3])) * inv;
-            else
-                for (int lx = 0; lx < full; ++lx) {
-                    float v = 0.0f;
-                    for (int j = 0; j < s; ++j) v += t[lx * s + j];
-                    l[lx] = v * inv;
+            pool_columns(t, W, s, rows, out + (size_t)p * h * w + (size_t)ly * w);
+        }
+}
+
+/* Low rows [ly0, ly1) of the s x s block means of b + Σ_i a_i I_i (coef: the (n + 1) C planes a_0..a_{n-1},
+ * b of H x W; I: n planes), C planes of h x w: each image row applied into v, the block's rows
+ * summed into t, then its columns. scratch: 2 W floats. */
+static void applied_means_rows(const float *coef, const float *I, int n, int C, int H, int W, int s, float *out,
+                               float *scratch, int ly0, int ly1) {
+    const int h = (H + s - 1) / s, w = (W + s - 1) / s;
+    const size_t HW = (size_t)H * W;
+    float *t = scratch, *v = t + W;
+    for (int c = 0; c < C; ++c)
+        for (int ly = ly0; ly < ly1; ++ly) {
+            const int rows = ly * s + s < H ? s : H - ly * s;
+            for (int y = 0; y < rows; ++y) {
+                const size_t row = (size_t)(ly * s + y) * W;
+                const float *b = coef + ((size_t)n * C + c) * HW + row;
+                for (int i = 0; i < W; ++i) v[i] = b[i];
+                for (int k = 0; k < n; ++k) {
+                    const float *ak = coef + ((size_t)k * C + c) * HW + row, *Ik = I + k * HW + row;
+                    for (int i = 0; i < W; ++i) v[i] = v[i] + ak[i] * Ik[i];
                 }
-            if (full < w) {
-                float v = 0.0f;
-                for (int i = full * s; i < W; ++i) v += t[i];
-                l[full] = v / (float)((W - full * s) * rows);
+                if (y == 0)
+                    memcpy(t, v, sizeof(float) * W);
+                else
+                    for (int i = 0; i < W; ++i) t[i] += v[i];
             }
+            pool_columns(t, W, s, rows, out + (size_t)c * h * w + (size_t)ly * w);
         }
 }
 
@@ -168,4 +202,9 @@ void torchgi_fine_band(const float *model, const float *res, const float *low, c
 
 void torchgi_block_mean(const float *x, int P, int H, int W, int s, float *out, int nt, void *scratch, long long stride) {
     OVER_BANDS((H + s - 1) / s, block_mean_rows(x, P, H, W, s, out, (float *)scr, y0, y1));
+}
+
+void torchgi_applied_means(const float *coef, const float *I, int n, int C, int H, int W, int s, float *out, int nt,
+                           void *scratch, long long stride) {
+    OVER_BANDS((H + s - 1) / s, applied_means_rows(coef, I, n, C, H, W, s, out, (float *)scr, y0, y1));
 }

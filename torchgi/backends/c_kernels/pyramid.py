@@ -1,12 +1,13 @@
 """The C back end's walks of the learned pyramid at full resolution (``pyramid.c``):
 :class:`~torchgi.backends.base.MixHalfOp`, :class:`~torchgi.backends.base.ModelResidualOp`,
-:class:`~torchgi.backends.base.FineBandOp` and :class:`~torchgi.backends.base.BlockMeanOp`."""
+:class:`~torchgi.backends.base.FineBandOp`, :class:`~torchgi.backends.base.BlockMeanOp` and
+:class:`~torchgi.backends.base.AppliedMeansOp`."""
 
 from __future__ import annotations
 
 import torch
 
-from torchgi.backends.base import BlockMeanOp, FineBandOp, MixHalfOp, ModelResidualOp
+from torchgi.backends.base import AppliedMeansOp, BlockMeanOp, FineBandOp, MixHalfOp, ModelResidualOp
 from torchgi.backends.c_kernels import build
 from torchgi.backends.c_kernels.runtime import _run, result
 
@@ -86,4 +87,23 @@ def block_means(desc: BlockMeanOp) -> torch.Tensor:
     h, w = -(-H // s), -(-W // s)
     out = torch.empty(B, C, h, w, dtype=x.dtype)
     _run(lib.torchgi_block_mean, h, B * C * W * s, x.data_ptr(), B * C, H, W, s, out.data_ptr(), W)
+    return out
+
+
+def applied_means(desc: AppliedMeansOp) -> torch.Tensor:
+    """:class:`~torchgi.backends.base.AppliedMeansOp` in one walk per image.
+
+    Example:
+        >>> c = torch.tensor([2.0, 1.0]).view(1, 2, 1, 1, 1).expand(1, 2, 1, 2, 3)   # a = 2, b = 1
+        >>> build.library() is None or applied_means(AppliedMeansOp(c, torch.arange(6.0).view(1, 1, 2, 3), 2)).tolist()
+        [[[[5.0, 11.0]]]]
+    """
+    lib = build.library()
+    coeffs, guide, s = desc.coeffs.contiguous(), desc.guide.contiguous(), desc.s
+    B, n, H, W = guide.shape
+    C = coeffs.shape[2]
+    out = torch.empty(B, C, -(-H // s), -(-W // s), dtype=torch.float32)
+    for b in range(B):
+        _run(lib.torchgi_applied_means, -(-H // s), C * W * s * (n + 1), coeffs[b].data_ptr(), guide[b].data_ptr(), n,
+             C, H, W, s, out[b].data_ptr(), 2 * W)
     return out

@@ -1,5 +1,6 @@
 """The torch code of the learned pyramid's steps at full and half resolution (:class:`~torchgi.backends.base.MixHalfOp`,
-:class:`~torchgi.backends.base.ModelResidualOp`, :class:`~torchgi.backends.base.FineBandOp`): the reference (autograd, tracing, any dtype and
+:class:`~torchgi.backends.base.ModelResidualOp`, :class:`~torchgi.backends.base.FineBandOp`,
+:class:`~torchgi.backends.base.AppliedMeansOp`): the reference (autograd, tracing, any dtype and
 device), and what :func:`torchgi.filters.pyramid.pyramid_mix` computes while training."""
 
 from __future__ import annotations
@@ -9,8 +10,9 @@ from collections.abc import Sequence
 import torch
 import torch.nn.functional as F
 
-from torchgi.backends.base import FineBandOp, MixHalfOp, ModelResidualOp
+from torchgi.backends.base import AppliedMeansOp, FineBandOp, MixHalfOp, ModelResidualOp
 from torchgi.backends.torch_code.filter_box import block_mean
+from torchgi.backends.torch_code.filter_guided import apply_coefficients
 
 
 def up2(t: torch.Tensor, size: Sequence[int]) -> torch.Tensor:
@@ -22,6 +24,17 @@ def up2(t: torch.Tensor, size: Sequence[int]) -> torch.Tensor:
         [0.0, 1.0, 3.0]
     """
     return F.interpolate(t, scale_factor=2, mode="bilinear", align_corners=False)[..., : size[0], : size[1]]
+
+
+def applied_means(desc: AppliedMeansOp) -> torch.Tensor:
+    """:class:`~torchgi.backends.base.AppliedMeansOp` in tensor ops.
+
+    Example:
+        >>> c = torch.tensor([2.0, 1.0]).view(1, 2, 1, 1, 1).expand(1, 2, 1, 2, 3)   # a = 2, b = 1
+        >>> applied_means(AppliedMeansOp(c, torch.arange(6.0).view(1, 1, 2, 3), 2)).tolist()
+        [[[[5.0, 11.0]]]]
+    """
+    return block_mean(apply_coefficients(desc.coeffs, desc.guide), desc.s)
 
 
 def mix_half(desc: MixHalfOp) -> torch.Tensor:
