@@ -29,6 +29,7 @@ int torchgi_openmp(void) {
 #include "importance.c"
 #include "atrous.c"
 #include "guided.c"
+#include "upsample.c"
 #include "pipeline.c"
 #include "pyramid.c"
 #include "allocate.c"

@@ -32,7 +32,7 @@ def applied_means(desc: AppliedMeansOp) -> torch.Tensor:
     Example:
         >>> c = torch.tensor([2.0, 1.0]).view(1, 2, 1, 1, 1).expand(1, 2, 1, 2, 3)   # a = 2, b = 1
         >>> applied_means(AppliedMeansOp(c, torch.arange(6.0).view(1, 1, 2, 3), 2)).tolist()
-        [[[[5.0, 11.0]]]]
+        [[[[5.0, 8.0]]]]
     """
     return block_mean(apply_coefficients(desc.coeffs, desc.guide), desc.s)
 
