@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
+
 import numpy as np
+import pytest
 import torch
 
 from torchgi import backends
@@ -19,6 +23,24 @@ def rel_error(out: torch.Tensor, ref: torch.Tensor | np.ndarray, scale: str = "m
 def last_backend(op: str) -> str:
     """The back end that computed the last ``op`` ("box", "guided", "atrous", "importance", "allocate")."""
     return backends.status()["last"][op]["ran"]
+
+
+@contextlib.contextmanager
+def c_walks(monkeypatch, threads: int) -> Iterator[None]:
+    """Inside: the C back end alone, on ``threads`` threads, every image split into bands of rows
+    however small (one and two bands); skips the test where the compiled kernels are not in use."""
+    from torchgi.backends import c_kernels
+
+    if not backends.status()["c"].startswith("compiled kernels in use"):
+        pytest.skip(f"c: {backends.status()['c']}")
+    monkeypatch.setattr(c_kernels.runtime, "_MIN_BAND_PIXELS", 16)
+    count = torch.get_num_threads()
+    try:
+        torch.set_num_threads(threads)
+        with backends.use("c"):
+            yield
+    finally:
+        torch.set_num_threads(count)
 
 
 def rel_range(out: torch.Tensor, ref: torch.Tensor | np.ndarray) -> float:

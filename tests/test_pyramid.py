@@ -11,7 +11,14 @@ import pytest
 import torch
 
 import torchgi
-from tests.helpers import check_data_hash, check_weights_provenance, onnx_parity, shipped_untrained_guided
+from tests.helpers import (
+    c_walks,
+    check_data_hash,
+    check_weights_provenance,
+    last_backend,
+    onnx_parity,
+    shipped_untrained_guided,
+)
 from tests.helpers import rel_error as rel
 from tests.oracles import block_means, fast_guided_oracle, guided_oracle, upsample
 from torchgi import denoise
@@ -383,24 +390,15 @@ def test_full_resolution_walks_match_the_float64_torch_code(monkeypatch, threads
     resolution): the C kernels against the torch code in float64 (the path training takes), odd
     sizes, a batch, 1 to 3 candidates, one and two bands of rows."""
     from torchgi import backends
-    from torchgi.backends import c_kernels
 
-    if not backends.status()["c"].startswith("compiled kernels in use"):
-        pytest.skip(f"c: {backends.status()['c']}")
-    monkeypatch.setattr(c_kernels.runtime, "_MIN_BAND_PIXELS", 16)
     g = torch.Generator().manual_seed(H + n)
     h, w = (H + 1) // 2, (W + 1) // 2
     model, x = torch.rand(B, 3, H, W, generator=g), torch.rand(B, 3, H, W, generator=g) * 4
     ys = tuple(torch.rand(B, 3, H, W, generator=g) - 0.5 for _ in range(n))
     weights, band, gain = torch.rand(B, n, h, w, generator=g), torch.randn(B, 3, h, w, generator=g), torch.rand(B, 1, h, w, generator=g)
-    count = torch.get_num_threads()
-    try:
-        torch.set_num_threads(threads)
-        with backends.use("c"):
-            got = backends.run(backends.ModelResidualOp(model.clone(), ys, weights, x, inplace=True))
-            out = backends.run(backends.FineBandOp(got[0], got[1], got[2], band, gain))
-    finally:
-        torch.set_num_threads(count)
+    with c_walks(monkeypatch, threads):
+        got = backends.run(backends.ModelResidualOp(model.clone(), ys, weights, x, inplace=True))
+        out = backends.run(backends.FineBandOp(got[0], got[1], got[2], band, gain))
     d = lambda t: t.double()
     with backends.use("torch"):
         ref = backends.run(backends.ModelResidualOp(d(model), tuple(map(d, ys)), d(weights), d(x)))
@@ -416,21 +414,12 @@ def test_block_means_match_the_float64_torch_code(monkeypatch, threads, s):
     odd sizes (a partial last block of rows and of columns), a batch, a transposed (non-contiguous)
     input, one and two bands of block rows; and a hand-computed row."""
     from torchgi import backends
-    from torchgi.backends import c_kernels
 
-    if not backends.status()["c"].startswith("compiled kernels in use"):
-        pytest.skip(f"c: {backends.status()['c']}")
-    monkeypatch.setattr(c_kernels.runtime, "_MIN_BAND_PIXELS", 16)
     x = torch.rand(2, 3, 37, 50, generator=torch.Generator().manual_seed(s)) * 4
-    count = torch.get_num_threads()
-    try:
-        torch.set_num_threads(threads)
-        with backends.use("c"):
-            got = [backends.run(backends.BlockMeanOp(t, s)) for t in (x, x.transpose(2, 3))]
-            assert backends.status()["last"]["block_means"]["ran"] == "c"
-            row = backends.run(backends.BlockMeanOp(torch.tensor([[[[1.0, 2.0, 4.0, 8.0, 16.0]]]]), 2))
-    finally:
-        torch.set_num_threads(count)
+    with c_walks(monkeypatch, threads):
+        got = [backends.run(backends.BlockMeanOp(t, s)) for t in (x, x.transpose(2, 3))]
+        assert last_backend("block_means") == "c"
+        row = backends.run(backends.BlockMeanOp(torch.tensor([[[[1.0, 2.0, 4.0, 8.0, 16.0]]]]), 2))
     for t, g in zip((x, x.transpose(2, 3)), got, strict=True):
         ref = torch.nn.functional.avg_pool2d(t.double(), s, ceil_mode=True, count_include_pad=False)
         assert g.shape == ref.shape and rel(g, ref) < 1e-6
@@ -444,23 +433,14 @@ def test_half_resolution_mix_matches_the_float64_torch_code(monkeypatch, threads
     float64 (the path training takes), odd sizes (a cropped bilinear step), a batch, 1 to 3
     candidates, one and two bands of rows."""
     from torchgi import backends
-    from torchgi.backends import c_kernels
 
-    if not backends.status()["c"].startswith("compiled kernels in use"):
-        pytest.skip(f"c: {backends.status()['c']}")
-    monkeypatch.setattr(c_kernels.runtime, "_MIN_BAND_PIXELS", 16)
     g = torch.Generator().manual_seed(h + n)
     h4, w4 = (h + 1) // 2, (w + 1) // 2
     coarse, weights = torch.randn(B, 5, 3, h4, w4, generator=g), torch.rand(B, n, h4, w4, generator=g)
     fines = tuple(torch.randn(B, 5, 3, h, w, generator=g) for _ in range(n))
-    count = torch.get_num_threads()
-    try:
-        torch.set_num_threads(threads)
-        with backends.use("c"):
-            got = backends.run(backends.MixHalfOp(coarse, weights, fines))
-            assert backends.status()["last"]["mix_half"]["ran"] == "c"
-    finally:
-        torch.set_num_threads(count)
+    with c_walks(monkeypatch, threads):
+        got = backends.run(backends.MixHalfOp(coarse, weights, fines))
+        assert last_backend("mix_half") == "c"
     with backends.use("torch"):
         ref = backends.run(backends.MixHalfOp(coarse.double(), weights.double(), tuple(f.double() for f in fines)))
     assert got.shape == ref.shape == (B, 5, 3, h, w) and rel(got, ref) < 1e-6
@@ -488,21 +468,12 @@ def test_applied_means_match_the_float64_torch_code(monkeypatch, threads, s):
     """AppliedMeansOp (the views of the finer candidates: linear models applied, then block means):
     the C walk against the torch code in float64, odd sizes, a batch, four guide channels."""
     from torchgi import backends
-    from torchgi.backends import c_kernels
 
-    if not backends.status()["c"].startswith("compiled kernels in use"):
-        pytest.skip(f"c: {backends.status()['c']}")
-    monkeypatch.setattr(c_kernels.runtime, "_MIN_BAND_PIXELS", 16)
     g = torch.Generator().manual_seed(s)
     coeffs, guide = torch.randn(2, 5, 3, 37, 50, generator=g), torch.randn(2, 4, 37, 50, generator=g)
-    count = torch.get_num_threads()
-    try:
-        torch.set_num_threads(threads)
-        with backends.use("c"):
-            got = backends.run(backends.AppliedMeansOp(coeffs, guide, s))
-            assert backends.status()["last"]["applied_means"]["ran"] == "c"
-    finally:
-        torch.set_num_threads(count)
+    with c_walks(monkeypatch, threads):
+        got = backends.run(backends.AppliedMeansOp(coeffs, guide, s))
+        assert last_backend("applied_means") == "c"
     with backends.use("torch"):
         ref = backends.run(backends.AppliedMeansOp(coeffs.double(), guide.double(), s))
     assert got.shape == ref.shape == (2, 3, -(-37 // s), -(-50 // s)) and rel(got, ref) < 1e-6
