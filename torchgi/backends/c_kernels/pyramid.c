@@ -31,12 +31,12 @@ static void up2_row(const float *p, int h, int w, int y, float *t) {
 
 /* Rows [y0, y1) of out = up2(coarse) + Σ_j up2(wgt_j) fs_j, Q planes of h x w from h4 x w4: the
  * weights' rows brought up once per row (u, n w floats), each coarse plane's row then (uc).
- * scratch: 2 w ints, w + (n + 1) w4 + (n + 1) w floats. */
+ * scratch: 2 w ints, w + w4 + (n + 1) w floats. */
 static void mix_half_rows(const float *coarse, const float *wgt, const float *const fs[4], int n, int Q, int h, int w,
                           int h4, int w4, float *out, void *scratch, int y0, int y1) {
     const size_t hw = (size_t)h * w, hw4 = (size_t)h4 * w4;
     int *x0 = (int *)scratch, *x1 = x0 + w;
-    float *lx = (float *)(x1 + w), *t = lx + w, *u = t + (size_t)(n + 1) * w4, *uc = u + (size_t)n * w;
+    float *lx = (float *)(x1 + w), *t = lx + w, *u = t + w4, *uc = u + (size_t)n * w;
     up2_columns(w, w4, x0, x1, lx);
     for (int y = y0; y < y1; ++y) {
         const size_t row = (size_t)y * w;

@@ -28,7 +28,7 @@ def mix_half(desc: MixHalfOp) -> torch.Tensor:
     for b in range(B):
         ptrs = [f[b].data_ptr() for f in fs] + [None] * (4 - n)
         _run(lib.torchgi_mix_half, h, w * Q, coarse[b].data_ptr(), wgt[b].data_ptr(), *ptrs, n, Q, h, w, h4, w4,
-             out[b].data_ptr(), 2 * w + w + (n + 1) * w4 + (n + 1) * w)
+             out[b].data_ptr(), 2 * w + w + w4 + (n + 1) * w)
     return out
 
 
