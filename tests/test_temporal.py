@@ -233,6 +233,38 @@ def test_compiled_accumulation_matches_float64_torch_code():
     assert c.dtype == torch.float32 and float((c.double() - ref).abs().max() / ref.abs().max()) < 1e-5
 
 
+@pytest.mark.parametrize("B, H, W", [(2, 3, 600), (1, 6, 257)])
+def test_compiled_accumulation_over_several_blocks_of_a_row(B, H, W):
+    # rows longer than the C walk's 256-px blocks (a partial last one), motion reaching past every
+    # edge, each tap's tests (kind, normal, depth) passed and failed at random, fireflies above the
+    # bound: the C kernel in float32 against the torch code in float64
+    from torchgi import backends
+
+    if not _has_c():
+        pytest.skip("no C compiler")
+    g = torch.Generator().manual_seed(3)
+
+    def r(c: int, lo: float = 0.0, hi: float = 1.0) -> torch.Tensor:
+        return lo + (hi - lo) * torch.rand(B, c, H, W, generator=g)
+
+    normal = torch.nn.functional.normalize(r(3, -1, 1), dim=1)
+    prev_normal = torch.nn.functional.normalize(normal + r(3, -0.1, 0.1), dim=1)
+    depth = r(1, 1, 5)
+    surface = r(1) > 0.2
+    state = TemporalState(r(3, 0, 2), r(3, 0, 2), r(2, 0, 1), (r(1, 0, 8)).round(), prev_normal,
+                          depth * r(1, 0.97, 1.05), (r(1) > 0.2).float())
+    args = (r(3, 0, 3), torch.cat([r(1, -3, 3), r(1, -1.5, 1.5)], 1), normal, depth, surface)
+    bound = r(1, 1, 4)
+    c = _accumulate(state, *args, bound=bound)
+    assert backends.status()["last"]["accumulate"]["ran"] == "c"
+    with backends.use("torch"):
+        ref = _accumulate(TemporalState(*(t.double() for t in state.tensors())),
+                          *(a if a.dtype == torch.bool else a.double() for a in args), bound=bound.double())
+    found = ref[:, 9] > 0
+    assert 0.15 < float(found.double().mean()) < 0.85  # pixels with a history and without
+    assert float((c.double() - ref).abs().max() / ref.abs().max()) < 1e-5
+
+
 def _change_and_history_ops(B: int, H: int, W: int, test: bool, seed: int = 0):
     """A ChangeOp and a HistoryOp on random inputs that reach every branch: drops from 0 to 1 (and
     changes with no noise), history lengths on both sides of ``variance_history``, pixels with and

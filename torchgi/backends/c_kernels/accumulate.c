@@ -5,7 +5,7 @@
 /* ---------------------------------------------------------------- temporal accumulation
  * One frame of torchgi.temporal's reprojection and accumulation (backends.base.AccumulateOp; the
  * same maths as torch_code.accumulation, tap by tap in the same order): the history's four
- * bilinear taps at pixel + motion (tested without branches: a tap that does not count weighs 0),
+ * bilinear taps at pixel + motion (a tap that does not count weighs 0),
  * each counted where it is inside the image, of the same kind
  * (surface / background) and, on surfaces, within the normal and depth tolerances; then the
  * exponential averages of the light x, scaled down to `bound` where its channel maximum exceeds
@@ -20,58 +20,112 @@ typedef struct {
     float *out;
 } accum_t;
 
+#define TBLOCK 256 /* pixels of a row the walks below take at a time: one short loop per plane, in L1 */
+
+/* floorf(v) for |v| < 2^31; elsewhere (NaN included) a value at least 2^31 from the image (the
+ * conversion's out-of-range result): a tap there is outside the image either way. floorf itself
+ * keeps the loop from vectorising (it may not raise "inexact"). */
+INLINE float floor_small(float v) {
+    const float f = (float)(int)v;
+    return f > v ? f - 1.0f : f;
+}
+
+
+/* The walk over blocks of a row, in loops free of control flow (so that the compiler vectorises
+ * them, the taps as gathers), each reading or writing a few planes only: the planes lie a multiple
+ * of 4 KB apart at many sizes, and a loop over more of them than the L1 cache has ways evicts its
+ * own lines. The taps' positions and bilinear weights; their tests against the previous frame's
+ * kind and depth, then its normal; the nine history planes' weighted sums, one plane at a time;
+ * the averages; the outputs, a few planes per loop. */
 static void accumulate_rows(const accum_t *A, int y0, int y1) {
     const int H = A->H, W = A->W;
     const size_t HW = (size_t)H * W;
     const float *hist[9] = {A->light, A->light + HW, A->light + 2 * HW, A->output, A->output + HW,
                             A->output + 2 * HW, A->moments, A->moments + HW, A->length};
+    const float *pn0 = A->pn, *pn1 = A->pn + HW, *pn2 = A->pn + 2 * HW, *pd = A->pd, *ps = A->ps;
+    const float ntol = A->ntol, dtol = A->dtol, cap = A->cap, alpha = A->alpha, xmax = (float)(W - 1), ymax = (float)(H - 1);
+    float w[4][TBLOCK], h[9][TBLOCK], total[TBLOCK], sf[TBLOCK], a[TBLOCK], len[TBLOCK], hl[TBLOCK],
+          cx[3][TBLOCK], lum[TBLOCK];
+    int t[4][TBLOCK];
     for (int y = y0; y < y1; ++y) {
-        for (int x = 0; x < W; ++x) {
-            const size_t i = (size_t)y * W + x;
-            const float px = (float)x + A->motion[i], py = (float)y + A->motion[HW + i];
-            const float fx0 = floorf(px), fy0 = floorf(py), fx = px - fx0, fy = py - fy0;
-            const int surf = A->surface[i] != 0;
-            const float n0 = A->normal[i], n1 = A->normal[HW + i], n2 = A->normal[2 * HW + i], d = A->depth[i];
-            float acc[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0}, total = 0, w[4];
-            size_t t[4];
-            for (int k = 0; k < 4; ++k) { /* each tap's weight, 0 where it does not count (no branches) */
-                const int dx = k & 1, dy = k >> 1;
-                const float tx = fx0 + dx, ty = fy0 + dy;
-                const int inside = tx >= 0 && tx <= W - 1 && ty >= 0 && ty <= H - 1;
-                const size_t j = inside ? (size_t)ty * W + (size_t)tx : i;
-                const float dot = A->pn[j] * n0 + A->pn[HW + j] * n1 + A->pn[2 * HW + j] * n2;
-                const int close = dot >= A->ntol && fabsf(A->pd[j] - d) <= A->dtol * fabsf(d);
-                const int ok = inside & ((A->ps[j] > 0.5f) == surf) & (close | !surf);
-                w[k] = ok ? (dx ? fx : 1 - fx) * (dy ? fy : 1 - fy) : 0.0f;
-                t[k] = j;
+        for (int x0 = 0; x0 < W; x0 += TBLOCK) {
+            const int n = MINF(TBLOCK, W - x0);
+            const size_t i0 = (size_t)y * W + x0;
+            const float *mx = A->motion + i0, *my = A->motion + HW + i0;
+            #pragma GCC ivdep
+            for (int j = 0; j < n; ++j) { /* each tap's index and bilinear weight, 0 outside the image */
+                const float px = (float)(x0 + j) + mx[j], py = (float)y + my[j];
+                const float fx0 = floor_small(px), fy0 = floor_small(py), fx = px - fx0, fy = py - fy0;
+                sf[j] = A->surface[i0 + j] ? 1.0f : 0.0f;
+                FOR8(k, 4, {
+                    const float tx = fx0 + (k & 1), ty = fy0 + (k >> 1);
+                    const int inside = (tx >= 0) & (tx <= xmax) & (ty >= 0) & (ty <= ymax);
+                    t[k][j] = (int)MINF(MAXF(ty, 0.0f), ymax) * W + (int)MINF(MAXF(tx, 0.0f), xmax);
+                    w[k][j] = inside ? ((k & 1) ? fx : 1 - fx) * ((k >> 1) ? fy : 1 - fy) : 0.0f;
+                });
             }
-            for (int k = 0; k < 4; ++k) {
-                for (int c = 0; c < 9; ++c) acc[c] += w[k] > 0 ? w[k] * hist[c][t[k]] : 0.0f;
-                total += w[k];
+            const float *dp = A->depth + i0;
+            #pragma GCC ivdep
+            for (int j = 0; j < n; ++j) { /* of the same kind; on surfaces, within the depth tolerance */
+                const int surf = sf[j] > 0;
+                FOR8(k, 4, {
+                    const int at = t[k][j];
+                    const int ok = ((ps[at] > 0.5f) == surf) & ((fabsf(pd[at] - dp[j]) <= dtol * fabsf(dp[j])) | !surf);
+                    w[k][j] = ok ? w[k][j] : 0.0f;
+                });
             }
-            const int found = total > 1e-3f;
-            float h[9];
-            for (int c = 0; c < 9; ++c) h[c] = found ? acc[c] / total : 0.0f;
-            const float hl = found ? rintf(h[8]) : 0.0f;
-            const float len = hl > 0 ? MINF(hl + 1, A->cap) : 1.0f;
-            const float a = MAXF(1.0f / len, A->alpha);
-            float *o = A->out + i;
-            float x0 = A->x[i], x1 = A->x[HW + i], x2 = A->x[2 * HW + i];
-            const float peak = MAXF(MAXF(x0, x1), x2), bound = A->bound[i];
-            if (peak > bound) {
-                const float k = bound / peak;
-                x0 *= k, x1 *= k, x2 *= k;
+            const float *nx = A->normal + i0, *ny = A->normal + HW + i0, *nz = A->normal + 2 * HW + i0;
+            #pragma GCC ivdep
+            for (int j = 0; j < n; ++j) { /* on surfaces, within the normal tolerance */
+                const int surf = sf[j] > 0;
+                FOR8(k, 4, {
+                    const int at = t[k][j];
+                    const float dot = pn0[at] * nx[j] + pn1[at] * ny[j] + pn2[at] * nz[j];
+                    w[k][j] = (dot >= ntol) | !surf ? w[k][j] : 0.0f;
+                });
+                total[j] = ((w[0][j] + w[1][j]) + w[2][j]) + w[3][j];
             }
-            o[0] = h[0] + a * (x0 - h[0]);
-            o[HW] = h[1] + a * (x1 - h[1]);
-            o[2 * HW] = h[2] + a * (x2 - h[2]);
-            o[3 * HW] = h[3], o[4 * HW] = h[4], o[5 * HW] = h[5];
-            const float lum = 0.2126f * x0 + 0.7152f * x1 + 0.0722f * x2;
-            const float m1 = h[6] + a * (lum - h[6]), m2 = h[7] + a * (lum * lum - h[7]);
-            o[6 * HW] = m1, o[7 * HW] = m2, o[8 * HW] = len, o[9 * HW] = hl;
-            o[10 * HW] = MAXF(m2 - m1 * m1, 0.0f);
-            o[11 * HW] = MINF(len, (2 - a) / a);
-            o[12 * HW] = lum;
+            for (int c = 0; c < 9; ++c) {
+                const float *hc = hist[c];
+                #pragma GCC ivdep
+                for (int j = 0; j < n; ++j) {
+                    float s = 0.0f;
+                    FOR8(k, 4, {
+                        const float v = hc[t[k][j]];
+                        s += w[k][j] > 0 ? w[k][j] * v : 0.0f;
+                    });
+                    h[c][j] = total[j] > 1e-3f ? s / total[j] : 0.0f;
+                }
+            }
+            const float *x0p = A->x + i0, *x1p = A->x + HW + i0, *x2p = A->x + 2 * HW + i0, *bp = A->bound + i0;
+            #pragma GCC ivdep
+            for (int j = 0; j < n; ++j) { /* the weights of this frame, its light clamped to the bound */
+                hl[j] = total[j] > 1e-3f ? rintf(h[8][j]) : 0.0f;
+                len[j] = hl[j] > 0 ? MINF(hl[j] + 1, cap) : 1.0f;
+                a[j] = MAXF(1.0f / len[j], alpha);
+                const float peak = MAXF(MAXF(x0p[j], x1p[j]), x2p[j]), bound = bp[j];
+                const float k = peak > bound ? bound / peak : 1.0f;
+                cx[0][j] = peak > bound ? x0p[j] * k : x0p[j];
+                cx[1][j] = peak > bound ? x1p[j] * k : x1p[j];
+                cx[2][j] = peak > bound ? x2p[j] * k : x2p[j];
+                lum[j] = 0.2126f * cx[0][j] + 0.7152f * cx[1][j] + 0.0722f * cx[2][j];
+            }
+            float *o = A->out + i0;
+            for (int c = 0; c < 3; ++c) {
+                float *oc = o + c * HW, *oh = o + (3 + c) * HW;
+                #pragma GCC ivdep
+                for (int j = 0; j < n; ++j) oc[j] = h[c][j] + a[j] * (cx[c][j] - h[c][j]), oh[j] = h[3 + c][j];
+            }
+            float *m1p = o + 6 * HW, *m2p = o + 7 * HW, *vp = o + 10 * HW;
+            #pragma GCC ivdep
+            for (int j = 0; j < n; ++j) {
+                const float m1 = h[6][j] + a[j] * (lum[j] - h[6][j]), m2 = h[7][j] + a[j] * (lum[j] * lum[j] - h[7][j]);
+                m1p[j] = m1, m2p[j] = m2, vp[j] = MAXF(m2 - m1 * m1, 0.0f);
+            }
+            float *lp = o + 8 * HW, *hp = o + 9 * HW, *fp = o + 11 * HW, *up = o + 12 * HW;
+            #pragma GCC ivdep
+            for (int j = 0; j < n; ++j)
+                lp[j] = len[j], hp[j] = hl[j], fp[j] = MINF(len[j], (2 - a[j]) / a[j]), up[j] = lum[j];
         }
     }
 }
@@ -117,8 +171,6 @@ INLINE void remodulate(const float *restrict v, const float *restrict a, const f
                        const float *restrict on, float floor, float ceil, float *restrict dst, int n) {
     for (int j = 0; j < n; ++j) dst[j] = v[j] * demodulator(on[j], a[j], floor, ceil) + e[j];
 }
-
-#define TBLOCK 256 /* pixels of a row the walks below take at a time: one short loop per plane, in L1 */
 
 static void change_rows(const change_t *C, int y0, int y1) {
     const int H = C->H, W = C->W;
