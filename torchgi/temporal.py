@@ -100,11 +100,14 @@ def _blend_fresh(out: torch.Tensor, length: torch.Tensor, inputs: dict[str, torc
     frames, blended towards ``fresh`` (the per-frame Denoiser) of the same inputs, weight 1 for a
     new pixel; only when at least ``share`` of the pixels are new (0: always). Eager calls filter
     only the rows and columns around such pixels (and the filter's reach)."""
+    recording = is_recording()
+    if not recording and share > 0 and float((length == 1).float().mean()) < share:  # most frames: nothing else to do
+        return out
     w = ((TEMPORAL.variance_history - length) / max(TEMPORAL.variance_history - 1, 1)).clamp(0, 1)
-    if is_recording():
+    if recording:
         return out + w * (fresh(**inputs) - out)
     rows, cols = w.amax((0, 1, 3)) > 0, w.amax((0, 1, 2)) > 0
-    if not bool(rows.any()) or (share > 0 and float((length == 1).float().mean()) < share):
+    if not bool(rows.any()):
         return out
     halo = 4 * GUIDED.radius + 2 * PIPELINE.firefly_radius + 4  # the box of the box, the firefly window
     r, c = rows.nonzero()[:, 0], cols.nonzero()[:, 0]
