@@ -312,7 +312,7 @@ class Denoiser(torch.nn.Module):
             ``sums[0] = (rows, cols)`` (relative to the tile), added into ``sums[1]``."""
             c, e, k, a, hit, n, d = (None if t is None else t[..., rows, cols]
                                      for t in (gb.color, gb.emission, kept, gb.albedo, gb.hit, gb.normal, gb.depth))
-            guide = guide_from(n, d, depth_scale=depth_scale)
+            guide = guide_from(n, d, depth_scale=depth_scale, workspace=workspace)
             # light.restore's steps around the filter, fused in the C back end
             x, raw, lights = backends.run(backends.LightInOp(c, e, k, a, hit, level, FIREFLY["pyramid"], workspace))
             if sums is not None:  # the first pass: only the core's statistics

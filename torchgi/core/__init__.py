@@ -33,6 +33,7 @@ from torchgi.core.errors import (
     TorchGIError,
 )
 from torchgi.core.registry import Registry
+from torchgi.core.workspace import kept_buffer, reusable
 
 __all__ = [
     "ConfigError",
@@ -63,6 +64,8 @@ __all__ = [
     "finite_or_sanitized_later",
     "is_recording",
     "is_tracing",
+    "kept_buffer",
     "require",
+    "reusable",
     "variance_rounding",
 ]

@@ -37,6 +37,7 @@ from torchgi.core.check import (
 )
 from torchgi.core.dtypes import compute_dtype
 from torchgi.core.errors import RangeError, ShapeError
+from torchgi.core.workspace import kept_buffer
 
 __all__ = ["Guided", "depth_scales", "guide_from", "guide_from_gbuffer", "guided"]
 
@@ -169,6 +170,7 @@ def guide_from_gbuffer(
 def guide_from(
     normal: torch.Tensor, depth: torch.Tensor | None = None, *, hit: torch.Tensor | None = None,
     depth_scale: float | str | torch.Tensor | None = None, drop_constant: bool = False,
+    workspace: dict | None = None,
 ) -> torch.Tensor:
     """The guided filter's guide, built one way for the Denoiser, its exported form and
     :class:`~torchgi.data.FilterFeatures`: ``(normal + 1) / 2`` and ``depth / scale``.
@@ -183,6 +185,9 @@ def guide_from(
             tensor = each image's scale given (e.g. ``"image"``'s of a whole image, for its tiles:
             :func:`depth_scales`).
         drop_constant: drop channels constant over the whole batch (a host read).
+        workspace: a dict in which a float32 CPU guide is kept between calls
+            (:func:`~torchgi.core.workspace.kept_buffer`: no fresh pages each call; overwritten by
+            the next call with it), or None: a new tensor.
 
     Returns:
         ``(B, G, H, W)``, ``G <= 4``, dtype/device of ``normal``.
@@ -191,13 +196,17 @@ def guide_from(
         >>> n = torch.zeros(2, 3, 2, 2); d = torch.tensor([1.0, 4.0]).view(2, 1, 1, 1).expand(2, 1, 2, 2)
         >>> guide_from(n, d, depth_scale="image")[:, 3, 0, 0].tolist()   # each image by its own maximum
         [1.0, 1.0]
+        >>> ws = {}
+        >>> guide_from(n, d, workspace=ws) is guide_from(n, d, workspace=ws)   # one buffer, written each call
+        True
     """
     scale = None if depth is None else _depth_scale(depth, hit, depth_scale)
     if depth is not None and not is_recording() and normal.dtype == depth.dtype == getattr(scale, "dtype", depth.dtype) \
             and not (normal.requires_grad or depth.requires_grad or getattr(scale, "requires_grad", False)):
         # the same arithmetic written into one tensor (no copies to concatenate: fewer pages to fault in)
         B, _, H, W = normal.shape
-        guide = torch.empty(B, 4, H, W, dtype=normal.dtype, device=normal.device)
+        guide = kept_buffer(workspace, "guide_from", (B, 4, H, W), normal)
+        guide = torch.empty(B, 4, H, W, dtype=normal.dtype, device=normal.device) if guide is None else guide
         torch.add(normal, 1, out=guide[:, :3]).mul_(0.5)
         torch.div(depth, scale, out=guide[:, 3:])
     else:

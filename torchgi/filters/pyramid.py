@@ -97,6 +97,7 @@ from torchgi.core.check import (
 )
 from torchgi.core.dtypes import compute_dtype
 from torchgi.core.errors import RangeError, ShapeError
+from torchgi.core.workspace import kept_buffer, reusable
 from torchgi.filters.pyramid_net import BANDS, WEIGHTS, PyramidNet, default_net
 
 __all__ = ["Pyramid", "PyramidNet", "default_net", "pyramid", "pyramid_inputs", "pyramid_mix", "pyramid_stats"]
@@ -109,17 +110,6 @@ MIX_SCALE = 2  # where the coefficients are mixed: 1/2
 # Tiles with this much overlap compute the untiled output up to float rounding (docs/pyramid.md).
 REACH = 192
 ALIGN = 16  # tile origins on multiples of this: the blocks of every level are the untiled ones
-
-
-def _kept(workspace: dict | None, key: str, shape: Sequence[int], like: torch.Tensor) -> torch.Tensor | None:
-    """A float32 CPU buffer of ``shape`` kept in ``workspace`` under ``key`` for an op's result
-    between calls (remade when the size changes; None without a workspace or where gradients
-    flow): no fresh pages each call. Every key is written once per call and read in that call."""
-    if workspace is None or like.dtype != torch.float32 or like.device.type != "cpu" or not _reusable(like):
-        return None
-    if workspace.get(key) is None or tuple(workspace[key].shape) != tuple(shape):
-        workspace[key] = torch.empty(tuple(shape), dtype=torch.float32)
-    return workspace[key]
 
 
 def _blocks(t: torch.Tensor, s: int = 2) -> torch.Tensor:
@@ -143,24 +133,17 @@ def _finer(c: torch.Tensor, s: int, target: int, levels: dict[int, torch.Tensor]
     return c
 
 
-def _reusable(fresh: torch.Tensor, *others: torch.Tensor) -> bool:
-    """Whether ``fresh`` (a temporary the caller just made and nothing else holds) may take a
-    result in place of a new tensor: no gradient flows through it or ``others`` (the call runs
-    for inference, not training) and no graph is being recorded. Fewer fresh allocations: each
-    one the allocator returns to the system is faulted in again on the next call (docs/pyramid.md)."""
-    return not is_recording() and not (fresh.requires_grad or any(t.requires_grad for t in others))
-
-
 def _add(fresh: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
-    """``fresh + t`` (``t`` broadcasting into ``fresh``), into ``fresh`` where :func:`_reusable`."""
-    return fresh.add_(t) if _reusable(fresh, t) else fresh + t
+    """``fresh + t`` (``t`` broadcasting into ``fresh``), into ``fresh`` where it is
+    :func:`~torchgi.core.workspace.reusable`."""
+    return fresh.add_(t) if reusable(fresh, t) else fresh + t
 
 
 def _weighted(w: torch.Tensor, ts: Sequence[torch.Tensor]) -> torch.Tensor:
     """``Σ_k w[:, k] ts[k]`` for ``w (B, k, ...)`` broadcasting against each ``ts[k] (B, ...)``,
     term by term (neither the terms stacked nor their products: at 1920x1080 50-90 MB each)."""
     out = w[:, 0] * ts[0]
-    inplace = _reusable(out, *ts)
+    inplace = reusable(out, *ts)
     for k in range(1, len(ts)):
         out = out.addcmul_(w[:, k], ts[k]) if inplace else out + w[:, k] * ts[k]
     return out
@@ -176,8 +159,8 @@ def _levels(t: torch.Tensor, top: int) -> dict[int, torch.Tensor]:
     return out
 
 
-def _luminance(x: torch.Tensor) -> torch.Tensor:
-    return x.mean(1, keepdim=True)
+def _luminance(x: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
+    return torch.mean(x, 1, keepdim=True, out=out)
 
 
 def _groups(net: PyramidNet) -> dict[str, list[int]]:
@@ -198,11 +181,12 @@ def _features(x: torch.Tensor, xs: dict[int, torch.Tensor], gs: dict[int, torch.
     ``m`` and the candidates' ``views`` (full-resolution temporaries kept in ``workspace``)."""
     B = x.shape[0]
     light4 = xs[FEATURE_SCALE] + mean_p
-    lum = _luminance(x) / m  # relative to the mean before squaring: no overflow at 1e20, no underflow at 1e-20
+    kept = kept_buffer(workspace, "luminance", (B, 1, *x.shape[-2:]), x)
+    lum = torch.div(_luminance(x, kept), m, out=kept)  # relative to the mean before squaring: no overflow at 1e20
     lum4 = _luminance(light4) / m
     var = (_blocks(lum.square(), FEATURE_SCALE) - lum4.square()).clamp_min(0)
     g4 = gs[FEATURE_SCALE]
-    edge = (_blocks(torch.square(gs[1], out=_kept(workspace, "square", gs[1].shape, gs[1])).sum(1, keepdim=True),
+    edge = (_blocks(torch.square(gs[1], out=kept_buffer(workspace, "square", gs[1].shape, gs[1])).sum(1, keepdim=True),
                     FEATURE_SCALE)
             - g4.square().sum(1, keepdim=True)).clamp_min(0)
     if isinstance(spp, torch.Tensor):
@@ -271,8 +255,8 @@ def pyramid_inputs(
     stats = pyramid_stats(x, guide) if stats is None else stats
     mean_p, mean_g = stats["mean"], stats["guide_mean"]
     top = max(net.top, FEATURE_SCALE)
-    xs = _levels(torch.sub(x, mean_p, out=_kept(workspace, "x", x.shape, x)), top)  # (out=None: a new tensor)
-    gs = _levels(torch.sub(guide, mean_g, out=_kept(workspace, "guide", guide.shape, guide)), top)
+    xs = _levels(torch.sub(x, mean_p, out=kept_buffer(workspace, "x", x.shape, x)), top)  # (out=None: a new tensor)
+    gs = _levels(torch.sub(guide, mean_g, out=kept_buffer(workspace, "guide", guide.shape, guide)), top)
     m = stats["level"].clamp_min(torch.finfo(x.dtype).tiny)  # each image's mean light level
     coeffs, views = {}, []
     workspaces = {} if workspace is None else workspace  # one per scale: the fits of one size share scratch planes
@@ -283,7 +267,7 @@ def pyramid_inputs(
         (n, h, w), C = levels[s].shape[1:], x.shape[1]
         eps = torch.full((B, n, 1, 1), e, dtype=x.dtype, device=x.device)
         zero = torch.zeros((B, n, 1, 1), dtype=x.dtype, device=x.device)
-        into = _kept(workspace, f"fit{len(views)}", (B, n + 1, C, h, w) if s > 1 else (B, C, h, w), x)
+        into = kept_buffer(workspace, f"fit{len(views)}", (B, n + 1, C, h, w) if s > 1 else (B, C, h, w), x)
         c = backends.run(backends.GuidedOp(levels[s], xs[s], zero, torch.zeros_like(mean_p), r, eps,
                                            coefficients_only=s > 1, workspace=workspaces.setdefault(s, {}), out=into))
         if s == 1:
@@ -315,7 +299,7 @@ def pyramid_inputs(
     feats = _features(x, xs, gs, mean_p, m, spp, views, workspace)
     if net.direct:  # the light the firefly clamp took away, at 1/4 and 1/16
         r4 = (torch.zeros_like(xs[FEATURE_SCALE]) if raw is None
-              else _blocks(torch.sub(raw, x, out=_kept(workspace, "removed", x.shape, x)).clamp_min_(0), FEATURE_SCALE))
+              else _blocks(torch.sub(raw, x, out=kept_buffer(workspace, "removed", x.shape, x)).clamp_min_(0), FEATURE_SCALE))
         # at most the block's own (clamped) light: a rare huge sample adds at most that, spread
         lr, lx = _luminance(r4), _luminance((xs[FEATURE_SCALE] + mean_p).clamp_min(0))
         r4 = r4 * (lx / lr.clamp_min(torch.finfo(x.dtype).tiny)).clamp(max=1)
@@ -356,7 +340,7 @@ def pyramid_mix(
         out = _weighted(w[:, groups[coarse], None, None], coeffs[coarse]) if coarse in coeffs else 0
         if fine in coeffs:  # up(out) + Σ up(w_k) fine_k in one walk (out 0: no coarser candidate)
             out = torch.zeros_like(coeffs[fine][0][..., : w.shape[-2], : w.shape[-1]]) if isinstance(out, int) else out
-            into = _kept(workspace, f"mix_{group}", coeffs[fine][0].shape, x)
+            into = kept_buffer(workspace, f"mix_{group}", coeffs[fine][0].shape, x)
             out = backends.run(backends.MixHalfOp(out, w[:, groups[fine]], tuple(coeffs[fine]), into))
         elif coarse in coeffs:
             out = _up5(out, half)
@@ -369,13 +353,13 @@ def pyramid_mix(
         model = backends.run(backends.UpsampleApplyOp(slope, rest["colour"]))
     else:
         model = 0
-    applied = backends.run(backends.UpsampleApplyOp(geo, rest["guide"], _kept(workspace, "applied", x.shape, x)))
+    applied = backends.run(backends.UpsampleApplyOp(geo, rest["guide"], kept_buffer(workspace, "applied", x.shape, x)))
     model = _add(applied if isinstance(model, int) else _add(applied, model), rest["mean"])
     outputs = [k for k in ("geometric@1", "colour@1") if k in coeffs]  # scale 1: outputs, mixed at full resolution
     ys = tuple(y for k in outputs for y in coeffs[k])
     if ys:  # mixed into the model with their weights brought to full resolution, the residual and its 2 x 2 means
         w_half = _up(w[:, [k for key in outputs for k in groups[key]]], half)
-        into = _kept(workspace, "residual", x.shape, x)
+        into = kept_buffer(workspace, "residual", x.shape, x)
         model, res1, res2 = backends.run(backends.ModelResidualOp(model, ys, w_half, x, inplace=True, out=into))
     else:
         res1 = x - model
@@ -394,7 +378,7 @@ def pyramid_mix(
     for s in BANDS[-2:0:-1]:
         size = res[s].shape[-2:]
         detail = res[s] - _up(res[2 * s], size)
-        detail = detail.mul_(gains[s]) if _reusable(detail, gains[s]) else gains[s] * detail
+        detail = detail.mul_(gains[s]) if reusable(detail, gains[s]) else gains[s] * detail
         band = _add(_up(band, size), detail)
         if s == FEATURE_SCALE and lift is not None:  # upsampled with the bands (the same bilinear steps)
             band = _add(band, lift)
