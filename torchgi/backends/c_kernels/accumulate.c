@@ -22,6 +22,11 @@ typedef struct {
 
 #define TBLOCK 256 /* pixels of a row the walks below take at a time: one short loop per plane, in L1 */
 
+/* on = the surface byte mask of n pixels as floats (so that the loops reading it vectorise) */
+INLINE void float_mask(const uint8_t *surface, float *on, int n) {
+    for (int j = 0; j < n; ++j) on[j] = surface[j] ? 1.0f : 0.0f;
+}
+
 /* floorf(v) for |v| < 2^31; elsewhere (NaN included) a value at least 2^31 from the image (the
  * conversion's out-of-range result): a tap there is outside the image either way. With floorf
  * GCC (12, -O3 -march=native) left the loop scalar ("function is not vectorizable"). */
@@ -52,11 +57,11 @@ static void accumulate_rows(const accum_t *A, int y0, int y1) {
             const int n = MINF(TBLOCK, W - x0);
             const size_t i0 = (size_t)y * W + x0;
             const float *mx = A->motion + i0, *my = A->motion + HW + i0;
+            float_mask(A->surface + i0, sf, n);
             #pragma GCC ivdep
             for (int j = 0; j < n; ++j) { /* each tap's index and bilinear weight, 0 outside the image */
                 const float px = (float)(x0 + j) + mx[j], py = (float)y + my[j];
                 const float fx0 = floor_small(px), fy0 = floor_small(py), fx = px - fx0, fy = py - fy0;
-                sf[j] = A->surface[i0 + j] ? 1.0f : 0.0f;
                 FOR8(k, 4, {
                     const float tx = fx0 + (k & 1), ty = fy0 + (k >> 1);
                     const int inside = (tx >= 0) & (tx <= xmax) & (ty >= 0) & (ty <= ymax);
@@ -160,11 +165,6 @@ INLINE float extent(int i, int n, int r) { return (float)(MINF(i + r, n - 1) - M
 
 /* the demodulator: the albedo a in [floor, ceil] on surfaces (on > 0), 1 elsewhere */
 INLINE float demodulator(float on, float a, float floor, float ceil) { return on > 0 ? MINF(MAXF(a, floor), ceil) : 1.0f; }
-
-/* on = the surface byte mask of n pixels as floats (so that the loops reading it vectorise) */
-INLINE void float_mask(const uint8_t *surface, float *on, int n) {
-    for (int j = 0; j < n; ++j) on[j] = surface[j] ? 1.0f : 0.0f;
-}
 
 /* dst = v x the demodulator + e, n values */
 INLINE void remodulate(const float *restrict v, const float *restrict a, const float *restrict e,
