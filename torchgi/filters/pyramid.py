@@ -410,7 +410,7 @@ def pyramid(
             residual's bands at scales 1, 2, 4 and its low-pass at 8, all at 1/4 resolution).
         workspace: None, or a dict in which the CPU path keeps the guided fits' scratch planes
             and the results of its steps at full and half resolution between calls (overwritten
-            by the next call; the Denoiser's holds 558 MB after a 1920x1080 call, which a new call
+            by the next call; the Denoiser's holds 597 MiB after a 1920x1080 call, which a new call
             would otherwise fault in page by page).
         stats: None (computed from ``x`` and ``guide``), or :func:`pyramid_stats` of the whole
             image this ``x`` is a tile of (float32, or float64 for float64 input): a tile whose
