@@ -10,6 +10,7 @@ import pytest
 import torch
 
 import torchgi
+from tests.helpers import last_backend
 from torchgi import denoise, metrics
 from torchgi.core.errors import ConfigError, NonFiniteError, ShapeError
 from torchgi.render import CameraPath, scenes
@@ -197,7 +198,7 @@ def test_reprojection_is_bilinear_where_every_tap_counts(backend):
         pytest.skip("no C compiler")
     with backends.use(backend, "torch"):
         out = _accumulate(state, x, motion, flat, torch.ones(B, 1, H, W), torch.ones(B, 1, H, W, dtype=torch.bool))
-    assert backends.status()["last"]["accumulate"]["ran"] == backend
+    assert last_backend("accumulate") == backend
     ys, xs = torch.meshgrid(torch.arange(H) + 0.5, torch.arange(W) + 0.5, indexing="ij")
     grid = torch.stack([(xs + 1.3) / W * 2 - 1, (ys - 0.6) / H * 2 - 1], -1).expand(B, H, W, 2)
     inner = (slice(None), slice(None), slice(1, H), slice(0, W - 2))  # all four taps inside
@@ -256,7 +257,7 @@ def test_compiled_accumulation_over_several_blocks_of_a_row(B, H, W):
     args = (r(3, 0, 3), torch.cat([r(1, -3, 3), r(1, -1.5, 1.5)], 1), normal, depth, surface)
     bound = r(1, 1, 4)
     c = _accumulate(state, *args, bound=bound)
-    assert backends.status()["last"]["accumulate"]["ran"] == "c"
+    assert last_backend("accumulate") == "c"
     with backends.use("torch"):
         ref = _accumulate(TemporalState(*(t.double() for t in state.tensors())),
                           *(a if a.dtype == torch.bool else a.double() for a in args), bound=bound.double())
@@ -305,7 +306,7 @@ def test_compiled_change_and_history_match_float64_torch_code(B, H, W, test):
                            for op in (change32, history32))  # the same values in float64
     mid = backends.run(change32)
     lit, image = backends.run(history32)
-    assert backends.status()["last"]["change"]["ran"] == "c" and backends.status()["last"]["history"]["ran"] == "c"
+    assert last_backend("change") == "c" and last_backend("history") == "c"
     with backends.use("torch"):
         mid_ref = backends.run(change64)
         refs = backends.run(history64)
