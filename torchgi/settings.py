@@ -154,6 +154,9 @@ class TemporalSettings:
     change_threshold: float = _setting(4.0, 0.0, math.inf, "noise sigmas",
                                        "the history is dropped where this frame's window mean leaves the history's by "
                                        "more than this (fully one sigma further; tuning sequences); 0 = off")
+    follow: float = _setting(3.0, 0.0, math.inf, "noise sigmas",
+                             "below the drop, the history's window means move toward this frame's by the gain "
+                             "d² / (d² + (this x sigma)²) of their change d (tuning sequences); 0 = off")
 
 
 PIPELINE = PipelineSettings()

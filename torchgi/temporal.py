@@ -16,7 +16,9 @@ Each frame, on the light demodulated by albedo (``(color - emission) / albedo`` 
    light changed** (moving shadows and highlights, a moving light: what the motion cannot
    explain) the history is dropped: this frame's mean luminance in ``9x9`` and ``33x33`` windows
    (``TEMPORAL.change_radius``, ``change_scale``) against the accumulated light's, beyond
-   ``TEMPORAL.change_threshold`` sigmas of the window mean's noise.
+   ``TEMPORAL.change_threshold`` sigmas of the window mean's noise. Below that, the history is
+   scaled so that its window means follow this frame's by the gain ``d² / (d² + (TEMPORAL.follow
+   sigma)²)`` of their change ``d``: a light changing a little each frame does not lag.
 4. **Spatial filter**: the guided Denoiser pipeline (normal + depth guide, light sources passed
    untouched) on the accumulated light, at ``TEMPORAL.radius`` and ``TEMPORAL.eps``: the light
    averages several frames, so a narrower, sharper filter than the per-frame Denoiser's. In
@@ -26,7 +28,7 @@ Each frame, on the light demodulated by albedo (``(color - emission) / albedo`` 
 5. **Output history**: the filtered light of the previous frame, reprojected as in 2, clamped to
    within ``sqrt(TEMPORAL.clamp x variance / frames)`` of this frame's filtered light (the noise
    the accumulated light still has), then averaged with weight ``max(1 / length,
-   TEMPORAL.output_alpha)`` for this frame: flicker the filter leaves is averaged out, and a
+   TEMPORAL.output_alpha)`` for this frame (``length`` after the drop of 3): flicker the filter leaves is averaged out, and a
    change larger than the noise (a moving highlight) passes through.
 
 The accumulated light (not the filtered one) is the light history: feeding the filtered light
@@ -189,7 +191,7 @@ def temporal_step(
         planes = torch.cat([lum, (step[:, :3] * luma).sum(1, keepdim=True), spatial_var], 1)
         near, wide = (box(planes, r) for r in radii)
     mid = backends.run(backends.ChangeOp(x, bound, step, spatial_var, near, wide, albedo, surface, emission, radii,
-                                         t.change_threshold, t.variance_history, workspace))
+                                         t.change_threshold, t.variance_history, t.follow, workspace))
     acc, moments, length, frames, spread, color_in = mid.split([3, 2, 1, 1, 1, 3], 1)
     inputs = {"color": color_in, "emission": emission, "albedo": albedo, "normal": normal, "depth": depth, "hit": hit}
     if spatial_spp is None:
@@ -199,9 +201,9 @@ def temporal_step(
     if fresh is not None:
         out = _blend_fresh(out, length, inputs, fresh, fresh_share)
     # the output history (demodulated), within sqrt(clamp x the accumulated light's noise variance) of this frame's;
-    # the output history's weight follows the history length before any drop (less flicker)
+    # its weight follows the history length after the change test's drop
     lit, image = backends.run(backends.HistoryOp(out, emission, albedo, surface, box(spread, 1), hist_out,
-                                                 step[:, 8:9], hist_length, t.clamp, t.output_alpha, workspace))
+                                                 length, hist_length, t.clamp, t.output_alpha, workspace))
     return image, TemporalState(acc, lit, moments, torch.round(length), normal, depth, surface.to(x.dtype))
 
 

@@ -62,7 +62,9 @@ class ChangeOp:
     result; ``spatial_var (B,1,H,W)`` this frame's spatial variance of the luminance; ``near`` and
     ``wide`` ``(B,3,H,W)`` the box means at ``radii[0]`` and ``radii[1]`` of (this frame's
     luminance, the accumulated light's, ``spatial_var``), or None for no change test;
-    ``threshold`` in sigmas of the window mean's noise; ``variance_history`` frames from which the
+    ``threshold`` in sigmas of the window mean's noise; below it, the history's light and moments are
+    scaled so that its window means move toward this frame's by the gain ``d² / (d² + (follow
+    sigma)²)`` of their change ``d`` (per radius, the scales multiplied; 0: not); ``variance_history`` frames from which the
     moments' variance replaces the spatial one; ``albedo (B,3)``, ``surface (B,1)`` bool and
     ``emission (B,3)`` to remodulate. All of one float dtype and device but ``surface``. Returns
     ``(B,11,H,W)``: the accumulated light (3), moments (2), history length (1) and frames averaged
@@ -81,6 +83,7 @@ class ChangeOp:
     radii: tuple[int, int]
     threshold: float
     variance_history: int
+    follow: float = 0.0
     workspace: dict | None = None
 
     def tensors(self) -> tuple[torch.Tensor | None, ...]:
@@ -94,7 +97,7 @@ class HistoryOp:
     (B,3)`` and ``surface (B,1)`` bool), the reprojected output history ``hist_out (B,3)`` clamped
     to within ``sqrt(clamp x spread)`` of it (``spread (B,1)``: the box mean of the variance over
     the frames averaged) and averaged with weight ``max(1 / kept, output_alpha)`` for this frame
-    where ``hist_length (B,1)`` > 0 (``kept (B,1)``: the history length before the change test).
+    where ``hist_length (B,1)`` > 0 (``kept (B,1)``: the history length after the change test).
     All of one float dtype and device but ``surface``. Returns two ``(B,3,H,W)`` tensors: the next
     output history (demodulated; in ``workspace``, as :class:`AccumulateOp`'s) and the frame's image
     (remodulated; always a new tensor)."""

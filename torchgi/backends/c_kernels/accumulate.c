@@ -149,14 +149,15 @@ void torchgi_accumulate(const float *x, const float *bound, const float *motion,
 /* ---------------------------------------------------------------- after the accumulation
  * backends.base.ChangeOp: the change test's drop from the box means `near` and `wide` (3 planes
  * each: this frame's luminance, the accumulated light's, the spatial variance; NULL: no test) at
- * radii r0 and r1, the history moved back toward this frame by it, the variance chosen and the
+ * radii r0 and r1, below it the history scaled toward this frame's window means (gain d² / (d² +
+ * (follow sigma)²), 0: not), the history moved back toward this frame by the drop, the variance chosen and the
  * spatial filter's colour input remodulated. step: AccumulateOp's 13 planes. out: 11 planes
  * (light 3, moments 2, length, frames, variance / frames, colour 3). */
 typedef struct {
     const float *x, *bound, *step, *svar, *near, *wide, *albedo, *emission;
     const uint8_t *surface;
     int H, W, r0, r1;
-    float thr, vh, floor, ceil;
+    float thr, follow, vh, floor, ceil;
     float *out;
 } change_t;
 
@@ -176,7 +177,7 @@ static void change_rows(const change_t *C, int y0, int y1) {
     const int H = C->H, W = C->W;
     const size_t HW = (size_t)H * W;
     const float *s = C->step;
-    float drop[TBLOCK], scale[TBLOCK], on[TBLOCK];
+    float drop[TBLOCK], follow[TBLOCK], scale[TBLOCK], on[TBLOCK];
     for (int y = y0; y < y1; ++y) {
         const float ey0 = extent(y, H, C->r0), ey1 = extent(y, H, C->r1);
         for (int x0 = 0; x0 < W; x0 += TBLOCK) {
@@ -186,7 +187,7 @@ static void change_rows(const change_t *C, int y0, int y1) {
             const float *st = s + i0;
             if (C->near) {
                 #pragma GCC ivdep
-                for (int j = 0; j < n; ++j) drop[j] = 0.0f;
+                for (int j = 0; j < n; ++j) drop[j] = 0.0f, follow[j] = 1.0f;
                 for (int k = 0; k < 2; ++k) {
                     const float *b = (k ? C->wide : C->near) + i0, ey = k ? ey1 : ey0;
                     const int r = k ? C->r1 : C->r0;
@@ -196,25 +197,40 @@ static void change_rows(const change_t *C, int y0, int y1) {
                         const float beyond = (fabsf(b[j] - b[HW + j]) - C->thr * sigma) / MAXF(sigma, FLT_MIN);
                         drop[j] = MAXF(drop[j], MINF(MAXF(beyond, 0.0f), 1.0f));
                     }
+                    if (C->follow > 0) {  /* the history's window mean toward this frame's, by the gain */
+                        const float f2 = C->follow * C->follow;
+                        #pragma GCC ivdep
+                        for (int j = 0; j < n; ++j) {
+                            const float s2 = MAXF(b[2 * HW + j], 0.0f) / (ey * extent(x0 + j, W, r));
+                            const float before = b[HW + j], d = b[j] - before;
+                            const float gain = d * d / MAXF(d * d + f2 * s2, FLT_MIN);
+                            const float f = before > 0 ? 1 + gain * d / (before > 0 ? before : 1.0f) : 1.0f;
+                            follow[j] *= MINF(MAXF(f, 0.0f), 4.0f);
+                        }
+                    }
                 }
                 const float *xs = C->x + i0, *bound = C->bound + i0;
                 #pragma GCC ivdep
                 for (int j = 0; j < n; ++j) {
-                    if (!(st[9 * HW + j] > 0)) drop[j] = 0.0f;
+                    const int old = st[9 * HW + j] > 0;
+                    drop[j] = old ? drop[j] : 0.0f, follow[j] = old ? follow[j] : 1.0f;
                     const float peak = MAXF(MAXF(xs[j], xs[HW + j]), xs[2 * HW + j]);
                     scale[j] = peak > bound[j] ? bound[j] / peak : 1.0f;
                 }
                 for (int c = 0; c < 3; ++c)
                     #pragma GCC ivdep
-                    for (int j = 0; j < n; ++j)
-                        o[c * HW + j] = st[c * HW + j] + drop[j] * (xs[c * HW + j] * scale[j] - st[c * HW + j]);
+                    for (int j = 0; j < n; ++j) {
+                        const float h = st[c * HW + j] * follow[j];
+                        o[c * HW + j] = (1 - drop[j]) * h + drop[j] * (xs[c * HW + j] * scale[j]);
+                    }
                 #pragma GCC ivdep
                 for (int j = 0; j < n; ++j) {
-                    const float lum = st[12 * HW + j];
-                    const float m1 = st[6 * HW + j] + drop[j] * (lum - st[6 * HW + j]);
-                    const float m2 = st[7 * HW + j] + drop[j] * (lum * lum - st[7 * HW + j]);
-                    const float len = st[8 * HW + j] + drop[j] * (1 - st[8 * HW + j]);
-                    const float fr = st[11 * HW + j] + drop[j] * (1 - st[11 * HW + j]);
+                    const float lum = st[12 * HW + j], h1 = st[6 * HW + j] * follow[j], keep = 1 - drop[j];
+                    const float h2 = st[7 * HW + j] * (follow[j] * follow[j]);
+                    const float m1 = keep * h1 + drop[j] * lum;
+                    const float m2 = keep * h2 + drop[j] * (lum * lum);
+                    const float len = keep * st[8 * HW + j] + drop[j];
+                    const float fr = keep * st[11 * HW + j] + drop[j];
                     const float var = len >= C->vh ? MAXF(m2 - m1 * m1, 0.0f) : C->svar[i0 + j];
                     o[3 * HW + j] = m1, o[4 * HW + j] = m2, o[5 * HW + j] = len, o[6 * HW + j] = fr;
                     o[7 * HW + j] = var / fr;
@@ -239,10 +255,10 @@ static void change_rows(const change_t *C, int y0, int y1) {
 
 void torchgi_change(const float *x, const float *bound, const float *step, const float *svar, const float *near,
                     const float *wide, const float *albedo, const uint8_t *surface, const float *emission, int H, int W,
-                    int r0, int r1, float thr, float vh, float floor, float ceil, float *out, int nt, void *scratch,
-                    long long stride) {
-    const change_t C = {x, bound, step, svar, near, wide, albedo, emission, surface, H, W, r0, r1, thr, vh, floor, ceil,
-                        out};
+                    int r0, int r1, float thr, float follow, float vh, float floor, float ceil, float *out, int nt,
+                    void *scratch, long long stride) {
+    const change_t C = {x, bound, step, svar, near, wide, albedo, emission, surface, H, W, r0, r1, thr, follow, vh, floor,
+                        ceil, out};
     OVER_BANDS(H, change_rows(&C, y0, y1));
 }
 

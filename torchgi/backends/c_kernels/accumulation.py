@@ -60,7 +60,7 @@ def change(desc: ChangeOp) -> torch.Tensor:
     out = _buffer(d.workspace, "change", (B, 11, H, W))
     for b in range(B):
         _run(lib.torchgi_change, H, W, *(_ptr(None if t is None else t[b]) for t in ts), H, W, d.radii[0], d.radii[1],
-             d.threshold, float(d.variance_history), PIPELINE.albedo_floor, PIPELINE.albedo_ceiling, out[b].data_ptr(), 0)
+             d.threshold, d.follow, float(d.variance_history), PIPELINE.albedo_floor, PIPELINE.albedo_ceiling, out[b].data_ptr(), 0)
     return out
 
 

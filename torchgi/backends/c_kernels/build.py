@@ -58,7 +58,7 @@ _SIGNATURES = {
     "torchgi_restore_coefficients": ([_I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _I, _I, _I, _I, _P, _F, _P, *_BANDS],
                                      None),
     "torchgi_accumulate": ([_P] * 13 + [_I, _I, _F, _F, _F, _F, _P, *_BANDS], None),
-    "torchgi_change": ([_P] * 9 + [_I, _I, _I, _I, _F, _F, _F, _F, _P, *_BANDS], None),
+    "torchgi_change": ([_P] * 9 + [_I, _I, _I, _I, _F, _F, _F, _F, _F, _P, *_BANDS], None),
     "torchgi_history": ([_P] * 8 + [_I, _I, _F, _F, _F, _F, _P, _P, *_BANDS], None),
     "torchgi_backoff_planes": ([_P, _P, _P, _I, _P, _I, _I, _P, *_BANDS], None),
     "torchgi_backoff_apply": ([_P, _P, _P, _I, _P, _P, _I, _I, _F, _F, _F, _P, *_BANDS], None),

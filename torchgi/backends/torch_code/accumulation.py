@@ -77,10 +77,13 @@ def _extent(n: int, r: int, like: torch.Tensor) -> torch.Tensor:
 
 
 def change(desc: ChangeOp) -> torch.Tensor:
-    """:class:`~torchgi.backends.base.ChangeOp` by tensor ops: per window radius, the change of the
-    mean luminance (this frame's against the accumulated light's) beyond ``threshold`` sigmas of
-    the window mean's noise (``sqrt(box(spatial_var) / pixels in the window)``) drops the
+    """:class:`~torchgi.backends.base.ChangeOp` by tensor ops: per window radius, the change ``d`` of
+    the mean luminance (this frame's against the accumulated light's) beyond ``threshold`` sigmas
+    of the window mean's noise (``sqrt(box(spatial_var) / pixels in the window)``) drops the
     history, fully one sigma further, linearly between; the larger drop of the two radii counts.
+    Before the drop, the history's light and moments are scaled by ``1 + g d / before`` per radius
+    (``g = d² / (d² + (follow sigma)²)``, ``before`` the accumulated light's window mean; at most
+    4x, 1 where ``before`` is 0): its window means follow a change too small to drop it.
 
     Example:
         >>> z = lambda c: torch.zeros(1, c, 2, 2)
@@ -93,18 +96,26 @@ def change(desc: ChangeOp) -> torch.Tensor:
     acc, _, moments, length, hist_length, temporal_var, frames, lum = d.step.split([3, 3, 2, 1, 1, 1, 1, 1], 1)
     if d.near is not None:
         H, W = d.x.shape[-2:]
-        drop = torch.zeros_like(lum)
+        drop, scale = torch.zeros_like(lum), torch.ones_like(lum)
         for boxed, r in ((d.near, d.radii[0]), (d.wide, d.radii[1])):
             now, before, var = boxed.split(1, 1)
             # over the window's pixels; the box's sums can cancel below 0
-            sigma = torch.sqrt(var.clamp_min(0) / (_extent(H, r, d.x)[:, None] * _extent(W, r, d.x)))
-            beyond = ((now - before).abs() - d.threshold * sigma) / sigma.clamp_min(torch.finfo(d.x.dtype).tiny)
+            sigma2 = var.clamp_min(0) / (_extent(H, r, d.x)[:, None] * _extent(W, r, d.x))
+            sigma, change = torch.sqrt(sigma2), now - before
+            beyond = (change.abs() - d.threshold * sigma) / sigma.clamp_min(torch.finfo(d.x.dtype).tiny)
             drop = torch.maximum(drop, beyond.clamp(0, 1))  # without noise (sigma 0) any change drops
-        drop = drop * (hist_length > 0)
-        acc = acc + drop * (light.scaled_to(d.x, d.x.amax(1, keepdim=True), d.bound) - acc)
-        moments = moments + drop * (torch.cat([lum, lum * lum], 1) - moments)
-        length = length + drop * (1 - length)
-        frames = frames + drop * (1 - frames)
+            if d.follow > 0:
+                gain = change.square() / (change.square() + d.follow ** 2 * sigma2).clamp_min(torch.finfo(d.x.dtype).tiny)
+                scale = scale * torch.where(before > 0, 1 + gain * change / torch.where(before > 0, before, 1.0),
+                                            1.0).clamp(0, 4)
+        old = hist_length > 0
+        drop, scale = drop * old, torch.where(old, scale, 1.0)
+        acc, moments = acc * scale, moments * torch.cat([scale, scale * scale], 1)
+        # (1 - drop) h + drop x: this frame's values exactly at a full drop (h + drop (x - h) cancels)
+        keep = 1 - drop
+        acc = keep * acc + drop * light.scaled_to(d.x, d.x.amax(1, keepdim=True), d.bound)
+        moments = keep * moments + drop * torch.cat([lum, lum * lum], 1)
+        length, frames = keep * length + drop, keep * frames + drop
         temporal_var = (moments[:, 1:2] - moments[:, :1].square()).clamp_min(0)
     var = torch.where(length >= d.variance_history, temporal_var, d.spatial_var)
     color = acc * light.demodulator(d.albedo, d.surface) + d.emission
