@@ -391,8 +391,9 @@ def test_disoccluded_pixels_are_no_worse_than_the_per_frame_denoiser(size):
     # same normal, within half a pixel footprint of its plane) were hidden before; they must start
     # a new history. At 64 px the per-frame Denoiser fills them (measured 0.0145 against its own
     # 0.0153; without the fill 0.0190 fails); at 256 px fewer than TEMPORAL.fresh_share of the
-    # pixels are new, so the temporal filter itself serves them (0.00772 against 0.00776). With
-    # the history never rejected both sizes fail the length check.
+    # pixels are new, so the temporal filter at TEMPORAL.short_radius fills them (0.00699 against
+    # 0.00776, asserted below 0.95x; with the temporal filter itself, as before it, 0.00772 fails).
+    # With the history never rejected both sizes fail the length check.
     scene = sliding_cornell(size, shift=240.0)
     gbs = list(torchgi.render_sequence(scene, 3, spp=1, seed=2))
     den = TemporalDenoiser()
@@ -422,7 +423,7 @@ def test_disoccluded_pixels_are_no_worse_than_the_per_frame_denoiser(size):
     def err(x):
         return float(((x - ref).square() / (ref.square() + 1e-2))[mask].mean())
 
-    assert err(out) <= err(per_frame)
+    assert err(out) <= (1.0 if size < 256 else 0.95) * err(per_frame)
 
 
 def test_a_cut_drops_the_history_in_that_frame():

@@ -144,6 +144,10 @@ class TemporalSettings:
     fresh_share: float = _setting(0.5, 0.0, 1.0, "share of pixels",
                                   "from 256 px, the per-frame Denoiser fills new pixels only when at least this share "
                                   "of the frame is new (a first frame, a cut): as good as a single frame")
+    short_radius: int = _setting(4, 1, 64, "px",
+                                 "from 256 px, in other frames short histories are blended towards the guided filter "
+                                 "at this radius (and eps) on the accumulated light (tuning sequences: new pixels' "
+                                 "relMSE 0.0188 against 0.0279 at radius 2)")
     output_alpha: float = _setting(0.2, 0.0, 1.0, "weight of the new frame",
                                    "exponential average of the filtered output (temporal anti-flicker)")
     clamp: float = _setting(0.1, 0.0, math.inf, "x noise variance",

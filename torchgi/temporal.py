@@ -21,10 +21,12 @@ Each frame, on the light demodulated by albedo (``(color - emission) / albedo`` 
    sigma)²)`` of their change ``d``: a light changing a little each frame does not lag.
 4. **Spatial filter**: the guided Denoiser pipeline (normal + depth guide, light sources passed
    untouched) on the accumulated light, at ``TEMPORAL.radius`` and ``TEMPORAL.eps``: the light
-   averages several frames, so a narrower, sharper filter than the per-frame Denoiser's. In
-   images below ``GUIDED.subsample_from`` px on the short side, where the history is shorter than
-   ``TEMPORAL.variance_history`` frames the result is blended towards the per-frame Denoiser's
-   (weight 1 for a new pixel), so a revealed region is filtered as a single frame would be.
+   averages several frames, so a narrower, sharper filter than the per-frame Denoiser's. Where
+   the history is shorter than ``TEMPORAL.variance_history`` frames the result is blended (weight
+   1 for a new pixel) towards the per-frame Denoiser's in images below ``GUIDED.subsample_from``
+   px on the short side and in frames where at least ``TEMPORAL.fresh_share`` of the pixels are
+   new (a first frame, a cut), so a revealed region is filtered as a single frame would be; in
+   the other frames towards the same guided filter at ``TEMPORAL.short_radius``.
 5. **Output history**: the filtered light of the previous frame, reprojected as in 2, clamped to
    within ``sqrt(TEMPORAL.clamp x variance / frames)`` of this frame's filtered light (the noise
    the accumulated light still has), then averaged with weight ``max(1 / length,
@@ -97,14 +99,17 @@ Spatial = Callable[..., torch.Tensor]
 
 
 def _blend_fresh(out: torch.Tensor, length: torch.Tensor, inputs: dict[str, torch.Tensor | None],
-                 fresh: Spatial, share: float) -> torch.Tensor:
+                 fresh: Spatial, share: float, short: Spatial | None = None) -> torch.Tensor:
     """``out`` where the history is long; where it is shorter than ``TEMPORAL.variance_history``
     frames, blended towards ``fresh`` (the per-frame Denoiser) of the same inputs, weight 1 for a
-    new pixel; only when at least ``share`` of the pixels are new (0: always). Eager calls filter
-    only the rows and columns around such pixels (and the filter's reach)."""
+    new pixel; only when at least ``share`` of the pixels are new (0: always), else towards
+    ``short`` (None: not blended). Eager calls filter only the rows and columns around such pixels
+    (and the filter's reach)."""
     recording = is_recording()
-    if not recording and share > 0 and float((length == 1).float().mean()) < share:  # most frames: nothing else to do
-        return out
+    if not recording and share > 0 and float((length == 1).float().mean()) < share:  # most frames
+        if short is None:
+            return out
+        fresh = short
     w = ((TEMPORAL.variance_history - length) / max(TEMPORAL.variance_history - 1, 1)).clamp(0, 1)
     if recording:
         return out + w * (fresh(**inputs) - out)
@@ -127,7 +132,7 @@ def temporal_step(
     color: torch.Tensor, albedo: torch.Tensor, normal: torch.Tensor, depth: torch.Tensor, motion: torch.Tensor,
     state: TemporalState | None = None, *, emission: torch.Tensor | None = None, hit: torch.Tensor | None = None,
     spatial: Spatial | None = None, fresh: Spatial | None = None, fresh_share: float = 0.0,
-    spatial_spp: torch.Tensor | None = None, workspace: dict | None = None,
+    short: Spatial | None = None, spatial_spp: torch.Tensor | None = None, workspace: dict | None = None,
 ) -> tuple[torch.Tensor, TemporalState]:
     """One frame of temporal denoising (module docstring), stateless: ``(output, next_state)``.
 
@@ -149,6 +154,10 @@ def temporal_step(
             and ``TEMPORAL.fresh_share`` above it (a first frame, a cut: above 256 px the
             accumulated light's own filter measured better on new pixels amid old ones,
             docs/temporal.md).
+        short: in the frames where ``fresh`` is not used (fewer new pixels than ``fresh_share``),
+            the filter short histories are blended towards in the same way (called as
+            ``spatial``), or None: none. :class:`TemporalDenoiser` passes the guided filter at
+            ``TEMPORAL.short_radius`` from 256 px on the short side.
         spatial_spp: ``(B,1,H,W)`` int samples per pixel of one frame; given, ``spatial`` is also
             called with ``spp``: this times the frames the accumulated light averages per pixel
             (what a learned spatial filter reads as its noise level). None: not passed.
@@ -199,7 +208,7 @@ def temporal_step(
     else:
         out = spatial(**inputs, spp=(spatial_spp * frames).round().clamp_min(1).to(torch.int64))
     if fresh is not None:
-        out = _blend_fresh(out, length, inputs, fresh, fresh_share)
+        out = _blend_fresh(out, length, inputs, fresh, fresh_share, short)
     # the output history (demodulated), within sqrt(clamp x the accumulated light's noise variance) of this frame's;
     # its weight follows the history length after the change test's drop
     lit, image = backends.run(backends.HistoryOp(out, emission, albedo, surface, box(spread, 1), hist_out,
@@ -259,6 +268,7 @@ class TemporalDenoiser(torch.nn.Module):
         self.spatial = (Denoiser("guided", radius=TEMPORAL.radius, eps=TEMPORAL.eps, subsample=1)
                         if spatial == "guided" else Denoiser(spatial))
         self.fresh = Denoiser("guided")
+        self.short = Denoiser("guided", radius=TEMPORAL.short_radius, eps=TEMPORAL.eps, subsample=1)
 
     def reset(self) -> None:
         """Forget the history: the next frame is filtered as a first frame."""
@@ -274,13 +284,15 @@ class TemporalDenoiser(torch.nn.Module):
         if s is not None and (s.light.shape != color.shape or s.light.dtype != color.dtype
                               or s.light.device != color.device):
             s = None
-        share = 0.0 if min(color.shape[-2:]) < GUIDED.subsample_from else TEMPORAL.fresh_share
+        small = min(color.shape[-2:]) < GUIDED.subsample_from
+        share = 0.0 if small else TEMPORAL.fresh_share
         spp = None
         if self.spatial_method != "guided":
             spp = gb.spp if gb.spp is not None else torch.ones_like(gb.depth, dtype=torch.int64)
         out, self.state = temporal_step(color, gb.albedo, gb.normal, gb.depth, gb.motion, s, emission=emission,
                                         hit=gb.hit, spatial=_checked(self.spatial), fresh=_checked(self.fresh),
-                                        fresh_share=share, spatial_spp=spp, workspace=self._workspace)
+                                        fresh_share=share, short=None if small else _checked(self.short),
+                                        spatial_spp=spp, workspace=self._workspace)
         return out
 
 
