@@ -121,10 +121,12 @@ def _blend_fresh(out: torch.Tensor, length: torch.Tensor, inputs: dict[str, torc
     H, W = out.shape[-2:]
     r0, r1 = max(int(r[0]) - halo, 0), min(int(r[-1]) + halo + 1, H)
     c0, c1 = max(int(c[0]) - halo, 0), min(int(c[-1]) + halo + 1, W)
+    if 2 * (r1 - r0) * (c1 - c0) >= H * W:  # copying the inputs' window would cost more than the rest of the frame
+        return torch.lerp(out, fresh(**inputs), w)
     win = (..., slice(r0, r1), slice(c0, c1))
     wide = fresh(**{k: None if v is None else v[win] for k, v in inputs.items()})
     out = out.clone()
-    out[win] = out[win] + w[win] * (wide - out[win])
+    out[win] = torch.lerp(out[win], wide, w[win])
     return out
 
 
