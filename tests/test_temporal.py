@@ -426,6 +426,20 @@ def test_disoccluded_pixels_are_no_worse_than_the_per_frame_denoiser(size):
     assert err(out) <= (1.0 if size < 256 else 0.95) * err(per_frame)
 
 
+def test_the_two_guided_passes_sharing_scratch_buffers_change_nothing():
+    # From 256 px the short-history pass (TEMPORAL.short_radius) runs after the accumulated
+    # light's pass on the same scratch buffers: every frame's output is bit for bit that of a
+    # TemporalDenoiser whose short pass has buffers of its own (a result left in a shared buffer
+    # and overwritten by the other pass would show here).
+    shared, apart = TemporalDenoiser(), TemporalDenoiser()
+    apart.short._workspace = {}
+    assert shared.short._workspace is shared.spatial._workspace
+    for k, gb in enumerate(_sequence(256, 4)):
+        a, b = shared(gb), apart(gb)
+        assert torch.equal(a, b), k
+    assert float((shared.state.length < 4).float().mean()) > 0.005  # short histories were filtered
+
+
 def test_a_cut_drops_the_history_in_that_frame():
     den = TemporalDenoiser()
     for gb in _sequence(24, 3):

@@ -158,7 +158,7 @@ def temporal_step(
             docs/temporal.md).
         short: in the frames where ``fresh`` is not used (fewer new pixels than ``fresh_share``),
             the filter short histories are blended towards in the same way (called as
-            ``spatial``), or None: none. :class:`TemporalDenoiser` passes the guided filter at
+            ``spatial``; only with ``fresh`` given), or None: none. :class:`TemporalDenoiser` passes the guided filter at
             ``TEMPORAL.short_radius`` from 256 px on the short side.
         spatial_spp: ``(B,1,H,W)`` int samples per pixel of one frame; given, ``spatial`` is also
             called with ``spp``: this times the frames the accumulated light averages per pixel
@@ -271,6 +271,8 @@ class TemporalDenoiser(torch.nn.Module):
                         if spatial == "guided" else Denoiser(spatial))
         self.fresh = Denoiser("guided")
         self.short = Denoiser("guided", radius=TEMPORAL.short_radius, eps=TEMPORAL.eps, subsample=1)
+        if spatial == "guided":  # one pipeline's scratch buffers for both (they run in turn; results are new tensors)
+            self.short._workspace = self.spatial._workspace
 
     def reset(self) -> None:
         """Forget the history: the next frame is filtered as a first frame."""
