@@ -118,8 +118,9 @@ def test_other_renderers_sequences_denoise_as_torchgis_own(sequence, tmp_path, c
     passes that on: at most 1.5e-3 of the largest value; relMSE against the reference the same
     to 1e-6 relative, asserted to 1e-3); with the wrong convention forced by ``--motion-convention`` the
     error against a 256 spp reference is visibly higher (measured: 1.58x for the Cycles file, 1.20x for
-    the Arnold one, whose x sign alone differs from torchgi's; 1.94x and 1.42x before the history
-    followed this frame's window means, ``TEMPORAL.follow``, and the output history's weight the drop)."""
+    the Arnold one, whose x sign alone differs from torchgi's; 1.94x and 1.42x when first measured,
+    before the history followed this frame's window means, ``TEMPORAL.follow``, and the output
+    history's weight the drop)."""
     scene, frames, refs = sequence
     mine = _write(tmp_path / "torchgi", frames, scene, "torchgi")
     theirs = _write(tmp_path / convention, frames, scene, convention)
