@@ -589,6 +589,23 @@ def test_accumulation_measurably_beats_no_accumulation(monkeypatch):
     assert accumulated < 0.8 * last_error()  # measured 0.74x
 
 
+def _flat_surface(lights: list[torch.Tensor]):
+    """:func:`temporal_step` under a still camera over a flat surface (albedo 0.5, normal +z, depth
+    1) lit by each ``(1, 1, H, W)`` light of ``lights`` in turn, with +-25 % noise (seed 0):
+    yields ``(out, state)`` per frame."""
+    g = torch.Generator().manual_seed(0)
+    _, _, H, W = lights[0].shape
+    albedo = torch.full((1, 3, H, W), 0.5)
+    normal = torch.zeros(1, 3, H, W)
+    normal[:, 2] = 1.0
+    depth, motion = torch.ones(1, 1, H, W), torch.zeros(1, 2, H, W)
+    state = None
+    for lit in lights:
+        color = albedo * lit * (0.75 + 0.5 * torch.rand(1, 3, H, W, generator=g))
+        out, state = temporal_step(color, albedo, normal, depth, motion, state)
+        yield out, state
+
+
 def test_history_is_dropped_where_the_light_changed_and_kept_elsewhere(monkeypatch):
     """A still camera over a flat surface lit evenly for ten frames; then the light on the right
     half doubles (a moving shadow's edge, a light turned up). Two frames later the right half is
@@ -603,19 +620,10 @@ def test_history_is_dropped_where_the_light_changed_and_kept_elsewhere(monkeypat
     from torchgi import temporal
 
     def run() -> tuple[torch.Tensor, TemporalState]:
-        g = torch.Generator().manual_seed(0)
-        H, W = 40, 96
-        albedo = torch.full((1, 3, H, W), 0.5)
-        normal = torch.zeros(1, 3, H, W)
-        normal[:, 2] = 1.0
-        depth, motion = torch.ones(1, 1, H, W), torch.zeros(1, 2, H, W)
-        state = None
-        for k in range(12):
-            lit = torch.ones(1, 1, H, W)
-            if k >= 10:
-                lit[..., W // 2:] = 2.0
-            color = albedo * lit * (0.75 + 0.5 * torch.rand(1, 3, H, W, generator=g))
-            out, state = temporal_step(color, albedo, normal, depth, motion, state)
+        lights = [torch.ones(1, 1, 40, 96) for _ in range(12)]
+        for lit in lights[10:]:
+            lit[..., 48:] = 2.0
+        for k, (out, state) in enumerate(_flat_surface(lights)):
             if k == 10:
                 first.append(float(out[..., 56:].mean() / 0.5))
         return out, state
@@ -643,18 +651,9 @@ def test_a_light_changing_a_little_each_frame_is_followed_without_dropping_the_h
     from torchgi import temporal
 
     def run() -> tuple[float, float]:
-        g = torch.Generator().manual_seed(0)
-        H, W = 40, 96
-        albedo = torch.full((1, 3, H, W), 0.5)
-        normal = torch.zeros(1, 3, H, W)
-        normal[:, 2] = 1.0
-        depth, motion = torch.ones(1, 1, H, W), torch.zeros(1, 2, H, W)
-        state = None
-        for k in range(30):
-            lit = 1 + 0.004 * k
-            color = albedo * lit * (0.75 + 0.5 * torch.rand(1, 3, H, W, generator=g))
-            out, state = temporal_step(color, albedo, normal, depth, motion, state)
-        return float(out.mean() / 0.5 / lit), float(state.length.mean())
+        lights = [torch.full((1, 1, 40, 96), 1 + 0.004 * k) for k in range(30)]
+        *_, (out, state) = _flat_surface(lights)
+        return float(out.mean() / 0.5 / lights[-1][0, 0, 0, 0]), float(state.length.mean())
 
     level, length = run()
     assert abs(level - 1) < 0.01 and length > 25
