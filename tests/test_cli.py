@@ -157,6 +157,9 @@ def test_denoise_command_on_a_mitsuba_render(tmp_path, capsys, monkeypatch):
     assert main(["denoise", str(tmp_path / "noisy.exr"), "--out", str(out)]) == 2  # never overwrites
     err = capsys.readouterr().err
     assert f"--out: {out} exists; pass --overwrite" in err and "overwrite=True" not in err  # the flag, not Python
+    for flag in (["--no-short-pass"], ["--motion-convention", "cycles"]):  # the TemporalDenoiser's flags
+        assert main(["denoise", str(tmp_path / "noisy.exr"), *flag, "--out", str(tmp_path / "x.exr")]) == 2
+        assert f"{flag[0]}: only with --temporal" in capsys.readouterr().err
 
 
 def _sequence_files(folder, frames: int = 4):
@@ -200,6 +203,8 @@ def test_temporal_denoise_command_gives_the_python_call_bit_for_bit_and_resumes(
     assert [r["kept"] for r in json.loads((out / "summary.json").read_text())["frames"]] == [True, True, False, True]
     capsys.readouterr()
     assert main(args + ["--sanitize"]) == 2 and "other settings" in capsys.readouterr().err
+    assert main(args + ["--no-short-pass"]) == 2 and "other settings" in capsys.readouterr().err
+    assert summary["settings"]["short_pass"] is True
     stranger = tmp_path / "stranger"
     stranger.mkdir()
     (stranger / "seq_0001.exr").write_bytes((frames / "seq_0001.exr").read_bytes())

@@ -430,14 +430,19 @@ def test_the_two_guided_passes_sharing_scratch_buffers_change_nothing():
     # From 256 px the short-history pass (TEMPORAL.short_radius) runs after the accumulated
     # light's pass on the same scratch buffers: every frame's output is bit for bit that of a
     # TemporalDenoiser whose short pass has buffers of its own (a result left in a shared buffer
-    # and overwritten by the other pass would show here).
-    shared, apart = TemporalDenoiser(), TemporalDenoiser()
+    # and overwritten by the other pass would show here). short_pass=False skips the pass: the
+    # first frame (mostly new: the per-frame Denoiser fills it) is the same, the next ones are not.
+    shared, apart, skip = TemporalDenoiser(), TemporalDenoiser(), TemporalDenoiser(short_pass=False)
     apart.short._workspace = {}
-    assert shared.short._workspace is shared.spatial._workspace
+    assert shared.short._workspace is shared.spatial._workspace and skip.short is None
     for k, gb in enumerate(_sequence(256, 4)):
-        a, b = shared(gb), apart(gb)
+        a, b, c = shared(gb), apart(gb), skip(gb)
         assert torch.equal(a, b), k
+        assert torch.equal(a, c) == (k == 0), k
     assert float((shared.state.length < 4).float().mean()) > 0.005  # short histories were filtered
+    assert "short_pass=False" in repr(skip)
+    with pytest.raises(TypeError, match="short_pass"):
+        TemporalDenoiser(short_pass="no")
 
 
 def test_a_cut_drops_the_history_in_that_frame():

@@ -248,6 +248,10 @@ class TemporalDenoiser(torch.nn.Module):
             ``TEMPORAL.eps``) or a learned Denoiser method, ``"pyramid"`` or ``"blend"``, told the
             frames' samples times the frames each pixel's accumulated light averages
             (docs/temporal.md: slower, more accurate on the tuning sequence).
+        short_pass: from 256 px on the short side, blend histories shorter than
+            ``TEMPORAL.variance_history`` frames towards the guided filter at
+            ``TEMPORAL.short_radius`` (True, the default), or skip that second guided pass (False:
+            about 1.4x faster per frame, new pixels noisier; docs/temporal.md, "Short histories").
         sanitize: NaN/Inf in ``color`` or ``emission`` raises :class:`~torchgi.core.NonFiniteError`
             naming it (False) or is replaced by 0 with a warning (True); the guides must be finite.
 
@@ -259,10 +263,12 @@ class TemporalDenoiser(torch.nn.Module):
         torch.Size([1, 3, 16, 16])
     """
 
-    def __init__(self, *, spatial: str = "guided", sanitize: bool = False) -> None:
+    def __init__(self, *, spatial: str = "guided", short_pass: bool = True, sanitize: bool = False) -> None:
 
         super().__init__()
         check_option(spatial, "spatial", SPATIAL)
+        if not isinstance(short_pass, bool):
+            raise TypeError(f"short_pass: expected True or False, got {short_pass!r}")
         self.sanitize, self.spatial_method = sanitize, spatial
         self.state: TemporalState | None = None
         self._workspace: dict = {}  # the kernels' buffers between frames (the state lives in them)
@@ -270,8 +276,10 @@ class TemporalDenoiser(torch.nn.Module):
         self.spatial = (Denoiser("guided", radius=TEMPORAL.radius, eps=TEMPORAL.eps, subsample=1)
                         if spatial == "guided" else Denoiser(spatial))
         self.fresh = Denoiser("guided")
-        self.short = Denoiser("guided", radius=TEMPORAL.short_radius, eps=TEMPORAL.eps, subsample=1)
-        if spatial == "guided":  # one pipeline's scratch buffers for both (they run in turn; results are new tensors)
+        self.short = (Denoiser("guided", radius=TEMPORAL.short_radius, eps=TEMPORAL.eps, subsample=1)
+                      if short_pass else None)
+        if spatial == "guided" and self.short is not None:
+            # one pipeline's scratch buffers for both (they run in turn; results are new tensors)
             self.short._workspace = self.spatial._workspace
 
     def reset(self) -> None:
@@ -279,7 +287,7 @@ class TemporalDenoiser(torch.nn.Module):
         self.state = None
 
     def extra_repr(self) -> str:
-        return f"spatial={self.spatial_method!r}, sanitize={self.sanitize}"
+        return f"spatial={self.spatial_method!r}, short_pass={self.short is not None}, sanitize={self.sanitize}"
 
     def forward(self, gb: GBuffer | None = None, **tensors: torch.Tensor) -> torch.Tensor:
         gb = _check_inputs(GBuffer.from_inputs(gb, tensors, by="TemporalDenoiser"))
@@ -290,13 +298,13 @@ class TemporalDenoiser(torch.nn.Module):
             s = None
         small = min(color.shape[-2:]) < GUIDED.subsample_from
         share = 0.0 if small else TEMPORAL.fresh_share
+        short = None if small or self.short is None else _checked(self.short)
         spp = None
         if self.spatial_method != "guided":
             spp = gb.spp if gb.spp is not None else torch.ones_like(gb.depth, dtype=torch.int64)
         out, self.state = temporal_step(color, gb.albedo, gb.normal, gb.depth, gb.motion, s, emission=emission,
                                         hit=gb.hit, spatial=_checked(self.spatial), fresh=_checked(self.fresh),
-                                        fresh_share=share, short=None if small else _checked(self.short),
-                                        spatial_spp=spp, workspace=self._workspace)
+                                        fresh_share=share, short=short, spatial_spp=spp, workspace=self._workspace)
         return out
 
 
