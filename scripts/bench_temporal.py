@@ -21,7 +21,8 @@ over short histories (``short_pass=False``) and with the learned pyramid as its 
 from frame ``--warmup`` on: mean relMSE, tRMAE and tPSNR (:func:`torchgi.metrics.temporal`).
 Time per frame (median over the frames after the first, 2 threads, this process) is measured on
 the same sequences re-rendered at each of ``--time-sizes`` (1 spp, no reference; ``--time-only``:
-this part alone). Writes
+this part alone): their first ``--time-frames`` frames at the spacing of ``--frames`` (a frame
+moves as far as in the accuracy part; before run 9 the time frames spanned the whole animation). Writes
 ``temporal.csv/json/md``, ``temporal_frames.csv``, ``temporal_<sequence>.png`` (error over
 frames) and ``temporal_<sequence>.gif`` (noisy | Denoiser | OIDN | OIDN (em.) | TemporalDenoiser |
 without the short pass | with the learned pyramid as its spatial filter | reference).
@@ -30,6 +31,7 @@ without the short pass | with the learned pyramid as its spatial filter | refere
 from __future__ import annotations
 
 import argparse
+import itertools
 import statistics
 import sys
 import time
@@ -77,14 +79,19 @@ def sequence(name: str, size: int | str) -> torchgi.render.Scene:
     return torchgi.load_scene(CONFIG_SCENES / "sequences" / f"{name}.yaml").with_resolution(W, H)
 
 
-def frames(name: str, size: int | str, count: int, spp: int, seed: int, bounces: int, cache: Path) -> list:
-    """The ``count`` frames of sequence ``name`` (GBuffers) at ``size`` (:func:`resolution`), rendered once and cached."""
-    path = cache / f"{name}_{size}_{count}f_{spp}spp_b{bounces}_s{seed}.pt"
+def frames(name: str, size: int | str, count: int, spp: int, seed: int, bounces: int, cache: Path,
+           spread: int | None = None) -> list:
+    """The first ``count`` frames (GBuffers) of sequence ``name`` cut into ``spread`` frames (None:
+    ``count``; each frame's time and seed as in that many) at ``size`` (:func:`resolution`), rendered
+    once and cached."""
+    spread = spread or count
+    frames_tag = f"{count}f" if spread == count else f"{count}of{spread}f"
+    path = cache / f"{name}_{size}_{frames_tag}_{spp}spp_b{bounces}_s{seed}.pt"
     if path.exists():
         return [torchgi.GBuffer(**d) for d in torch.load(path)]
     t0 = time.perf_counter()
-    out = list(torchgi.render_sequence(sequence(name, size), count, spp=spp, bounces=bounces, seed=seed,
-                                       progress=False))
+    out = list(itertools.islice(torchgi.render_sequence(sequence(name, size), spread, spp=spp, bounces=bounces,
+                                                        seed=seed, progress=False), count))
     print(f"rendered {name} {count} frames {label(size)} at {spp} spp in {time.perf_counter() - t0:.0f} s", flush=True)
     cache.mkdir(parents=True, exist_ok=True)
     torch.save([dict(gb.items()) for gb in out], path)
@@ -205,13 +212,14 @@ def animation(name: str, outs: dict, refs: torch.Tensor, out: Path) -> None:
     iio.imwrite(out / f"temporal_{name}.gif", frames, duration=80, loop=0)
 
 
-def timing(names: list[str], sizes: list[str], count: int, bounces: int, cache: Path) -> list[dict]:
+def timing(names: list[str], sizes: list[str], count: int, spread: int, bounces: int, cache: Path) -> list[dict]:
     """ms per frame at each of ``sizes`` (median over frames 2...): the methods one after another
-    on the same frames, per sequence."""
+    on the same frames, per sequence: the first ``count`` of ``spread`` frames (the accuracy part's
+    frame spacing, so that a frame moves as far as there)."""
     rows = []
     for size in sizes:
         for name in names:
-            noisy = frames(name, size, count, 1, 1, bounces, cache)
+            noisy = frames(name, size, count, 1, 1, bounces, cache, spread)
             ms = run_sequence(noisy, methods())["ms"]
             rows.append({"sequence": name, "size": label(size), **{f"{m} ms": v for m, v in ms.items()}})
     return rows
@@ -286,7 +294,8 @@ def main() -> None:
         plot(name, pf, args.out)
         animation(name, res["outputs"], refs, args.out)
         print(markdown_table(r, COLUMNS), flush=True)
-    times = timing(args.sequences, args.time_sizes, args.time_frames, args.bounces, cache)
+    times = timing(args.sequences, args.time_sizes, args.time_frames, max(args.frames, args.time_frames), args.bounces,
+                   cache)
     meta = metadata(args.threads) | {"args": {k: str(v) for k, v in vars(args).items()}}
     write_results(rows, meta, args.out, "temporal")
     write_results(per_frame, meta, args.out, "temporal_frames")
