@@ -116,7 +116,8 @@ def _blend_fresh(out: torch.Tensor, length: torch.Tensor, inputs: dict[str, torc
     rows, cols = w.amax((0, 1, 3)) > 0, w.amax((0, 1, 2)) > 0
     if not bool(rows.any()):
         return out
-    halo = 4 * GUIDED.radius + 2 * PIPELINE.firefly_radius + 4  # the box of the box, the firefly window
+    # the box of the box of the wider of the two filters, the firefly window
+    halo = 4 * max(GUIDED.radius, TEMPORAL.short_radius) + 2 * PIPELINE.firefly_radius + 4
     r, c = rows.nonzero()[:, 0], cols.nonzero()[:, 0]
     H, W = out.shape[-2:]
     r0, r1 = max(int(r[0]) - halo, 0), min(int(r[-1]) + halo + 1, H)
