@@ -624,23 +624,21 @@ def test_history_is_dropped_where_the_light_changed_and_kept_elsewhere(monkeypat
 
     from torchgi import temporal
 
-    def run() -> tuple[torch.Tensor, TemporalState]:
+    def run() -> tuple[torch.Tensor, TemporalState, float]:
+        """The last frame's output and state, and the right half's light in the frame of the change."""
         lights = [torch.ones(1, 1, 40, 96) for _ in range(12)]
         for lit in lights[10:]:
             lit[..., 48:] = 2.0
-        for k, (out, state) in enumerate(_flat_surface(lights)):
-            if k == 10:
-                first.append(float(out[..., 56:].mean() / 0.5))
-        return out, state
+        outs = list(_flat_surface(lights))
+        return *outs[-1], float(outs[10][0][..., 56:].mean() / 0.5)
 
-    first: list[float] = []
-    out, state = run()
-    assert abs(first[0] - 2.0) < 0.02
+    out, state, first = run()
+    assert abs(first - 2.0) < 0.02
     right, left = out[..., 56:].mean() / 0.5, out[..., :24].mean() / 0.5
     assert abs(float(right) - 2.0) < 0.1 and abs(float(left) - 1.0) < 0.05
     assert int(state.length[..., :24].min()) == 12 and int(state.length[..., 56:].max()) <= 3
     monkeypatch.setattr(temporal, "TEMPORAL", dataclasses.replace(temporal.TEMPORAL, change_threshold=0.0))
-    lagging, _ = run()
+    lagging, _, _ = run()
     assert float(lagging[..., 56:].mean() / 0.5) < 1.5
 
 
