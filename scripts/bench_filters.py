@@ -5,10 +5,10 @@ and accuracy against a float64 oracle. Writes CSV/JSON/Markdown and a PNG plot.
     python scripts/bench_filters.py --quick --out out/bench    # smoke run
     python scripts/bench_filters.py --only atrous --out out/bench
 
-Sections: guided (DESIGN §3.2, issue 5) at 1024x768 / 1080p / 4K, guide dims 1/3/4, r = 8..64,
+Sections: guided (docs/design.md, Guided filter; issue 5) at 1024x768 / 1080p / 4K, guide dims 1/3/4, r = 8..64,
 the compiled kernels (the default on the CPU, ``torchgi.backends``) and the torch code
 side by side, kornia guided_blur(separable=True) at the same window, flatness in r, accuracy
-with offset guides; À-Trous (DESIGN §3.1, issue 4) with the compiled kernel, torch eager and
+with offset guides; À-Trous (docs/design.md, À-Trous; issue 4) with the compiled kernel, torch eager and
 ``torch.compile`` (fused), 512² / 1024x768 / 1080p, 1/5/10 iterations, 0-3 weights (the shape
 of the paper's Table 2), the time of the bare exponentials side by side, the first-call cost of
 both compiled forms, peak extra memory, and the brute-force cross-bilateral and kornia

@@ -1,7 +1,7 @@
 """Render benchmark: samples/s of torchgi and of Mitsuba 3 ``scalar_rgb`` on the same scenes,
 bounces and spp, side by side in one run; a 1080p case; the whole call (start-up included) of a
 96x96 256 spp render of a scene with a Stanford mesh; where the time goes; and the time with and
-without each skip of DESIGN §4.
+without each skip of docs/design.md (Skips).
 
     python scripts/bench_render.py --out out/bench                 # full run (about 15 minutes)
     python scripts/bench_render.py --quick --out out/bench         # smoke run
@@ -164,7 +164,7 @@ def profile(name: str, size: int, bounces: int, spp: int) -> dict:
 
 
 SKIP_CASES = [
-    # (skip of DESIGN §4, scene, bounces): timed with every skip on, and with all but this one
+    # (skip of docs/design.md Skips, scene, bounces): timed with every skip on, and with all but this one
     ("absent_lights", "cornell", 1),
     ("dead_paths", "sky", 1),
     ("dead_paths", "grass", 1),
@@ -236,7 +236,7 @@ def main() -> None:
         hd = torchgi.scenes.cornell(512).with_resolution(1920, 1080)
         rows.append(peers("cornell", hd, 1, 16, 3, mi, False))
     call_rows = []
-    if any(n == "bunny_box" for n in dict(available_scenes(["bunny_box"], 8))):  # the shared meshes are here
+    if any(n == "bunny_box" for n in dict(available_scenes(["bunny_box"], 8))):  # its meshes are under the mesh root
         call_rows.append(whole_call(CONFIG_SCENES / "bunny_box.yaml", 32 if args.quick else 256,
                                     1 if args.quick else 5))
     profile_rows = [profile(n, 128 if args.quick else 256, b, args.spp) for n, _ in found for b in (1, 3)]

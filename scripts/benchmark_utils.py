@@ -128,8 +128,8 @@ def scene_sets() -> dict[str, list[str]]:
 
 
 def available_scenes(names: list[str], size: int):
-    """``(name, scene)`` for each name that loads; a scene whose mesh files are absent (the
-    shared meshes beside the checkout) is reported and skipped."""
+    """``(name, scene)`` for each name that loads; a scene whose mesh files are absent (a
+    ``TORCHGI_MESHES`` folder without them) is reported and skipped."""
     for name in names:
         try:
             yield name, load_scene(name, size)

@@ -4,7 +4,7 @@ of two trees (e.g. before and after a refactor):
     python scripts/capture_outputs.py --out out/capture-after.pt
     python scripts/capture_outputs.py --compare out/capture-before.pt out/capture-after.pt
 
-Renders cornell, cornell_glossy, sky, grass (and bunny where the shared meshes are) at 1 and 4 spp
+Renders cornell, cornell_glossy, sky, grass (and bunny where its mesh loads) at 1 and 4 spp
 on the CPU, then runs: ``Denoiser`` guided / atrous / bilateral / none at every quality (and
 guided with subsample 2), its deployed guided and À-Trous modules, ``supersample``; renders at
 5 bounces (Russian roulette) and with the basic integrator;

@@ -1,4 +1,4 @@
-"""Shared fixtures: ``device`` and ``dtype`` (STYLE habit 5).
+"""Shared fixtures: ``device`` and ``dtype``, and ``meshes_dir`` (the package's meshes).
 
 Choose with ``--device cpu,cuda`` / ``--dtype float32,float16`` or the environment variables
 ``TORCHGI_TEST_DEVICE`` / ``TORCHGI_TEST_DTYPE`` (comma-separated). Defaults: cpu, float32.
@@ -8,10 +8,12 @@ A requested device that is absent is skipped, never silently replaced.
 from __future__ import annotations
 
 import os
-import subprocess
+from pathlib import Path
 
 import pytest
 import torch
+
+import torchgi
 
 _DTYPES = {"float16": torch.float16, "bfloat16": torch.bfloat16, "float32": torch.float32, "float64": torch.float64}
 
@@ -57,33 +59,14 @@ def tol(dtype: torch.dtype) -> tuple[float, float]:
     return TOL[dtype]
 
 
-def _find_meshes() -> str | None:
-    """The shared mesh folder: :func:`torchgi.render.mesh_root` ($TORCHGI_MESHES, else
-    ``shared/data/meshes`` beside the checkout) when it exists, else (a clone made from a local
-    checkout) the one beside that checkout."""
-    from torchgi.render import mesh_root
-
-    if os.environ.get("TORCHGI_MESHES") or mesh_root().is_dir():
-        return str(mesh_root()) if mesh_root().is_dir() else None
-    here = os.path.dirname(os.path.abspath(__file__))
-    try:
-        origin = subprocess.run(["git", "config", "--get", "remote.origin.url"], capture_output=True, text=True,
-                                cwd=here, timeout=10, check=False).stdout.strip()
-    except (OSError, subprocess.SubprocessError):
-        return None
-    candidate = os.path.join(os.path.dirname(os.path.abspath(origin)), "shared", "data", "meshes") if origin else ""
-    return candidate if origin and os.path.isdir(origin) and os.path.isdir(candidate) else None
-
-
-MESHES = _find_meshes()
-if MESHES is not None:  # scene files name their shared meshes relative to this root
-    os.environ["TORCHGI_MESHES"] = MESHES
-NO_MESHES = "the shared mesh folder is absent: set TORCHGI_MESHES to the folder of the shared meshes"
+# The meshes made by others that ship in the package (torchgi/meshes), the default mesh root of
+# scene files' ``mesh:`` entries. Tests read these copies: a TORCHGI_MESHES set outside is dropped
+# (a test that needs it sets it with monkeypatch).
+MESHES = str(Path(torchgi.__file__).resolve().parent / "meshes")
+os.environ.pop("TORCHGI_MESHES", None)
 
 
 @pytest.fixture(scope="session")
 def meshes_dir() -> str:
-    """Real meshes made by others (never copied into the project); skipped when absent."""
-    if MESHES is None:
-        pytest.skip(NO_MESHES)
+    """The package's meshes made by others (the Cornell box and the Stanford models)."""
     return MESHES

@@ -85,12 +85,9 @@ def check_weights_provenance(weights, script: str, load) -> None:
     """A shipped weights file (:meth:`save` JSON of a learned filter) is small, loads to its own
     config with ``load``, comes from a clean commit by ``script``, names its data by a SHA-256,
     and was trained on scenes that are none of the tuning or judged scenes, compared by geometry
-    and camera (tests/test_scene_sets.py), not by name; skips (after the other checks) when
-    some training scenes need the shared meshes."""
+    and camera (tests/test_scene_sets.py), not by name."""
     import json
     import re
-
-    import pytest
 
     from tests.test_scene_sets import SCENES, clashes, read_sets
 
@@ -103,10 +100,8 @@ def check_weights_provenance(weights, script: str, load) -> None:
     assert load(weights).config() == data["config"]
     data_gen = SCENES.parent / "data_gen"
     trained_on = [str((data_gen / s).resolve()) for s in prov["data_config"]["scenes"]]
-    found, missing = clashes({**read_sets(), "training": trained_on})
+    found = clashes({**read_sets(), "training": trained_on})
     assert not found, found
-    if missing:
-        pytest.skip(f"checked the training scenes without {missing}: they need the shared meshes (TORCHGI_MESHES)")
 
 
 def check_data_hash(weights, folder, config: str) -> None:

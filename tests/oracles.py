@@ -111,10 +111,10 @@ def scene(B, H, W, n, seed=0, noise=0.5):
 _B3 = (1 / 16, 1 / 4, 3 / 8, 1 / 4, 1 / 16)
 
 
-def atrous_oracle(  # noqa: C901, PLR0912 - the oracle is one literal loop, to be read against DESIGN §3.1
+def atrous_oracle(  # noqa: C901, PLR0912 - the oracle is one literal loop, to be read against docs/design.md, À-Trous
         color, normal=None, position=None, *, iterations, sigma_color=None, sigma_normal=0.1,
                   sigma_position=0.1, variance=None, color_weight=True, subsample=1, energy=False):
-    """DESIGN §3.1 pixel by pixel in float64 numpy (one image ``(C, H, W)``), literally:
+    """docs/design.md, À-Trous, pixel by pixel in float64 numpy (one image ``(C, H, W)``), literally:
     taps outside the image are skipped, σ_rt,i = 2^-i σ_rt, no centring or fusing."""
     import math
 

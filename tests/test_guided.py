@@ -42,7 +42,7 @@ def test_subsampled_matches_float64_oracle(s, device):
 
 @pytest.mark.parametrize("offset", [0.0, 1e3, 1e4])
 def test_full_hd_with_offset_guides(offset):
-    """DESIGN §5 / issue 5: 1920x1080, 4-channel guide, r = 24, within 1e-3 of float64."""
+    """docs/design.md, Numerics / issue 5: 1920x1080, 4-channel guide, r = 24, within 1e-3 of float64."""
     p, I = scene(1, 1080, 1920, 4, seed=3)
     I = (I + offset).float()  # the float32 input both sides see
     out = guided(p, I, radius=24, eps=0.01)

@@ -22,7 +22,7 @@ from torchgi.render.film import Film
 from torchgi.render.materials import bsdf_eval, bsdf_sample
 from torchgi.render.sampler import sample_keys, uniform
 from torchgi.render.scene import MATERIALS, Camera, Mesh, PointLight, Scene, Sky
-from torchgi.render.scene_files import load_scene, scene_from_dict
+from torchgi.render.scene_files import load_scene, mesh_root, scene_from_dict
 from torchgi.render.tiles import guide_rays_op
 
 from .oracles import mean_z, z_pass_rate
@@ -582,23 +582,32 @@ def test_workers_start_safely_after_embree_was_used_in_process(tmp_path):
     assert out.stdout.split() == ["forkserver", "True", "True"], out.stdout + out.stderr
 
 
-def test_meshes_resolve_against_the_mesh_root(tmp_path, monkeypatch):
-    """``mesh:`` is relative to $TORCHGI_MESHES; a missing one says how to set it; ``file:`` stays
-    relative to the scene file; one of the two is required."""
+def test_meshes_resolve_against_the_mesh_root(tmp_path, monkeypatch, meshes_dir):
+    """``mesh:`` is relative to the package's meshes, or to $TORCHGI_MESHES when set; a missing one
+    names the root it looked in; ``file:`` stays relative to the scene file; one of the two is
+    required."""
+    import re
     import shutil
 
+    monkeypatch.delenv("TORCHGI_MESHES", raising=False)
+    assert str(mesh_root()) == meshes_dir  # torchgi/meshes, beside the package's modules
     own = os.path.join(CONFIGS, "meshes", "sphere.obj")
     (tmp_path / "things").mkdir()
     shutil.copy(own, tmp_path / "things" / "ball.obj")
     cfg = {"camera": {"position": [0, 0, 4], "look_at": [0, 0, 0], "resolution": [8, 8]},
            "meshes": [{"mesh": "things/ball.obj", "material": {"type": "diffuse"}}]}
+    with pytest.raises(FileNotFoundError, match=r"'things/ball.obj' is not under the mesh root "
+                       + re.escape(repr(meshes_dir)) + r".*TORCHGI_MESHES overrides it"):
+        scene_from_dict(cfg)
     monkeypatch.setenv("TORCHGI_MESHES", str(tmp_path))
     assert len(scene_from_dict(cfg).meshes[0].faces) == len(scene_from_dict(
         {**cfg, "meshes": [{"file": own, "material": {"type": "diffuse"}}]}).meshes[0].faces)
-    monkeypatch.setenv("TORCHGI_MESHES", str(tmp_path / "elsewhere"))
-    with pytest.raises(FileNotFoundError, match=r"meshes\[0\]\.mesh: 'things/ball.obj'.*set TORCHGI_MESHES"):
+    elsewhere = str(tmp_path / "elsewhere")
+    monkeypatch.setenv("TORCHGI_MESHES", elsewhere)
+    with pytest.raises(FileNotFoundError, match=r"meshes\[0\]\.mesh: 'things/ball.obj' is not under the mesh root "
+                       + re.escape(repr(elsewhere)) + " named by the environment variable TORCHGI_MESHES"):
         scene_from_dict(cfg)
-    with pytest.raises(FileNotFoundError, match="set TORCHGI_MESHES"):
+    with pytest.raises(FileNotFoundError, match=re.escape(repr(elsewhere))):
         load_scene(os.path.join(CONFIGS, "cornell.yaml"))
     for entry in ({"material": {"type": "diffuse"}}, {"mesh": "a.obj", "file": own, "material": {"type": "diffuse"}}):
         with pytest.raises(ConfigError, match="exactly one of 'file'"):

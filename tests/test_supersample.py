@@ -28,7 +28,7 @@ def _random_samples(B: int, S: int, H: int, W: int, seed: int) -> tuple[EyeSampl
 
 
 def _oracle(filtered, gn, gd, eye):
-    """Per eye ray, in float64 Python loops: DESIGN §3.2's similarity over the 4 guide rays."""
+    """Per eye ray, in float64 Python loops: the similarity of docs/design.md, Supersampling, over the 4 guide rays."""
     B, C, H, W = filtered.shape
     S = eye.offset.shape[1]
     out = torch.zeros(B, S, C, H, W, dtype=torch.float64)

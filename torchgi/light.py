@@ -1,5 +1,5 @@
-"""The Denoiser's light maths (DESIGN §4): which pixels are surfaces, what light is divided by,
-which pixels are light sources, the firefly bound, the scene's light level and the whole
+"""The Denoiser's light maths (docs/design.md, Denoiser pipeline): which pixels are surfaces, what
+light is divided by, which pixels are light sources, the firefly bound, the scene's light level and the whole
 demodulate / filter / remodulate step around a filter, and the step after it that backs off toward
 the input where the filter's residual exceeds the noise (:func:`back_off`), and the per-pixel
 choice among filters of several radii by their estimated error (:func:`choose`).

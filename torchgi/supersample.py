@@ -1,4 +1,4 @@
-"""Supersampling with guide rays (Bauszat et al. 2011, §3.2; DESIGN §3.2).
+"""Supersampling with guide rays (Bauszat et al. 2011, §3.2; docs/design.md, Supersampling).
 
 Sample 0 of every pixel is a *guide ray* through the pixel centre: the only eye ray that
 estimates indirect light. That light is filtered (demodulated, geometry-aware) at the guide

@@ -21,7 +21,7 @@ class TraceSetup:
     ``torchgi.render.tiles.trace_setup``): the camera's ``origin`` (3 floats), its ``basis``
     (right, up, forward: 9 floats), the tangents of its half field of view ``tan_x``, ``tan_y``;
     the pass's sampler ``key_head`` (an unsigned 32-bit int), ``roulette_from`` (bounces before
-    Russian roulette may end a path), ``every_skip`` (every skip of DESIGN §4 is on), and
+    Russian roulette may end a path), ``every_skip`` (every skip of docs/design.md, Skips, is on), and
     ``wavefronts(op)``: the renderer's torch code for the op, the torch back end's reference."""
 
     origin: tuple[float, ...]
@@ -40,7 +40,7 @@ class PathOp:
     int64 samples (numpy) of the pixels ``first_pixel ... first_pixel + P - 1`` (global index
     ``b*H*W + y*W + x``) of the scene ``arrays`` (``SceneArrays``) and its ``tables`` (``Tables``)
     seen by ``camera``; ``bounces``, ``seed``, the pass's random ``stream`` and ``record``
-    ("all" / "direct" / "indirect"), the skips of DESIGN §4 that are on (``skip``), paths per
+    ("all" / "direct" / "indirect"), the skips (docs/design.md, Skips) that are on (``skip``), paths per
     chunk (``chunk_size``), the renderer's :class:`TraceSetup`, ``threads`` (>= 1) and
     ``on_chunk(samples)`` (progress, or None); ``profile``: None, or a zeroed float64
     ``(threads, 4)`` tensor into which the compiled tracer adds, per thread, its seconds in

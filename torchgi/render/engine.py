@@ -323,7 +323,7 @@ def render(
         scene: a :class:`Scene`, a YAML path or a built-in name ("cornell", ...).
         spp: samples per pixel, an int > 0; or a per-pixel ``(B, 1, H, W)`` int tensor >= 0
             (adaptive sampling): then indirect light gets those samples and emission + direct
-            light one sample per pixel (DESIGN §3.3); B > 1 renders B independent images.
+            light one sample per pixel (docs/design.md, Sampling); B > 1 renders B independent images.
         bounces: indirect bounces >= 0 (0 = direct light only; Mitsuba's ``max_depth`` is
             ``bounces + 2``).
         seed: in [0, 2^32); the same seed gives the same image, bit for bit.
@@ -335,7 +335,7 @@ def render(
         chunk_size: paths the torch wavefronts trace at once per worker (memory bound); the
             compiled tracer's progress step per thread; >= 1024.
         progress: a progress bar (shown after 1 s); None = only on a terminal.
-        skip_unneeded: skip work the scene does not need (DESIGN §4): True = every skip,
+        skip_unneeded: skip work the scene does not need (docs/design.md, Skips): True = every skip,
             False = none, or the names to keep from ``SKIPS`` ("absent_lights", "dead_paths",
             "last_vertex_rays"). Skips change no pixel beyond noise; turning them off is for
             benchmarks and tests.

@@ -1,4 +1,4 @@
-"""Scenes: camera, triangle meshes with materials, and lights; loaded from YAML (DESIGN §2).
+"""Scenes: camera, triangle meshes with materials, and lights; loaded from YAML (docs/design.md, Scene files).
 
 A :class:`Scene` is plain data (numpy arrays and floats). :meth:`Scene.arrays` flattens it once
 into the tables the tracer reads (:class:`SceneArrays`): every triangle of every mesh in one

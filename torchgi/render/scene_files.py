@@ -1,9 +1,9 @@
-"""Scene files (DESIGN §2): YAML with a camera (and its ``path`` of keyframes), meshes with their
-materials, transforms and ``path`` of keyframed transforms (moving objects), and lights (a point
-light may have a ``path`` too), built into a :class:`~torchgi.render.scene.Scene`. A mesh
-names its file relative to the scene file (``file:``, the project's own meshes) or relative to
-one mesh root (``mesh:``, the shared meshes made by others: ``$TORCHGI_MESHES``, by default
-``shared/data/meshes`` beside the checkout; :func:`mesh_root`).
+"""Scene files (docs/design.md, Scene files): YAML with a camera (and its ``path`` of keyframes),
+meshes with their materials, transforms and ``path`` of keyframed transforms (moving objects), and
+lights (a point light may have a ``path`` too), built into a :class:`~torchgi.render.scene.Scene`.
+A mesh names its file relative to the scene file (``file:``, the project's own meshes) or relative
+to the mesh root (``mesh:``, the meshes made by others that ship in ``torchgi/meshes``; the
+environment variable ``TORCHGI_MESHES`` overrides it; :func:`mesh_root`).
 """
 
 from __future__ import annotations
@@ -41,22 +41,24 @@ _KEYFRAME_KEYS = ("time", "position", "look_at", "fov")
 _MESH_KEYS = ("file", "mesh", "material", "transform", "path", "name")
 _TRANSFORM_KEYS = ("scale", "rotate", "translate")
 _MESH_KEYFRAME_KEYS = ("time", *_TRANSFORM_KEYS)
+_PACKAGE_MESHES = Path(__file__).resolve().parents[1] / "meshes"  # package data (pyproject.toml)
 
 
 def mesh_root() -> Path:
     """The folder that scene files' ``mesh:`` entries are relative to: ``$TORCHGI_MESHES`` when
-    set, else the shared mesh folder beside the checkout this package runs from
-    (``<checkout>/../shared/data/meshes``; real meshes made by others, never copied into the
-    project). It may not exist: a scene that names a mesh under it then says how to set it.
+    set (and not empty), else the package's own ``torchgi/meshes``, which ships the Cornell
+    box and the Stanford models the scene configs use (each folder's ``SOURCE.txt`` and the
+    folder's ``README.md`` give their sources and terms). A folder named by ``TORCHGI_MESHES`` is
+    not checked here: a scene that names a mesh missing from it says where it looked.
 
     Example:
-        >>> mesh_root().name
-        'meshes'
+        >>> (mesh_root() / "stanford_bunny" / "stanford-bunny.obj").is_file()
+        True
     """
     env = os.environ.get("TORCHGI_MESHES")
     if env:
         return Path(env)
-    return Path(__file__).resolve().parents[3] / "shared" / "data" / "meshes"
+    return _PACKAGE_MESHES
 
 
 def _mesh_path(m: Mapping[str, Any], root: str, key: str) -> str:
@@ -67,12 +69,16 @@ def _mesh_path(m: Mapping[str, Any], root: str, key: str) -> str:
                           f"mesh root, $TORCHGI_MESHES) is required")
     if "file" in m:
         return os.path.join(root, str(m["file"]))
-    path = mesh_root() / str(m["mesh"])
+    base = mesh_root()
+    path = base / str(m["mesh"])
     if not path.is_file():
-        where = "$TORCHGI_MESHES" if os.environ.get("TORCHGI_MESHES") else "the default mesh root"
-        raise FileNotFoundError(
-            f"{key}.mesh: {m['mesh']!r} is not under {where} {str(mesh_root())!r}: set TORCHGI_MESHES to the folder "
-            f"that holds the shared meshes (shared/data/meshes)")
+        if os.environ.get("TORCHGI_MESHES"):
+            where = (f"the mesh root {str(base)!r} named by the environment variable TORCHGI_MESHES (unset, it "
+                     f"is the package's {str(_PACKAGE_MESHES)!r})")
+        else:
+            where = (f"the mesh root {str(base)!r} (the package's meshes; the environment variable "
+                     f"TORCHGI_MESHES overrides it)")
+        raise FileNotFoundError(f"{key}.mesh: {m['mesh']!r} is not under {where}")
     return str(path)
 
 
@@ -97,8 +103,8 @@ def _build(registry: Registry[Any], cfg: Any, key: str) -> Any:
 
 
 def scene_from_dict(cfg: Mapping[str, Any], root: str = ".", name: str = "scene") -> Scene:
-    """Build a :class:`Scene` from a parsed YAML mapping (DESIGN §2): a mesh's ``file`` is relative
-    to ``root``, its ``mesh`` to :func:`mesh_root`.
+    """Build a :class:`Scene` from a parsed YAML mapping (docs/design.md, Scene files): a mesh's
+    ``file`` is relative to ``root``, its ``mesh`` to :func:`mesh_root`.
 
     Example:
         >>> cfg = {"camera": {"position": [0, 0, 3], "look_at": [0, 0, 0], "resolution": [8, 8]},
@@ -185,7 +191,7 @@ def _object_path(cfg: Any, key: str) -> ObjectPath:
 
 
 def load_scene(path: str | os.PathLike[str]) -> Scene:
-    """Load a scene from a YAML file (DESIGN §2), or a built-in one by name.
+    """Load a scene from a YAML file (docs/design.md, Scene files), or a built-in one by name.
 
     Args:
         path: a ``.yaml`` file, or one of ``torchgi.render.scenes.BUILTINS`` ("cornell", ...).

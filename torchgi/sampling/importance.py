@@ -1,4 +1,4 @@
-"""Sampling importance from the filter's own geometry weights (Bauszat et al. 2011, DESIGN §3.3)::
+"""Sampling importance from the filter's own geometry weights (Bauszat et al. 2011; docs/design.md, Sampling)::
 
     W_p = Σ_{q ∈ window(p)} G_n(p,q) · G_x(p,q),   W̃_p = W_p / |window(p)|,   q_p = 1 - W̃_p
 

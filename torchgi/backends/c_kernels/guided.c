@@ -43,7 +43,7 @@ typedef struct {
     int n, Cs, K;
     const guide_t *G;     /* guide (n channels) */
     const float *p;       /* source (Cs planes) */
-    float cI[4];          /* the guide's offset minus its per-image mean, added before any sum (DESIGN §5) */
+    float cI[4];          /* the guide's offset minus its per-image mean, added before any sum (design.md, Numerics) */
     const float *mp;      /* the source's per-image means, subtracted before any sum */
     size_t HW;
     int W;

@@ -3,7 +3,7 @@
  * Built into the same library as native.c (c_kernels/build.py) and called through ctypes, which
  * releases the GIL: the pixels of a call run on OpenMP threads, each pixel's samples in order,
  * so neither the thread count nor how the pixels are cut into calls changes a bit. The maths is
- * that of torchgi/render/integrators/path.py with every skip of DESIGN §4 on (paths that miss
+ * that of torchgi/render/integrators/path.py with every skip of docs/design.md (Skips) on (paths that miss
  * or die stop; no BSDF ray from a diffuse last vertex; light types the scene lacks are never
  * sampled), the same random dimension for each decision (sampler.py's counter-based hash), and
  * the film of render/film.py: blocks of BLOCK samples, a block's sum and its colour M2 about the

@@ -37,7 +37,7 @@ _scenes: dict[str, list] = {}  # scene key -> [BVH handle, its tables, calls tra
 def _path_support(desc: PathOp | GuideRaysOp) -> str | None:
     """Why the compiled tracer cannot take ``desc``, or None."""
     if isinstance(desc, PathOp) and not desc.setup.every_skip:
-        return "the compiled tracer applies every skip of DESIGN §4; with one off the torch code runs"
+        return "the compiled tracer applies every skip of docs/design.md (Skips); with one off the torch code runs"
     width, height = desc.camera.resolution
     if desc.arrays.triangles.shape[0] >= 2**31 or width * height >= 2**31:
         return "the compiled tracer takes fewer than 2^31 triangles and pixels"

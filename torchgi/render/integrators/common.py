@@ -45,7 +45,7 @@ ROULETTE = 7  # Russian roulette
 _PER_VERTEX = 8
 RR_START = 3  # Russian roulette only past this many bounces (Context.roulette_from)
 
-# Work the fast integrator leaves out when a scene does not need it (DESIGN §4):
+# Work the fast integrator leaves out when a scene does not need it (docs/design.md, Skips):
 SKIPS = {
     "absent_lights": "no sampling of light types the scene lacks",
     "dead_paths": "no rays from paths that missed, died in Russian roulette or carry no throughput",
@@ -74,7 +74,7 @@ class Context:
     camera: Camera
     bounces: int
     seed: int
-    skip: frozenset[str] = frozenset()  # which of SKIPS are on (DESIGN §4)
+    skip: frozenset[str] = frozenset()  # which of SKIPS are on (docs/design.md, Skips)
     roulette_from: int = RR_START  # bounces after which Russian roulette may end a path
 
     @property

@@ -5,7 +5,7 @@ BSDF sampling by the power heuristic; every point light is sampled (no random ch
 last vertex (``depth = bounces + 1``) a diffuse surface takes its light samples with weight 1
 and traces no BSDF ray (nothing could use it); a glossy one keeps MIS. Russian roulette starts
 after ``Context.roulette_from`` bounces (3). Paths that miss or carry zero throughput are dropped, and light types
-the scene lacks are never sampled (DESIGN §4); each skip named in ``common.SKIPS`` can be
+the scene lacks are never sampled (docs/design.md, Skips); each skip named in ``common.SKIPS`` can be
 turned off (``Context.skip``) to measure it. Matches ``basic`` in expectation.
 
 The active set is compacted once per vertex with one index vector (``index_select`` /
