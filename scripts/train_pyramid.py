@@ -7,7 +7,7 @@ The data are the shards of ``configs/data_gen/learned.yaml``: ten scenes that ar
 scenes. ``--holdout`` scenes (default: two of them) are never trained on: they are the validation
 set, evaluated on whole images every ``--every`` steps and at the end beside
 ``Denoiser("guided")``, ``Denoiser("blend")`` and OIDN high, so that the design is chosen without
-the judged scenes (docs/pyramid.md: 526 s for the shipped 4000 steps on 2 cores). Each noisy
+the judged scenes (docs/pyramid.md: 351 s for the shipped 4000 steps on 2 cores). Each noisy
 shard goes through the Denoiser's own pipeline up to its filter (``train_blend.filter_input``'s
 recording filter: demodulation, light sources, firefly clamp),
 then :func:`~torchgi.filters.pyramid.pyramid_inputs` once per shard (features and candidate

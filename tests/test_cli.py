@@ -1,7 +1,6 @@
 import json
 import shutil
 import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -56,21 +55,6 @@ def test_metrics_command_errors(tmp_path, capsys):
     with pytest.raises(SystemExit):  # the old positional order REF IMG: the reference must be named
         main(["metrics", str(tmp_path / "ref.exr"), str(tmp_path / "ref.exr")])
     assert "--ref" in capsys.readouterr().err
-
-
-def test_demo_runs_end_to_end(tmp_path):
-    pytest.importorskip("embreex")
-    pytest.importorskip("OpenEXR")
-    out = subprocess.run(
-        [sys.executable, "-m", "torchgi.cli", "demo", "--out", str(tmp_path), "--size", "24", "--ref-spp", "16"],
-        capture_output=True, text=True, check=True,
-    ).stdout
-    rows = ("noisy", "guided", "atrous")
-    lines = {line.split()[0]: line.split()[1:] for line in out.splitlines() if line.startswith(rows)}
-    assert float(lines["guided"][1]) < float(lines["noisy"][1])  # relMSE column: the filters help
-    assert float(lines["atrous"][1]) < float(lines["noisy"][1])
-    assert (tmp_path / "demo.png").read_bytes()[:4] == b"\x89PNG"
-    assert (tmp_path / "noisy.exr").is_file() and (tmp_path / "reference.exr").is_file()
 
 
 def test_render_command_writes_a_multilayer_exr_and_never_overwrites(tmp_path, capsys):
@@ -256,3 +240,61 @@ def test_temporal_export_command_matches_the_python_step(tmp_path, capsys):
     assert np.isfinite(b[0].numpy()).all()
     assert main(["export", "--temporal", "--spp", "4", "--out", str(tmp_path / "u.onnx")]) == 2
     assert "--spp" in capsys.readouterr().err
+
+
+def _outside_render(path):
+    """A torchgi render (24x20, 1 spp) written with Mitsuba 3's AOV names - ``dd.y`` depth, ``nn``
+    normals, a nested integrator's ``img`` - and no sample count or position: an outside render."""
+    import torchgi
+
+    gb = torchgi.render(torchgi.scenes.cornell(24).with_resolution(24, 20), spp=1, bounces=1, seed=1)
+    write_exr(path, {"": gb.color[0], "albedo": gb.albedo[0], "nn": gb.normal[0], "dd.y": gb.depth[0],
+                     "img": torch.cat([gb.color[0], torch.ones(1, 20, 24)])})
+    return gb
+
+
+def test_denoise_command_says_which_layers_it_read_and_refuses_a_missing_guide(tmp_path, capsys):
+    pytest.importorskip("embreex")
+    pytest.importorskip("OpenEXR")
+    _outside_render(tmp_path / "mi.exr")
+    assert main(["denoise", str(tmp_path / "mi.exr"), "--out", str(tmp_path / "g.exr")]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0] == "read color from R,G,B, albedo from 'albedo', normal from 'nn', depth from 'dd.y'"
+    assert lines[1] == "ignored 'img' (no name torchgi reads: torchgi.io.AOV_ALIASES)"
+    assert "1 spp: the file records none, --spp gives it" in lines[2]
+    for method, layer in (("pyramid", "depth"), ("atrous", "position")):
+        wrong = tmp_path / "without.exr"
+        layers = {"": torch.rand(3, 20, 24), "albedo": torch.rand(3, 20, 24), "nn": torch.rand(3, 20, 24) * 2 - 1}
+        write_exr(wrong, layers | ({"pos": torch.rand(3, 20, 24)} if layer == "depth" else {}), overwrite=True)
+        assert main(["denoise", str(wrong), "--method", method, "--out", str(tmp_path / "x.exr")]) == 2
+        err = capsys.readouterr().err
+        assert f"error: method '{method}' needs a {layer} layer (GBuffer.{layer})" in err and "Traceback" not in err
+        assert not (tmp_path / "x.exr").exists()
+
+
+def test_denoise_command_takes_the_sample_count_of_an_outside_render(tmp_path, capsys):
+    pytest.importorskip("embreex")
+    pytest.importorskip("OpenEXR")
+    import torchgi
+    from torchgi.io import read_aovs
+
+    _outside_render(tmp_path / "mi.exr")
+    gb = torchgi.GBuffer.from_exr(tmp_path / "mi.exr", return_report=True)[0]
+    B, H, W = gb.shape
+    assert main(["denoise", str(tmp_path / "mi.exr"), "--spp", "4", "--out", str(tmp_path / "4.exr")]) == 0
+    assert "(24x20, 4 spp (--spp))" in capsys.readouterr().out
+    got = read_aovs(tmp_path / "4.exr")["color"][None]
+    assert torch.equal(got, torchgi.Denoiser()(gb, spp=4))
+    assert torch.equal(got, torchgi.Denoiser()(gb.replace(spp=torch.full((B, 1, H, W), 4))))
+    assert not torch.equal(got, torchgi.Denoiser()(gb))  # 1 spp without the flag
+    for bad in ("0", "-2", "0.5", "nan", "inf", "four"):
+        with pytest.raises(SystemExit):
+            main(["denoise", str(tmp_path / "mi.exr"), "--spp", bad, "--out", str(tmp_path / "x.exr")])
+        assert f"--spp: expected the render's samples per pixel, a finite number >= 1, got {bad}" in \
+            capsys.readouterr().err
+    torchgi.render(torchgi.scenes.cornell(8), spp=2, bounces=1).to_exr(tmp_path / "own.exr")  # records spp 2
+    assert main(["denoise", str(tmp_path / "own.exr"), "--spp", "4", "--out", str(tmp_path / "x.exr")]) == 2
+    assert "--spp: " in (err := capsys.readouterr().err) and "records its own sample counts (layer 'spp'" in err
+    assert main(["denoise", str(tmp_path / "own.exr"), "--spp", "2", "--out", str(tmp_path / "x.exr")]) == 0
+    assert main(["denoise", str(tmp_path / "mi.exr"), "--temporal", "--spp", "4", "--out", str(tmp_path / "t")]) == 2
+    assert "--spp: not with --temporal" in capsys.readouterr().err

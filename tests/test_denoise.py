@@ -156,9 +156,10 @@ def test_bad_input(cornell):
         Denoiser("blend", radius=3)
     empty = torch.zeros(0, 3, 8, 8)
     for method in ("blend", "guided", "atrous", "bilateral"):
-        assert Denoiser(method)(color=empty, albedo=empty, normal=empty, position=empty).shape == (0, 3, 8, 8)
+        assert Denoiser(method)(color=empty, albedo=empty, normal=empty, position=empty,
+                                depth=empty[:, :1]).shape == (0, 3, 8, 8)
     with pytest.raises(NonFiniteError, match="normal"):
-        Denoiser("atrous")(color=noisy.color, albedo=noisy.albedo, normal=noisy.normal / 0)
+        Denoiser("atrous")(color=noisy.color, albedo=noisy.albedo, normal=noisy.normal / 0, position=noisy.position)
 
 
 def _synthetic(device: torch.device, H: int = 40, W: int = 48) -> torchgi.GBuffer:
@@ -205,7 +206,7 @@ def test_guided_runs_at_half_resolution_where_that_loses_nothing():
 
 
 def test_noise_free_input_is_returned_as_it_is():
-    # a zero variance measured from >= 2 samples everywhere: nothing to filter (DESIGN §4)
+    # a zero variance measured from >= 2 samples everywhere: nothing to filter (docs/design.md, Skips)
     gb = _synthetic(torch.device("cpu"))
     clean = gb.replace(variance=torch.zeros_like(gb.color), spp=torch.full((1, 1, 40, 48), 4))
     assert torch.equal(Denoiser("guided")(clean), clean.color)
@@ -258,8 +259,9 @@ def test_an_albedo_above_1_is_not_a_reflectance(method):
     """Mitsuba 3's albedo AOV of a rough conductor reaches 3-10 (issue 33): the light is divided
     by at most ``PIPELINE.albedo_ceiling`` (1). A flat grey plane (light 0.5, noise 50 %) whose
     8x8 patch reports albedo 8: denoised, it stays below the noisy input's relMSE against the
-    truth (0.5 everywhere) and the patch below 2x its light. Measured: relMSE 0.018-0.053 against
-    the noisy 0.233, the patch 0.73-0.96; dividing by 8 and multiplying back gave 1.3-5.4 and 2.7-5.2."""
+    truth (0.5 everywhere) and the patch below 2x its light. Measured: relMSE 0.017-0.053 against
+    the noisy 0.233, the patch 0.72-0.96 (À-Trous given the plane's positions); dividing by 8 and
+    multiplying back gave 1.3-5.4 and 2.7-5.2."""
     g = torch.Generator().manual_seed(0)
     color = (0.5 * (1 + 0.5 * torch.randn(1, 3, 32, 32, generator=g))).clamp_min(0)
     albedo = torch.full((1, 3, 32, 32), 0.5)
@@ -267,6 +269,60 @@ def test_an_albedo_above_1_is_not_a_reflectance(method):
     normal = torch.zeros(1, 3, 32, 32)
     normal[:, 2] = 1
     truth = torch.full_like(color, 0.5)
-    out = Denoiser(method)(color=color, albedo=albedo, normal=normal, depth=torch.ones(1, 1, 32, 32))
+    position = torch.stack([*torch.meshgrid(torch.arange(32.0), torch.arange(32.0), indexing="ij"),
+                            torch.zeros(32, 32)])[None] * 0.01  # the plane z = 0, 1 cm pixels
+    out = Denoiser(method)(color=color, albedo=albedo, normal=normal, depth=torch.ones(1, 1, 32, 32), position=position)
     assert float(metrics.relmse(out, truth)) < float(metrics.relmse(color, truth))
     assert float(out[..., 12:20, 12:20].mean()) < 1.0
+
+
+@pytest.mark.parametrize(("method", "missing"), [("pyramid", "depth"), ("blend", "depth"), ("atrous", "position")])
+def test_a_method_without_the_guide_it_needs_refuses_by_name(cornell, method, missing):
+    """The pyramid without depth crashed on a size mismatch; the blend and À-Trous (without
+    position) ran and gave a worse result without a word. Each names the missing layer now; the
+    methods that use depth only when given (guided, bilateral) still run without it."""
+    noisy, _ = cornell
+    lacking = noisy.replace(**{missing: None})
+    with pytest.raises(ValueError, match=rf"method '{method}' needs a {missing} layer \(GBuffer.{missing}\)"):
+        Denoiser(method)(lacking)
+    for fine in ("guided", "bilateral"):
+        assert torch.isfinite(Denoiser(fine)(noisy.replace(depth=None, position=None))).all()
+
+
+def test_the_sample_count_of_an_outside_render_as_a_call_argument(cornell):
+    """``den(gb, spp=N)`` for a render that recorded no sample count: N = 4 is the GBuffer with a
+    plane of 4s, bit for bit (and not the 1 spp taken without it); a float is a mean count: the
+    guided radius is round(4 / sqrt(spp)) (settings.GUIDED.radius 4 at 1 spp), 3 at 2.5 spp."""
+    noisy, _ = cornell
+    gb = noisy.replace(spp=None, variance=None)  # an outside render: no sample count, no variance
+    B, H, W = gb.shape
+    den = Denoiser("guided")
+    four = den(gb, spp=4)
+    assert torch.equal(four, den(gb.replace(spp=torch.full((B, 1, H, W), 4))))
+    assert not torch.equal(four, den(gb)) and torch.equal(den(gb, spp=1), den(gb))
+    assert torch.equal(den(gb, spp=2.5), Denoiser("guided", radius=3)(gb))
+    assert torch.equal(den(gb, spp=4.0), four) and torch.equal(den(gb, spp=None), den(gb))
+    for bad in (float("nan"), float("inf"), True, 0, 0.5, -4, "4"):
+        with pytest.raises(ValueError, match="spp: expected the render's samples per pixel"):
+            den(gb, spp=bad)
+    with pytest.raises(ValueError, match=r"spp: Denoiser was given spp=4 and the input's own sample counts"):
+        den(noisy, spp=4)  # the render records 1 sample per pixel
+    assert torch.equal(den(noisy, spp=1), den(noisy))
+
+
+def test_normals_stored_as_a_colour_warn():
+    """A normal map stored as a colour ((n + 1) / 2, in [0, 1]) is named with the range expected;
+    signed unit normals - all in one octant too, a wall facing +z - are not."""
+    import warnings
+
+    g = torch.Generator().manual_seed(0)
+    normal = torch.nn.functional.normalize(torch.randn(1, 3, 16, 16, generator=g), dim=1)
+    inputs = {"color": torch.rand(1, 3, 16, 16, generator=g), "albedo": torch.full((1, 3, 16, 16), 0.5)}
+    with pytest.warns(UserWarning, match=r"normal: .*a normal map stored as a colour, in \[0, 1\].*in \[-1, 1\]"):
+        Denoiser("guided")(**inputs, normal=(normal + 1) / 2)
+    wall = torch.zeros(1, 3, 16, 16)
+    wall[:, 2] = 1
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        Denoiser("guided")(**inputs, normal=normal)
+        Denoiser("guided")(**inputs, normal=wall)

@@ -117,7 +117,7 @@ def test_mitsuba_exr(tmp_path):
     mi.set_variant("scalar_rgb")
     scene = mi.cornell_box()
     scene["sensor"]["film"].update(width=12, height=10)
-    scene["integrator"] = {"type": "aov", "aovs": "albedo:albedo,nn:sh_normal,dd:depth,pp:position",
+    scene["integrator"] = {"type": "aov", "aovs": "albedo:albedo,nn:sh_normal,dd.y:depth,pp:position",
                            "img": {"type": "path", "max_depth": 3}}
     loaded = mi.load_dict(scene)
     mi.render(loaded, spp=4)
@@ -129,7 +129,7 @@ def test_mitsuba_exr(tmp_path):
     np.testing.assert_array_equal(aovs["albedo"].permute(1, 2, 0).numpy(), parts["albedo"])
     np.testing.assert_array_equal(aovs["normal"].permute(1, 2, 0).numpy(), parts["nn"])
     np.testing.assert_array_equal(aovs["position"].permute(1, 2, 0).numpy(), parts["pp"])
-    np.testing.assert_array_equal(aovs["depth"].permute(1, 2, 0).numpy(), parts["dd"])
+    np.testing.assert_array_equal(aovs["depth"].permute(1, 2, 0).numpy(), parts["dd.y"])  # Mitsuba's docs' name
     assert (aovs["depth"] > 0).all()  # the Cornell box is closed towards the camera's view
 
 
@@ -147,13 +147,14 @@ def test_frame_paths_orders_folders_globs_and_patterns_by_frame_number(tmp_path)
     an explicit list keeps its order; empty matches, missing files and one name twice are refused."""
     from torchgi.io.sequence import frame_paths
 
-    for name in ("f_10.exr", "f_9.exr", "f_100.exr", "f_x.exr", "g_1.exr", "notes.txt"):
+    for name in ("f_10.exr", "f_9.exr", "f_100.exr", "notes.txt"):
         (tmp_path / name).write_bytes(b"")
     def names(spec):
         return [p.name for p in frame_paths(spec)]
 
-    assert names([tmp_path]) == ["f_9.exr", "f_10.exr", "f_100.exr", "f_x.exr", "g_1.exr"]
-    assert names([str(tmp_path / "f_*.exr")]) == ["f_9.exr", "f_10.exr", "f_100.exr", "f_x.exr"]
+    assert names([tmp_path]) == ["f_9.exr", "f_10.exr", "f_100.exr"]
+    assert names([str(tmp_path / "f_*.exr")]) == ["f_9.exr", "f_10.exr", "f_100.exr"]
+    (tmp_path / "f_x.exr").write_bytes(b"")  # no frame number: no pattern takes it
     assert names([str(tmp_path / "f_##.exr")]) == ["f_10.exr", "f_100.exr"]
     assert names([str(tmp_path / "f_#.exr")]) == ["f_9.exr", "f_10.exr", "f_100.exr"]
     assert names([tmp_path / "f_10.exr", tmp_path / "f_9.exr"]) == ["f_10.exr", "f_9.exr"]
@@ -169,3 +170,38 @@ def test_frame_paths_orders_folders_globs_and_patterns_by_frame_number(tmp_path)
     (tmp_path / "empty").mkdir()
     with pytest.raises(FileNotFoundError, match="holds no .exr"):
         frame_paths([tmp_path / "empty"])
+
+
+def test_a_mitsuba_dd_y_depth_is_read_and_unknown_layers_are_named(tmp_path):
+    """Mitsuba 3's aov integrator with its documentation's ``dd.y:depth`` writes the layer ``dd.y``
+    (channel ``dd.y.T``): read as depth. A layer of no known name is never dropped without a word:
+    GBuffer.from_exr warns naming it, and its report says which layer each field came from."""
+    from torchgi import GBuffer
+    from torchgi.io import match_aovs
+
+    g = torch.Generator().manual_seed(0)
+    layers = {"": torch.rand(3, 4, 5, generator=g), "albedo": torch.rand(3, 4, 5, generator=g),
+              "nn": torch.rand(3, 4, 5, generator=g) * 2 - 1, "dd.y": torch.rand(1, 4, 5, generator=g) + 1,
+              "img": torch.rand(4, 4, 5, generator=g), "uv": torch.rand(2, 4, 5, generator=g)}
+    write_exr(tmp_path / "m.exr", layers)
+    with pytest.warns(UserWarning, match="not read: not a name torchgi knows") as caught:
+        gb = GBuffer.from_exr(tmp_path / "m.exr", required=("color", "albedo", "normal", "depth"))
+    assert "'img'" in str(caught[0].message) and "'uv'" in str(caught[0].message)
+    assert torch.equal(gb.depth[0], layers["dd.y"]) and torch.equal(gb.normal[0], layers["nn"])
+    gb, report = GBuffer.from_exr(tmp_path / "m.exr", return_report=True)
+    assert report.used == {"color": "", "albedo": "albedo", "normal": "nn", "depth": "dd.y"}
+    assert sorted(report.unknown) == ["img", "uv"] and report.alternatives == {} and report.channels_left == {}
+
+    # Blender's layout: another name of an AOV read, and channels left (alpha; Vector's last two)
+    blender = {f"ViewLayer.{k}": torch.zeros(c, 2, 2) for k, c in
+               (("Noisy Image", 4), ("Denoising Normal", 3), ("Normal", 3), ("Vector", 4), ("Shadow", 3))}
+    _, report = match_aovs(blender)
+    assert report.used == {"color": "ViewLayer.Noisy Image", "normal": "ViewLayer.Denoising Normal",
+                           "motion": "ViewLayer.Vector"}
+    assert report.channels_left == {"color": 1, "motion": 2}
+    assert report.alternatives == {"ViewLayer.Normal": "normal"} and report.unknown == ("ViewLayer.Shadow",)
+    assert str(report) == (
+        "read color from 'ViewLayer.Noisy Image' (not its 4th channel), normal from 'ViewLayer.Denoising Normal', "
+        "motion from 'ViewLayer.Vector' (not its 3rd-4th channels)\n"
+        "ignored 'ViewLayer.Shadow' (no name torchgi reads: torchgi.io.AOV_ALIASES); 'ViewLayer.Normal' (another "
+        "name of normal, read from 'ViewLayer.Denoising Normal')")

@@ -59,13 +59,43 @@ def test_atrous_parity(tmp_path):
 
 
 @pytest.fixture(scope="module")
-def guided_onnx(tmp_path_factory):
-    """The guided Denoiser exported once by the CLI (``torchgi export``), for the tests below."""
+def guided_export(tmp_path_factory):
+    """The guided Denoiser exported once by the CLI (``torchgi export``), for the tests below, and
+    what the export said besides: its warnings and torch's log records of level WARNING and up."""
+    import logging
+    import warnings
+
     from torchgi.cli import main
 
     path = tmp_path_factory.mktemp("onnx") / "den.onnx"
-    assert main(["export", "--method", "guided", "--spp", "1", "--out", str(path)]) == 0
-    return path
+    records: list[logging.LogRecord] = []
+    handler = logging.Handler(logging.WARNING)
+    handler.emit = records.append
+    loggers = [logging.getLogger(name) for name in ("torch", "torch.onnx")]  # (torch.onnx does not propagate)
+    for logger in loggers:
+        logger.addHandler(handler)
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            assert main(["export", "--method", "guided", "--spp", "1", "--out", str(path)]) == 0
+    finally:
+        for logger in loggers:
+            logger.removeHandler(handler)
+    return path, [str(w.message) for w in caught] + [r.getMessage() for r in records]
+
+
+@pytest.fixture(scope="module")
+def guided_onnx(guided_export):
+    return guided_export[0]
+
+
+def test_export_command_says_nothing_but_what_it_wrote(guided_export):
+    """``torchgi export`` shows none of the exporter's routine notes (the torchvision operators it
+    skips, each input naming the B/H/W axes again, torch's own deprecated calls) and leaves no
+    file but the graph."""
+    path, said = guided_export
+    assert said == []
+    assert [p.name for p in path.parent.iterdir()] == [path.name]
 
 
 def test_exported_denoiser_matches_torch(guided_onnx):

@@ -7,9 +7,12 @@ floating dtype; ``spp`` is an integer count and ``hit`` a boolean mask.
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
+import sys
+import warnings
 from collections.abc import Iterator, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -21,8 +24,12 @@ from torchgi.core.check import (
     check_shape,
     check_tensor,
     finite_or_sanitized,
+    is_recording,
 )
 from torchgi.core.errors import DTypeError, LayerError, ShapeError
+
+if TYPE_CHECKING:
+    from torchgi.io.exr import LayerReport
 
 __all__ = ["GBuffer"]
 
@@ -306,30 +313,43 @@ class GBuffer:
     @classmethod
     def from_exr(
         cls, path: str | os.PathLike, *, required: Sequence[str] = ("color",), sanitize: bool = False,
-        motion_convention: str | None = None,
-    ) -> GBuffer:
+        motion_convention: str | None = None, return_report: bool = False,
+    ) -> GBuffer | tuple[GBuffer, LayerReport]:
         """Read a GBuffer (B = 1) from an EXR of torchgi, Blender/Cycles, Mitsuba 3 or Arnold.
 
-        Layer names are mapped with :func:`torchgi.io.find_aovs`. UINT spp comes back as
-        int64, hit as bool. Half and float layers are not mixed: if the file holds both, the
-        error says so (convert the file, or read layers with :func:`torchgi.io.read_exr`).
+        Layer names are mapped with :func:`torchgi.io.match_aovs`. UINT spp comes back as
+        int64, hit as bool (a file without an ``spp`` layer gives ``spp=None``: the Denoiser then
+        takes 1 sample per pixel unless told, ``Denoiser()(gb, spp=...)``). Half and float layers
+        are not mixed: if the file holds both, the error says so (convert the file, or read
+        layers with :func:`torchgi.io.read_exr`). A layer of a name torchgi does not know is
+        not read: a warning names it (the accepted names: :data:`torchgi.io.AOV_ALIASES`),
+        unless ``return_report`` hands the report back.
 
         Args:
             sanitize: replace NaN/Inf in any float layer by 0 (with a warning giving the
                 count) instead of raising.
             motion_convention: the motion layer's convention (``"torchgi"``, ``"cycles"``,
                 ``"arnold"``); None = its layer name's (:func:`torchgi.io.find_aovs`).
+            return_report: also return the :class:`~torchgi.io.LayerReport`: which layer each
+                field was read from, which layers and channels were left.
 
         Example:
             >>> import tempfile, os
             >>> p = os.path.join(tempfile.mkdtemp(), "g.exr")
-            >>> _ = GBuffer(color=torch.rand(1, 3, 4, 4)).to_exr(p)
-            >>> GBuffer.from_exr(p).shape
-            (1, 4, 4)
+            >>> from torchgi.io import write_exr
+            >>> _ = write_exr(p, {"": torch.rand(3, 4, 4), "dd.y": torch.rand(1, 4, 4), "uv": torch.rand(2, 4, 4)})
+            >>> gb, report = GBuffer.from_exr(p, return_report=True)
+            >>> gb.depth.shape, report.used, report.unknown
+            (torch.Size([1, 1, 4, 4]), {'color': '', 'depth': 'dd.y'}, ('uv',))
         """
-        from torchgi.io.exr import read_aovs
+        from torchgi.io.exr import match_aovs, read_exr
 
-        aovs = read_aovs(path, required=required, motion_convention=motion_convention)
+        aovs, report = match_aovs(read_exr(path), required=required, source=str(path),
+                                  motion_convention=motion_convention)
+        if report.unknown and not return_report:
+            warnings.warn(f"{path}: layer(s) {', '.join(map(repr, report.unknown))} not read: not a name torchgi "
+                          "knows (torchgi.io.AOV_ALIASES lists them; GBuffer.from_exr(..., return_report=True) "
+                          "tells what was read from which layer)", stacklevel=_user_level())
         fields: dict[str, torch.Tensor] = {}
         for name, t in aovs.items():
             if name == "hit":
@@ -339,9 +359,81 @@ class GBuffer:
             else:
                 t = finite_or_sanitized(t, f"{path}: layer {name}", sanitize)
             fields[name] = t[None]
-        return cls(**fields)
+        return (cls(**fields), report) if return_report else cls(**fields)
 
     def __repr__(self) -> str:
         parts = ", ".join(f"{n}={tuple(t.shape[1:2])}" for n, t in self.items())
         B, H, W = self.shape
         return f"GBuffer(B={B}, H={H}, W={W}, dtype={self.dtype}, device={self.device}, fields: {parts})"
+
+
+def _with_samples(gb: GBuffer, spp: Any, by: str) -> GBuffer:
+    """``gb`` with ``spp`` samples per pixel in every pixel: the sample count of a render that did
+    not record one (an int or float >= 1: a whole count is the int64 plane ``gb.replace(spp=...)``
+    gives, bit for bit; another, the mean of an adaptive render, a float32 plane the Denoiser
+    reads as that count). Refused by name: bool, NaN, Inf, below 1, and a count other than
+    the one ``gb.spp`` records."""
+    if isinstance(spp, bool) or not isinstance(spp, (int, float)) or not 1 <= spp < math.inf:
+        raise ValueError(f"spp: expected the render's samples per pixel, a finite int or float >= 1, got {spp!r}")
+    if gb.spp is not None:
+        if gb.spp.numel() and bool((gb.spp == spp).all()):
+            return gb
+        raise ValueError(f"spp: {by} was given spp={spp!r} and the input's own sample counts (gb.spp, mean "
+                         f"{float(gb.spp.float().mean()):.4g}); give one of them")
+    B, H, W = gb.shape
+    if float(spp).is_integer():
+        return gb.replace(spp=torch.full((B, 1, H, W), int(spp), dtype=torch.int64, device=gb.device))
+    return GBuffer._unchecked(**dict(gb.items()), spp=torch.full((B, 1, H, W), float(spp), device=gb.device))
+
+
+def _require_guides(gb: GBuffer, method: str, needs: Sequence[str]) -> None:
+    """Refuse by name an input without a guide layer that ``method`` needs (never a crash or a
+    silently worse result)."""
+    why = {"depth": "the guide its network was trained with (distance along the camera ray)",
+           "position": "its edge-stopping weight between world-space positions"}
+    how = {"depth": "Mitsuba 'dd.y:depth', Blender's Denoising Depth or Z pass",
+           "position": "Mitsuba 'pos:position', Blender's Position pass"}
+    for name in needs:
+        if getattr(gb, name) is None:
+            raise LayerError(f"method {method!r} needs a {name} layer (GBuffer.{name}): {why[name]}; this input has "
+                             f"none: render it with torchgi, write a {name} AOV ({how[name]}), or use the method "
+                             "'guided' (it uses depth when given)")
+
+
+def _warn_if_colour_normals(normal: torch.Tensor) -> None:
+    """Warn where ``normal (B, 3, H, W)`` looks like a normal map stored as a colour (``(n + 1) / 2``,
+    in [0, 1]): no component below 0 and most non-zero normals off unit length. Signed unit
+    normals have components below 0 in all but the rarest views, so the common call reads only
+    every 4th row and column."""
+    if is_recording() or normal.numel() == 0 or bool((normal[..., ::4, ::4] < 0).any()) or bool((normal < 0).any()):
+        return
+    sq = normal.float().square().sum(1)
+    covered = sq > 0
+    off = ((sq - 1).abs() > 0.2) & covered
+    if bool(covered.any()) and 2 * int(off.sum()) > int(covered.sum()):
+        warnings.warn("normal: no component is below 0 and most normals are not of unit length: this looks like a "
+                      "normal map stored as a colour, in [0, 1]; GBuffer.normal is world-space unit normals, each "
+                      "component in [-1, 1] (for a map stored as (n + 1) / 2, pass 2 * normal - 1)", stacklevel=_user_level())
+
+
+def _user_level() -> int:
+    """The ``stacklevel`` of a warning issued by this function's caller that points at the first frame
+    outside torchgi and torch: the user's line, however deep the call went inside."""
+    own = (os.path.dirname(__file__), os.path.dirname(torch.__file__))
+    frame, level = sys._getframe(1), 1
+    while frame is not None and frame.f_code.co_filename.startswith(own):
+        frame, level = frame.f_back, level + 1
+    return level
+
+
+def _noise_free(gb: GBuffer) -> bool:
+    """The colour carries no noise to filter (docs/design.md, Skips): a measured variance of 0 everywhere,
+    from at least 2 samples in every pixel (with 1 sample the variance is unknown, stored as 0)."""
+    if gb.variance is None or gb.spp is None:
+        return False
+    return int(gb.spp.min()) >= 2 and not bool(gb.variance.any())
+
+
+def _mean_spp(spp: torch.Tensor) -> float:
+    """The mean of a ``(B,1,H,W)`` sample-count plane (0 for an empty one)."""
+    return float(spp.sum()) / max(spp.numel(), 1)

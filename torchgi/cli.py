@@ -26,10 +26,13 @@ __all__ = ["main"]
 EXTRAS: dict[str, tuple[str, ...]] = {
     "render": ("embreex", "trimesh"),
     "exr": ("OpenEXR",),
+    "image": ("imageio", "PIL"),
+    "flip": ("flip_evaluator",),
+    "gpu": ("triton",),
     "onnx": ("onnx", "onnxruntime", "onnxscript"),
     "ref": ("mitsuba",),
     "dist": ("dask", "distributed"),
-    "bench": ("kornia", "skimage", "matplotlib", "flip_evaluator", "pyoidn"),
+    "bench": ("skimage", "matplotlib", "pyoidn"),
 }
 
 
@@ -110,6 +113,11 @@ def cmd_render(args: argparse.Namespace) -> int:
     if args.resolution:
         scene = scene.with_resolution(*args.resolution)
     kwargs = {"workers": args.workers, "progress": None if args.progress else False}
+    duration = scene.duration
+    if args.frames is not None and (duration is None or duration[0] == duration[1]):
+        raise ValueError(f"--frames: scene {scene.name!r} has no camera, mesh or light path over time, so every "
+                         "frame would be the same still view; render it without --frames, or give it a "
+                         "camera.path (see configs/scenes/sequences)")
     t0 = time.perf_counter()
     if args.frames is None:
         gb = torchgi.render(scene, spp=args.spp, bounces=args.bounces, seed=args.seed, **kwargs)
@@ -137,6 +145,8 @@ def cmd_denoise(args: argparse.Namespace) -> int:
     from torchgi.denoise import Denoiser
     from torchgi.io import write_exr
 
+    if args.temporal and args.spp is not None:
+        raise ValueError("--spp: not with --temporal (the TemporalDenoiser takes each frame's spp layer, else 1)")
     if args.temporal:
         return _denoise_sequence(args)
     if len(args.input) != 1:
@@ -145,17 +155,35 @@ def cmd_denoise(args: argparse.Namespace) -> int:
         raise ValueError("--motion-convention: only with --temporal (a single frame's denoising reads no motion)")
     if not args.short_pass:
         raise ValueError("--no-short-pass: only with --temporal (the TemporalDenoiser's pass over short histories)")
-    gb = torchgi.GBuffer.from_exr(args.input[0], required=("color", "albedo", "normal"), sanitize=args.sanitize)
+    gb, report = torchgi.GBuffer.from_exr(args.input[0], required=("color", "albedo", "normal"),
+                                          sanitize=args.sanitize, return_report=True)
+    if args.spp is not None and gb.spp is not None and not bool((gb.spp == args.spp).all()):
+        raise ValueError(f"--spp: {args.input[0]} records its own sample counts (layer {report.used['spp']!r}, mean "
+                         f"{float(gb.spp.float().mean()):.4g}); --spp is for a render that records none")
+    print(report)  # which layer each input was read from, and what was left
     method, quality = args.method or "guided", args.quality or "balanced"
     params = {} if args.radius is None else {"radius": args.radius}
+    samples = (f"{args.spp:g} spp (--spp)" if args.spp is not None else "spp from the file" if gb.spp is not None
+               else "1 spp: the file records none, --spp gives it")
     t0 = time.perf_counter()
     memory = {None: "auto", "none": None}.get(args.max_memory_mb, args.max_memory_mb)  # None: no flag
-    out = Denoiser(method, quality, max_memory_mb=memory, **params)(gb)
+    out = Denoiser(method, quality, max_memory_mb=memory, **params)(gb, spp=args.spp)
     seconds = time.perf_counter() - t0
     path = write_exr(args.out, {"color": out[0]}, overwrite=args.overwrite)
-    print(f"denoised {args.input[0]} ({gb.shape[2]}x{gb.shape[1]}) with {method} in {seconds * 1e3:.1f} ms; "
-          f"wrote {path}")
+    print(f"denoised {args.input[0]} ({gb.shape[2]}x{gb.shape[1]}, {samples}) with {method} in {seconds * 1e3:.1f} "
+          f"ms; wrote {path}")
     return 0
+
+
+def _sample_count(text: str) -> float:
+    """``denoise --spp``: the render's samples per pixel, a finite number >= 1."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not 1 <= value < math.inf:
+        raise argparse.ArgumentTypeError(f"expected the render's samples per pixel, a finite number >= 1, got {text}")
+    return value
 
 
 SUMMARY = "summary.json"  # what `denoise --temporal` writes beside the frames
@@ -301,44 +329,20 @@ def _memory_mb(text: str) -> float | str:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    """Path-trace the Cornell box at low and high spp, round-trip the buffers through
-    multi-layer EXR, denoise with every method of the Denoiser and report the errors; writes
-    a PNG contact sheet."""
-    from torchgi.denoise import Denoiser
-    from torchgi.io import to_srgb8, write_png
+    """Path-trace the Cornell box at low and high spp, round-trip the buffers through multi-layer
+    EXR, denoise with every method of the Denoiser and report each one's error and time
+    (:func:`torchgi.demo.run_demo`); writes a labelled picture."""
+    from torchgi.demo import DEMO_FILES, run_demo
 
-    out_dir = Path(args.out)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    t0 = time.perf_counter()
-    scene = torchgi.scenes.cornell(args.size)
-    noisy = torchgi.render(scene, spp=args.spp, bounces=args.bounces, seed=1)
-    ref = torchgi.render(scene, spp=args.ref_spp, bounces=args.bounces, seed=2)
-    t_render = time.perf_counter() - t0
-    # The demo owns these file names inside its folder and rewrites them on every run.
-    noisy.to_exr(out_dir / "noisy.exr", overwrite=True)
-    ref.to_exr(out_dir / "reference.exr", overwrite=True)
-    noisy = torchgi.GBuffer.from_exr(out_dir / "noisy.exr", required=("color", "emission", "albedo", "normal", "depth"))
-    ref = torchgi.GBuffer.from_exr(out_dir / "reference.exr")
-
-    # Every method of the Denoiser: emission split off, demodulated, filtered, remodulated.
-    rows = {"noisy": image_metrics(noisy.color, ref.color)}
-    images, times = [noisy.color[0]], {}
-    for method in ("guided", "atrous", "bilateral"):
-        params = {"radius": args.radius, "eps": args.eps} if method == "guided" else {}
-        t0 = time.perf_counter()
-        out = Denoiser(method, **params)(noisy)
-        times[method] = (time.perf_counter() - t0) * 1e3
-        rows[method] = image_metrics(out, ref.color)
-        images.append(out[0])
-    sheet = torch.cat(images + [ref.color[0], noisy.albedo[0], noisy.normal[0].abs()], dim=2)
-    write_png(out_dir / "demo.png", to_srgb8(sheet), overwrite=True)
-    print(f"rendered {args.size}x{args.size} at {args.spp} and {args.ref_spp} spp in {t_render:.1f} s (torchgi); "
-          + ", ".join(f"{m} {ms:.1f} ms" for m, ms in times.items()))
-    print(f"{'method':10s} " + " ".join(f"{k:>9s}" for k in rows["noisy"]))
+    rows, seconds = run_demo(args.out, size=args.size, spp=args.spp, ref_spp=args.ref_spp, bounces=args.bounces,
+                             overwrite=args.overwrite)
+    print(f"rendered the Cornell box at {args.size}x{args.size}, {args.spp} and {args.ref_spp} spp, in {seconds:.1f} s")
+    print(f"{'method':10s} {'relMSE':>9s} {'SSIM':>9s} {'FLIP':>9s} {'ms':>9s}   (lower relMSE and FLIP, higher SSIM "
+          "are better)")
     for name, row in rows.items():
-        print(f"{name:10s} " + " ".join(f"{v:9.4g}" for v in row.values()))
-    print(f"wrote {out_dir / 'noisy.exr'}, {out_dir / 'reference.exr'}, {out_dir / 'demo.png'} "
-          "(noisy | guided | À-Trous | bilateral | reference | albedo | |normal|)")
+        ms = f"{row['ms']:9.1f}" if "ms" in row else f"{'-':>9s}"
+        print(f"{name:10s} {row['relmse']:9.4g} {row['ssim']:9.4f} {row['flip']:9.4f} {ms}")
+    print("wrote " + ", ".join(str(Path(args.out) / f) for f in DEMO_FILES))
     return 0
 
 
@@ -350,14 +354,16 @@ def _out_flags(p: argparse.ArgumentParser, what: str) -> None:
 
 def _denoise_and_export_parsers(sub: argparse._SubParsersAction) -> None:
     """The ``denoise`` and ``export`` sub-commands on ``sub``."""
-    p = sub.add_parser("denoise", help="denoise an EXR with AOVs (colour, albedo, normal; uses position, depth, "
-                       "emission when present)")
+    p = sub.add_parser("denoise", help="denoise an EXR with AOVs (colour, albedo, normal; uses depth, emission "
+                       "when present; pyramid and blend need depth, atrous position); prints the layers it read")
     p.add_argument("input", nargs="+", help="multi-layer EXR: torchgi, Blender/Cycles, Mitsuba 3 or Arnold layer "
-                   "names; with --temporal the frames: a folder, a glob, name_####.exr, or the files in order")
+                   "names (torchgi.io.AOV_ALIASES; it prints which it read and which it ignored); with --temporal the frames: a folder, a glob, name_####.exr, or the files in order")
     p.add_argument("--method", choices=list(METHODS), default=None, help="Denoiser method (default guided); with "
                    "--temporal the spatial filter of the accumulated light: guided, pyramid or blend")
     p.add_argument("--quality", choices=["fast", "balanced", "high"], default=None, help="(default balanced)")
     p.add_argument("--radius", type=_positive_int, default=None, help="filter radius (default: from spp)")
+    p.add_argument("--spp", type=_sample_count, default=None, help="the render's samples per pixel (a number >= 1; "
+                   "the mean of an adaptive render); default: the file's spp layer, else 1. Not with --temporal")
     _out_flags(p, "output EXR (layer 'color'); with --temporal a folder (one EXR per frame, summary.json)")
     p.add_argument("--temporal", action="store_true", help="an animation: the TemporalDenoiser over the frames "
                    "in order (needs depth and motion layers; resumes a folder it wrote)")
@@ -424,14 +430,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
     p.set_defaults(func=cmd_datagen)
 
-    p = sub.add_parser("demo", help="render, write/read EXR, denoise, measure (needs the render and exr extras)")
-    p.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
-    p.add_argument("--size", type=int, default=128)
-    p.add_argument("--spp", type=int, default=1)
-    p.add_argument("--ref-spp", type=int, default=256)
-    p.add_argument("--bounces", type=int, default=1)
-    p.add_argument("--radius", type=int, default=4, help="guided filter radius (px)")
-    p.add_argument("--eps", type=float, default=1e-4, help="guided filter eps (guide units²)")
+    p = sub.add_parser("demo", help="render the Cornell box, write/read EXR, denoise with every method, measure "
+                       "(needs the cpu extra: pip install -e '.[cpu]')")
+    p.add_argument("--out", default="out/demo", help="output folder (default out/demo); its files are never "
+                   "overwritten unless --overwrite")
+    p.add_argument("--overwrite", action="store_true")
+    p.add_argument("--size", type=_positive_int, default=128, help="image width and height, px (default 128)")
+    p.add_argument("--spp", type=_positive_int, default=1, help="samples per pixel of the noisy render (default 1)")
+    p.add_argument("--ref-spp", type=_positive_int, default=256, help="samples per pixel of the reference (default 256)")
+    p.add_argument("--bounces", type=int, default=1, help="indirect bounces (default 1)")
     p.set_defaults(func=cmd_demo)
     return parser
 

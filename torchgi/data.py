@@ -1,6 +1,6 @@
 """Training data: the data-generation job (noisy/reference EXR shards with AOVs) and a Dataset.
 
-The job (DESIGN §6) reads a YAML config, plans one task per (scene, view, seed), and renders
+The job (docs/design.md, Training data) reads a YAML config, plans one task per (scene, view, seed), and renders
 each task's spp ladder and reference into multi-layer EXR shards named as Intel Open Image
 Denoise's training tools expect: ``<scene>_<view>_<spp:04d>spp.exr`` and ``<scene>_<view>_ref.exr``
 (``<view>`` = ``v<view:02d>s<seed>``). Every file is written atomically; a task's manifest (the
@@ -23,6 +23,7 @@ import glob
 import hashlib
 import itertools
 import json
+import math
 import os
 import tempfile
 import zlib
@@ -33,7 +34,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from torchgi.core.check import check_option, require
+from torchgi.core.check import check_int, check_option, require
 from torchgi.core.errors import ConfigError, RangeError
 
 __all__ = ["DataGenConfig", "FilterFeatures", "ShardDataset", "Task", "load_config", "plan", "run_job", "run_task"]
@@ -68,6 +69,22 @@ class DataGenConfig:
     bounces: int
     seeds: tuple[int, ...]
     root: str = "."
+
+    def __post_init__(self) -> None:
+        """Every number checked, as :func:`config_from_dict` checks a file's (errors name the field)."""
+        for key, low in (("views", 1), ("reference_spp", 1), ("bounces", 0)):
+            _int(getattr(self, key), key, low)
+        for key, values, low in (("spp", self.spp, 1), ("seeds", self.seeds, 0),
+                                 ("resolution", self.resolution or (1, 1), 1)):
+            if not isinstance(values, (tuple, list)) or not values or (key == "resolution" and len(values) != 2):
+                raise ConfigError(f"{key}: expected a non-empty sequence of ints (resolution: two), got {values!r}")
+            for value in values:
+                _int(value, key, low)
+        if isinstance(self.jitter, bool) or not isinstance(self.jitter, (int, float)) or not 0 <= self.jitter < 1:
+            raise ConfigError(f"jitter: expected a number in [0, 1), got {self.jitter!r}")
+        if any(b <= a for a, b in itertools.pairwise(self.spp)) or self.reference_spp <= self.spp[-1]:
+            raise ConfigError(f"spp, reference_spp: expected a strictly increasing ladder and a larger reference, "
+                              f"got {list(self.spp)} and {self.reference_spp}")
 
     def resolved(self) -> dict[str, Any]:
         """The config as plain data (what ``index.json`` records)."""
@@ -458,6 +475,7 @@ class ShardDataset(torch.utils.data.Dataset):
                                             "indirect", "emission", "variance"))
         if crop is not None and (isinstance(crop, bool) or not isinstance(crop, int) or crop < 1):
             raise RangeError(f"crop: expected an int >= 1 or None, got {crop!r}")
+        check_int(seed, "seed")
         self.crop, self.features, self.seed, self.epoch = crop, tuple(features), seed, 0
 
     def __len__(self) -> int:
@@ -515,6 +533,10 @@ class FilterFeatures(torch.nn.Module):
         super().__init__()
         for m in methods:
             check_option(m, "methods", ("atrous", "guided"))
+        check_int(radius, "radius")
+        check_int(iterations, "iterations", 1)
+        if isinstance(eps, bool) or not isinstance(eps, (int, float)) or not 0 <= eps < math.inf:
+            raise RangeError(f"eps: expected a finite float >= 0, got {eps!r}")
         self.methods, self.radius, self.eps, self.iterations = tuple(methods), radius, eps, iterations
 
     def forward(self, sample: Mapping[str, Any]) -> dict[str, Any]:

@@ -1,10 +1,10 @@
-"""``torchgi.Denoiser``: what users call (DESIGN §2), in Intel Open Image Denoise's vocabulary.
+"""``torchgi.Denoiser``: what users call (docs/design.md, Denoiser pipeline), in Intel Open Image Denoise's vocabulary.
 
 The noisy light is demodulated by albedo on surfaces (background pixels - the sky, missed rays -
 are filtered as they are), filtered with the geometry-aware filter chosen by ``method`` and
 remodulated. Around the filter:
 
-* Light sources pass untouched (DESIGN §4: no filtering of what carries no noise): emission far
+* Light sources pass untouched (docs/design.md, Skips: no filtering of what carries no noise): emission far
   above the lit scene (8x the median demodulated light) over at least a 3x3 square of pixels.
   Other emission - the sky, pixels beside a light's silhouette that one sample hit, lights
   smaller than 3x3 pixels - is noisy like the rest and is filtered with it. Without an ``emission`` input, such bright coherent
@@ -39,8 +39,8 @@ from typing import Any
 import torch
 
 from torchgi import backends, light
-from torchgi.buffers import GBuffer
-from torchgi.core.check import check_finite, check_option, finite_or_sanitized_all
+from torchgi.buffers import GBuffer, _mean_spp, _noise_free, _require_guides, _warn_if_colour_normals, _with_samples
+from torchgi.core.check import check_finite, check_option, check_positive, finite_or_sanitized_all
 from torchgi.core.dtypes import compute_dtype
 from torchgi.core.errors import ShapeError
 from torchgi.core.registry import Registry
@@ -61,14 +61,8 @@ __all__ = ["DENOISERS", "EXPORTABLE", "METHODS", "QUALITIES", "Denoiser", "Deplo
 _PYRAMID_BYTES = 480
 METHODS = ("pyramid", "blend", "guided", "atrous", "bilateral", "none")
 QUALITIES = ("fast", "balanced", "high")
-
-
-def _noise_free(gb: GBuffer) -> bool:
-    """The colour carries no noise to filter (DESIGN §4): a measured variance of 0 everywhere,
-    from at least 2 samples in every pixel (with 1 sample the variance is unknown, stored as 0)."""
-    if gb.variance is None or gb.spp is None:
-        return False
-    return int(gb.spp.min()) >= 2 and not bool(gb.variance.any())
+# the guide layers a method cannot run without, beyond albedo and normal (its call refuses an input without them)
+NEEDS = {"pyramid": ("depth",), "blend": ("depth",), "atrous": ("position",)}
 
 
 class Denoiser(torch.nn.Module):
@@ -102,7 +96,11 @@ class Denoiser(torch.nn.Module):
 
     Call with a :class:`~torchgi.GBuffer` or with named ``(B, C, H, W)`` tensors: ``color``
     (or ``direct`` + ``indirect``), ``albedo``, ``normal`` (world space, [-1, 1]), and when
-    available ``position``, ``depth``, ``emission``, ``variance``, ``spp``, ``hit``. Returns the
+    available ``position``, ``depth``, ``emission``, ``variance``, ``spp``, ``hit``; "pyramid" and
+    "blend" need ``depth``, "atrous" ``position`` (:data:`NEEDS`: refused by name without them).
+    ``spp`` may also be a number, the sample count of a render that recorded none (an int or
+    float >= 1; ``den(gb, spp=4)`` is ``den(gb.replace(spp=torch.full((B, 1, H, W), 4)))``);
+    without one a GBuffer without ``spp`` is taken as 1 sample per pixel. Returns the
     ``(B, 3, H, W)`` denoised radiance in the input dtype, on the input device.
 
     Example:
@@ -137,8 +135,8 @@ class Denoiser(torch.nn.Module):
         }[method]
         for key in filter_params:
             check_option(key, f"filter parameter for method={method!r}", known)
-        if input_scale is not None and not input_scale > 0:
-            raise ValueError(f"input_scale: expected > 0 or None, got {input_scale!r}")
+        if input_scale is not None:
+            check_positive(input_scale, "input_scale")
         check_budget(max_memory_mb, method, ("guided", "pyramid"))
         eps = filter_params.get("eps", GUIDED.eps)
         if method == "guided" and (isinstance(eps, bool) or not isinstance(eps, (int, float)) or not 0 <= eps < math.inf):
@@ -184,6 +182,8 @@ class Denoiser(torch.nn.Module):
         """
         if frame is not None and spp is not None:
             raise ValueError("spp, frame: give one of them (frame fixes the sample count from its data)")
+        if spp is not None:
+            check_positive(spp, "spp")
         samples = spp  # the render's sample count (the back-off's), not the one its noise corresponds to
         if frame is not None:
             surface = light.surface_mask(frame.hit, frame.albedo)
@@ -230,8 +230,10 @@ class Denoiser(torch.nn.Module):
                 f"filter_direct={self.filter_direct}, sanitize={self.sanitize}{memory}{params}")
 
     # ------------------------------------------------------------------------------ call
-    def forward(self, gb: GBuffer | None = None, **tensors: torch.Tensor) -> torch.Tensor:
-        return self._denoise(GBuffer.from_inputs(gb, tensors, by="Denoiser"))
+    def forward(self, gb: GBuffer | None = None, **tensors: torch.Tensor | float) -> torch.Tensor:
+        count = None if isinstance(tensors.get("spp"), torch.Tensor) else tensors.pop("spp", None)
+        gb = GBuffer.from_inputs(gb, tensors, by="Denoiser")
+        return self._denoise(gb if count is None else _with_samples(gb, count, "Denoiser"))
 
     def _denoise(self, gb: GBuffer) -> torch.Tensor:
         if gb.color is None:
@@ -240,6 +242,8 @@ class Denoiser(torch.nn.Module):
             return gb.color
         if gb.albedo is None or gb.normal is None:
             raise ShapeError("albedo and normal: required by every method but 'none'")
+        _require_guides(gb, self.method, NEEDS.get(self.method, ()))
+        _warn_if_colour_normals(gb.normal)
         if self.sanitize:
             names = [n for n in GBuffer.fields() if n not in ("spp", "hit") and getattr(gb, n) is not None]
             gb = gb.replace(**dict(zip(names, finite_or_sanitized_all({n: getattr(gb, n) for n in names}, True),
@@ -425,6 +429,7 @@ class Denoiser(torch.nn.Module):
         for name in ("emission", "direct", "indirect", "albedo", "normal", "depth"):
             if getattr(gb, name) is None:
                 raise ShapeError(f"gb.{name}: required by supersample (render with render_guide_rays)")
+        _require_guides(gb, self.method, NEEDS.get(self.method, ()))
         surface = light.surface_mask(gb.hit, gb.albedo)
         albedo = light.demodulator(gb.albedo, surface)
         x = (gb.indirect + gb.direct if self.filter_direct else gb.indirect) / albedo
@@ -557,11 +562,6 @@ class Denoiser(torch.nn.Module):
 def _choice_radii(radius: int) -> tuple[int, int]:
     """The radii :func:`torchgi.light.choose` blends in place of ``radius``: half (>= 1) and twice it."""
     return (max(1, radius // 2), 2 * radius)
-
-
-def _mean_spp(spp: torch.Tensor) -> float:
-    """The mean of a ``(B,1,H,W)`` sample-count plane (0 for an empty one)."""
-    return float(spp.sum()) / max(spp.numel(), 1)
 
 
 def _back_off(out: torch.Tensor | list[torch.Tensor], gb: GBuffer, surface: torch.Tensor, level: torch.Tensor,

@@ -66,7 +66,7 @@ class DeployedDenoiser(torch.nn.Module):
 
     ``forward(color, emission, albedo, normal, depth)`` for "pyramid", "blend" and "guided" and
     ``forward(color, emission, albedo, normal, position)`` for "atrous", all ``(B, C, H, W)``
-    (:attr:`input_names`; :class:`DeployedDenoiserWithoutEmission` takes no emission), and with
+    (:attr:`input_names`, by position or by name; :class:`DeployedDenoiserWithoutEmission` takes no emission), and with
     ``variance`` a last input ``variance (B, 1|3, H, W)`` (of the colour's mean, as
     ``GBuffer.variance``): the Denoiser's pipeline (:mod:`torchgi.denoise`'s docstring) with the
     fixed parameters, backed off toward the input as the eager call given a variance
@@ -98,14 +98,41 @@ class DeployedDenoiser(torch.nn.Module):
         return (("color",) + (("emission",) if self.emission else ()) + ("albedo", "normal", last)
                 + (("variance",) if self.variance else ()))
 
-    def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
-        """The denoised ``(B, 3, H, W)`` colour from the :attr:`input_names`, in that order."""
-        if len(inputs) != len(self.input_names):
-            raise ValueError(f"inputs: expected {', '.join(self.input_names)}, got {len(inputs)} tensors")
-        named = dict(zip(self.input_names, _fill_holes(list(inputs)), strict=True))
+    def forward(self, *inputs: torch.Tensor, **by_name: torch.Tensor) -> torch.Tensor:
+        """The denoised ``(B, 3, H, W)`` colour from the :attr:`input_names`: by position in that
+        order, by name, or the first ones by position and the rest by name.
+
+        Example:
+            >>> import torchgi
+            >>> m = torchgi.Denoiser("guided").deploy(emission=False)
+            >>> c, a, n, d = (torch.rand(1, k, 8, 8) for k in (3, 3, 3, 1))
+            >>> torch.equal(m(c, a, n, d), m(depth=d, normal=n, albedo=a, color=c))
+            True
+        """
+        named = dict(zip(self.input_names, _fill_holes(self._ordered(inputs, by_name)), strict=True))
         geometry = named["position" if self.method == "atrous" else "depth"]
         return self._run(named["color"], named.get("emission"), named["albedo"], named["normal"], geometry,
                          named.get("variance"))
+
+    def _ordered(self, inputs: tuple[torch.Tensor, ...], by_name: dict[str, torch.Tensor]) -> list[torch.Tensor]:
+        """The positional and named inputs of :meth:`forward` as one list in :attr:`input_names`
+        order; an unknown name, a name also given by position, or a missing input is refused by name."""
+        names = self.input_names
+        expected = f"inputs {', '.join(names)}"
+        if len(inputs) > len(names):
+            raise ValueError(f"inputs: expected at most {len(names)} tensors ({expected}), got {len(inputs)}")
+        for key in by_name:
+            if key == "emission" and not self.emission:
+                raise TypeError("emission: this module was deployed without an emission input (emission=False)")
+            if key not in names:
+                raise TypeError(f"{key}: not an input of this module ({expected})")
+            if names.index(key) < len(inputs):
+                raise TypeError(f"{key}: given by position and by name")
+        given = dict(zip(names, inputs)) | by_name
+        missing = [k for k in names if k not in given]
+        if missing:
+            raise ValueError(f"{', '.join(missing)}: required ({expected})")
+        return [given[k] for k in names]
 
     def _run(self, color: torch.Tensor, emission: torch.Tensor | None, albedo: torch.Tensor, normal: torch.Tensor,
              geometry: torch.Tensor, variance: torch.Tensor | None = None) -> torch.Tensor:

@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import contextlib
 import inspect
+import logging
 import os
 import tempfile
-from collections.abc import Sequence
+import warnings
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -13,7 +16,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from torchgi.core.check import check_shape, require
+from torchgi.core.check import check_int, check_positive, check_shape, require
 
 __all__ = ["OrtDenoiser", "OrtSession", "export_denoiser", "export_onnx", "export_temporal"]
 
@@ -53,8 +56,7 @@ def export_onnx(
     """
     require("onnx", "onnx")
     require("onnxscript", "onnx")
-    if opset < 17:
-        raise ValueError(f"opset: expected >= 17, got {opset}")
+    check_int(opset, "opset", 17)
     if len(input_names) != len(example_inputs):
         raise ValueError(f"input_names: {len(input_names)} names for {len(example_inputs)} inputs")
     path = Path(path)
@@ -79,16 +81,52 @@ def export_onnx(
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     os.close(fd)
     try:
-        torch.onnx.export(
-            module.eval(), tuple(example_inputs), tmp, input_names=list(input_names),
-            output_names=list(output_names), dynamic_shapes=shapes, opset_version=opset, dynamo=True,
-            optimize=optimize, verbose=False,
-        )
+        with _exporter_notes_hidden():
+            torch.onnx.export(
+                module.eval(), tuple(example_inputs), tmp, input_names=list(input_names),
+                output_names=list(output_names), dynamic_shapes=shapes, opset_version=opset, dynamo=True,
+                optimize=optimize, verbose=False,
+            )
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
+        data = f"{tmp}.data"  # the exporter's external-weights file, empty: the weights are in the graph
+        if os.path.exists(data) and os.path.getsize(data) == 0:
+            os.unlink(data)
     return path
+
+
+# What the exporter says on every export that asks nothing of the user: each input after the
+# first names its B, H and W axes again (the same axis: the name is used once), and torch's own
+# code calls a deprecated pytree type. A warning that one axis takes *another* axis' name (two
+# dimensions tied in the graph) is kept.
+_NOTES = (
+    (UserWarning, (r"# The axis name: (\w+) will not be used, since it shares the same shape constraints "
+                   r"with another axis: \1\.$")),
+    (FutureWarning, r"`isinstance\(treespec, LeafSpec\)` is deprecated"),
+)
+
+
+def _skipped_torchvision(record: logging.LogRecord) -> bool:
+    """A logging filter: False for the exporter's note that it skips torchvision's operators
+    (none of torchgi's graphs uses them)."""
+    return not record.getMessage().startswith("torchvision is not installed")
+
+
+@contextlib.contextmanager
+def _exporter_notes_hidden() -> Iterator[None]:
+    """Inside: the exporter's routine notes (:data:`_NOTES`, the torchvision log line) are not
+    shown; every other warning is."""
+    registration = logging.getLogger("torch.onnx._internal.exporter._registration")
+    registration.addFilter(_skipped_torchvision)
+    try:
+        with warnings.catch_warnings():
+            for category, message in _NOTES:
+                warnings.filterwarnings("ignore", message, category)
+            yield
+    finally:
+        registration.removeFilter(_skipped_torchvision)
 
 
 class OrtSession:
@@ -136,7 +174,8 @@ def export_denoiser(
     in scene units squared) and, with ``variance`` (:meth:`torchgi.Denoiser.deploy`: by default
     where ``frame`` has a variance from 2 samples or more), ``variance`` (3 channels, or the
     frame's count), all ``(B, C, H, W)`` float32 with dynamic B/H/W, and returns the denoised
-    ``(B, 3, H, W)`` colour.
+    ``(B, 3, H, W)`` colour. ``spp`` (default 1) and ``sigma_position``, where given, are finite
+    numbers > 0.
 
     Example:
         >>> p = export_denoiser("guided", os.path.join(tempfile.mkdtemp(), "d.onnx"))
@@ -145,6 +184,9 @@ def export_denoiser(
     """
     from torchgi.denoise import Denoiser
 
+    for name, value in (("spp", spp), ("sigma_position", sigma_position)):
+        if value is not None:
+            check_positive(value, name)
     module = Denoiser(method, quality, **filter_params).deploy(spp=spp, sigma_position=sigma_position,
                                                                emission=emission, frame=frame, variance=variance)
     g = torch.Generator().manual_seed(0)

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import torch
 
+from torchgi.core.check import check_positive
+
 __all__ = ["pixel_footprint", "sigma_position_rule"]
 
 
@@ -36,4 +38,5 @@ def sigma_position_rule(position: torch.Tensor, hit: torch.Tensor, footprints: f
         >>> sigma_position_rule(torch.cat([x, 0 * x, 0 * x], 1), torch.ones(1, 1, 4, 8, dtype=torch.bool), 4)
         4.0
     """
+    check_positive(footprints, "footprints")
     return (footprints * pixel_footprint(position, hit)) ** 2

@@ -17,12 +17,13 @@ from torchgi.core.check import (
     check_finite,
     check_floating,
     check_option,
+    check_positive,
     check_range,
     check_same_device,
     check_shape,
     require,
 )
-from torchgi.core.errors import ShapeError
+from torchgi.core.errors import RangeError, ShapeError
 
 __all__ = ["flip", "mse", "psnr", "relmse", "rmae", "ssim", "temporal", "tonemap"]
 
@@ -82,6 +83,8 @@ def relmse(
         tensor(0.9901)
     """
     _check_pair(x, ref)
+    if isinstance(eps, bool) or not isinstance(eps, (int, float)) or not 0 <= eps < math.inf:
+        raise RangeError(f"eps: expected a finite number >= 0, got {eps!r}")
     return _reduce((x - ref).square() / (ref.square() + eps), reduction)
 
 
@@ -114,8 +117,7 @@ def psnr(
         x, ref, data_range = tonemap(x, tonemap_method), tonemap(ref, tonemap_method), 1.0
     if data_range is None:
         raise ValueError("data_range: required (e.g. 1.0 for LDR, or the reference's peak for HDR)")
-    if not data_range > 0:
-        raise ValueError(f"data_range: expected > 0, got {data_range}")
+    check_positive(data_range, "data_range")
     per_image = mse(x, ref, reduction="none")
     db = 10 * torch.log10(data_range**2 / per_image)
     check_option(reduction, "reduction", _REDUCTIONS)
@@ -143,6 +145,7 @@ def ssim(
         1.0
     """
     _check_pair(x, ref)
+    check_positive(data_range, "data_range")
     if window % 2 != 1 or window < 3:
         raise ValueError(f"window: expected an odd size >= 3, got {window}")
     if min(x.shape[-2:]) < window:

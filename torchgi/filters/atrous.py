@@ -1,4 +1,4 @@
-"""Edge-avoiding À-Trous wavelet filter (Dammertz et al. 2010), DESIGN §3.1.
+"""Edge-avoiding À-Trous wavelet filter (Dammertz et al. 2010), docs/design.md, À-Trous.
 
 Iteration ``i = 0..N-1`` with step ``s = 2^i`` over the 25 taps of ``h = b ⊗ b``::
 
@@ -177,7 +177,7 @@ def _check_atrous_args(
     check_same_device(named)
     check_same_floating(named)
     check_int(iterations, "iterations", 1)
-    if not isinstance(subsample, int) or subsample < 1 or subsample & (subsample - 1):
+    if not isinstance(subsample, int) or isinstance(subsample, bool) or subsample < 1 or subsample & (subsample - 1):
         raise ValueError(f"subsample: expected a power of two >= 1, got {subsample!r}")
 
 

@@ -256,7 +256,7 @@ def blend(
     check_floating(x, "x")
     check_same_device({"x": x, "guide": guide})
     check_same_floating({"x": x, "guide": guide})
-    if isinstance(spp, (int, float)) and not (math.isfinite(spp) and spp >= 1):
+    if isinstance(spp, bool) or isinstance(spp, (int, float)) and not (math.isfinite(spp) and spp >= 1):
         raise RangeError(f"spp: expected a finite number >= 1, got {spp!r}")
     net = default_net(x.device) if net is None else net
     if next(net.parameters()).device != x.device:

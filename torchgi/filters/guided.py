@@ -19,6 +19,7 @@ the rounding level of the variance so flat guides and ``eps=0`` stay finite and 
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import torch
@@ -150,7 +151,7 @@ def guide_from_gbuffer(
         gb: needs ``normal``; ``depth`` is appended when present.
         depth_scale: the fixed scene-extent constant depth is divided by (scene units); by
             default the largest depth among hit pixels of the batch (all pixels without ``hit``).
-        drop_constant: drop channels that are constant over the whole batch (DESIGN §4): they
+        drop_constant: drop channels that are constant over the whole batch (docs/design.md, Skips): they
             carry no edges and only cost work in the solve.
 
     Returns:
@@ -231,8 +232,8 @@ def _depth_scale(depth: torch.Tensor, hit: torch.Tensor | None,
         valid = depth if hit is None else torch.where(hit, depth, -torch.inf)
         depth_scale = float(valid.max()) if valid.numel() else 1.0
         return depth_scale if depth_scale > 0 else 1.0  # (-inf: no hit pixel)
-    if isinstance(depth_scale, str) or not depth_scale > 0:
-        raise RangeError(f"depth_scale: expected > 0, None or 'image', got {depth_scale!r}")
+    if isinstance(depth_scale, (str, bool)) or not 0 < depth_scale < math.inf:
+        raise RangeError(f"depth_scale: expected a finite number > 0, None or 'image', got {depth_scale!r}")
     return depth_scale
 
 
@@ -276,6 +277,9 @@ class Guided(nn.Module):
         check_int(subsample, "subsample", 1)
         self.radius, self.subsample = radius, subsample
         self._workspace: dict = {}
+        if not isinstance(eps, torch.Tensor) and (isinstance(eps, bool) or not isinstance(eps, (int, float))
+                                                  or not 0 <= eps < math.inf):
+            raise RangeError(f"eps: expected a finite float >= 0 or a tensor, got {eps!r}")
         value = torch.as_tensor(eps, dtype=torch.float32).clone()
         if learnable:
             self.eps = nn.Parameter(value)

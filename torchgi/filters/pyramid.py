@@ -438,7 +438,7 @@ def pyramid(
     check_same_floating(tensors)
     if not 1 <= guide.shape[1] <= 4:
         raise ShapeError(f"guide: expected 1 to 4 channels, got {guide.shape[1]} (shape {tuple(guide.shape)})")
-    if isinstance(spp, (int, float)) and not (math.isfinite(spp) and spp >= 1):
+    if isinstance(spp, bool) or isinstance(spp, (int, float)) and not (math.isfinite(spp) and spp >= 1):
         raise RangeError(f"spp: expected a finite number >= 1, got {spp!r}")
     net = default_net(x.device) if net is None else net
     if next(net.parameters()).device != x.device:

@@ -12,6 +12,7 @@ torchgi's canonical AOV names.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import tempfile
 from collections.abc import Iterable, Mapping
@@ -24,7 +25,8 @@ from torchgi.core.check import check_option, require
 from torchgi.core.errors import DTypeError, ExrError, LayerError, ShapeError
 from torchgi.io.motion import motion_convention_of, to_torchgi_motion
 
-__all__ = ["AOV_ALIASES", "AOV_CHANNELS", "find_aovs", "read_aovs", "read_exr", "write_exr"]
+__all__ = ["AOV_ALIASES", "AOV_CHANNELS", "LayerReport", "find_aovs", "match_aovs", "read_aovs", "read_exr",
+           "write_exr"]
 
 _MAGIC = b"\x76\x2f\x31\x01"
 
@@ -33,6 +35,8 @@ _MAGIC = b"\x76\x2f\x31\x01"
 # R,G,B(,A) of Mitsuba 3, Arnold and most renderers' beauty. Blender's "Combined" is the
 # denoised result when Cycles writes denoising data, so its "Noisy Image" comes first, and
 # Cycles' "Denoising *" guides (made for denoisers) win over its plain Normal/Depth passes.
+# Mitsuba 3's aov integrator names a layer as its user does (its documentation's "dd.y:depth" writes
+# the channel dd.y.T, the layer "dd.y").
 # Motion: Blender's "Vector" (X, Y of its 4 components) and Arnold's "motionvector" (R, G) are
 # converted to torchgi's convention (GBuffer.motion) from their renderer's (torchgi.io.motion).
 AOV_ALIASES: dict[str, tuple[str, ...]] = {
@@ -40,7 +44,7 @@ AOV_ALIASES: dict[str, tuple[str, ...]] = {
     "albedo": ("denoising albedo", "albedo", "alb", "diffcol", "diffuse_albedo"),
     "normal": ("denoising normal", "normal", "nrm", "normals", "n", "nn", "sh_normal", "shading_normal"),
     "position": ("position", "pos", "p", "pp", "world_position"),
-    "depth": ("denoising depth", "depth", "z", "dd", "distance"),
+    "depth": ("denoising depth", "depth", "z", "dd", "dd.y", "distance"),
     "emission": ("emission", "emit", "emissive", "ee"),
     "motion": ("motion", "vector", "motionvector", "motion_vector", "mv"),
     "direct": ("direct",),
@@ -241,11 +245,120 @@ def _normalise(name: str) -> list[str]:
     return forms
 
 
+@dataclasses.dataclass(frozen=True)
+class LayerReport:
+    """What :func:`match_aovs` took from a file's layers, and what it left.
+
+    Attributes:
+        source: what the layers came from (a path, say).
+        used: canonical AOV name -> the layer name it was read from (``""``: the un-prefixed
+            ``R, G, B``), in :data:`AOV_ALIASES` order.
+        channels_left: canonical AOV name -> how many channels of its layer were not read (an
+            alpha channel, the last two of Blender's 4-channel ``Vector``); only AOVs that left some.
+        alternatives: layer name -> the AOV it is another name for, left because a more preferred
+            name of that AOV was read (Blender's ``Normal`` beside ``Denoising Normal``).
+        unknown: layer names that are no accepted name of any AOV (:data:`AOV_ALIASES`): not read.
+
+    ``str(report)`` is two lines: what was read from which name, and what was left.
+
+    Example:
+        >>> _, r = match_aovs({"": torch.zeros(4, 2, 2), "nn": torch.zeros(3, 2, 2), "uv": torch.zeros(2, 2, 2)})
+        >>> print(r)
+        read color from R,G,B (not its 4th channel), normal from 'nn'
+        ignored 'uv' (no name torchgi reads: torchgi.io.AOV_ALIASES)
+    """
+
+    source: str
+    used: dict[str, str]
+    channels_left: dict[str, int]
+    alternatives: dict[str, str]
+    unknown: tuple[str, ...]
+
+    def __str__(self) -> str:
+        def shown(layer: str) -> str:
+            return repr(layer) if layer else "R,G,B"
+
+        read = ", ".join(f"{aov} from {shown(layer)}" + (
+            f" (not its {_ordinals(AOV_CHANNELS[aov], self.channels_left[aov])})" if aov in self.channels_left else "")
+            for aov, layer in self.used.items())
+        left = [f"{', '.join(map(shown, self.unknown))} (no name torchgi reads: torchgi.io.AOV_ALIASES)"] \
+            if self.unknown else []
+        left += [f"{shown(n)} (another name of {aov}, read from {shown(self.used[aov])})"
+                 for n, aov in self.alternatives.items()]
+        return f"read {read or 'nothing'}\nignored {'; '.join(left) or 'nothing'}"
+
+
+def _ordinals(first: int, count: int) -> str:
+    """``"4th channel"`` / ``"4th-5th channels"``: channels ``first + 1 .. first + count`` (1-based)."""
+    def nth(k: int) -> str:
+        return f"{k}{'th' if 10 <= k % 100 <= 20 else {1: 'st', 2: 'nd', 3: 'rd'}.get(k % 10, 'th')}"
+
+    return f"{nth(first + 1)} channel" if count == 1 else f"{nth(first + 1)}-{nth(first + count)} channels"
+
+
+def match_aovs(
+    layers: Mapping[str, torch.Tensor], *, required: Iterable[str] = ("color",), source: str = "layers",
+    motion_convention: str | None = None,
+) -> tuple[dict[str, torch.Tensor], LayerReport]:
+    """:func:`find_aovs`, and a :class:`LayerReport` of which layer each AOV was read from and
+    which layers and channels were left (nothing is dropped without a word).
+
+    Example:
+        >>> aovs, report = match_aovs({"": torch.zeros(3, 2, 2), "dd.y": torch.ones(1, 2, 2),
+        ...                            "img": torch.zeros(4, 2, 2)})
+        >>> report.used, report.unknown
+        ({'color': '', 'depth': 'dd.y'}, ('img',))
+    """
+    index: dict[str, str] = {}
+    for name in layers:
+        for form in _normalise(name):
+            index.setdefault(form, name)
+    found: dict[str, torch.Tensor] = {}
+    used: dict[str, str] = {}
+    left: dict[str, int] = {}
+    for aov, aliases in AOV_ALIASES.items():
+        match = next((index[a] for a in aliases if a in index), None)
+        if match is None:
+            continue
+        value = layers[match]
+        want = AOV_CHANNELS.get(aov)
+        if want is not None:
+            if value.shape[0] < want:
+                raise LayerError(
+                    f"{source}: layer {match!r} (used as {aov}) has {value.shape[0]} channels, expected {want}"
+                )
+            if value.shape[0] > want:
+                left[aov] = value.shape[0] - want
+            value = value[:want]
+        if aov == "motion":
+            value = to_torchgi_motion(value, motion_convention or motion_convention_of(match))
+        found[aov] = value
+        used[aov] = match
+    missing = [r for r in required if r not in found]
+    if missing:
+        raise LayerError(
+            f"{source}: missing required layer(s) {', '.join(missing)}; found layers: "
+            f"{', '.join(repr(n) for n in layers) or '(none)'}; accepted names for "
+            + "; ".join(f"{m}: {', '.join(repr(a) for a in AOV_ALIASES.get(m, (m,)))}" for m in missing)
+        )
+    aov_of = {a: aov for aov, aliases in AOV_ALIASES.items() for a in aliases}
+    alternatives = {}  # a layer left with an accepted name: another name (or view layer) of an AOV read
+    for n in layers:
+        aov = next((aov_of[f] for f in _normalise(n) if f in aov_of), None)
+        if n not in used.values() and aov in used:
+            alternatives[n] = aov
+    unknown = tuple(n for n in layers if n not in used.values() and n not in alternatives)
+    return found, LayerReport(source, used, left, alternatives, unknown)
+
+
 def find_aovs(
     layers: Mapping[str, torch.Tensor], *, required: Iterable[str] = ("color",), source: str = "layers",
     motion_convention: str | None = None,
 ) -> dict[str, torch.Tensor]:
     """Map renderer-specific layer names to torchgi's canonical AOV names.
+
+    Layers of no accepted name are left out without a word here: :func:`match_aovs` reports
+    them (and :meth:`torchgi.GBuffer.from_exr` warns).
 
     Args:
         layers: layer name -> ``(C, H, W)`` tensor, as from :func:`read_exr`.
@@ -271,34 +384,7 @@ def find_aovs(
         >>> sorted(find_aovs(lay))
         ['color', 'normal']
     """
-    index: dict[str, str] = {}
-    for name in layers:
-        for form in _normalise(name):
-            index.setdefault(form, name)
-    found: dict[str, torch.Tensor] = {}
-    for aov, aliases in AOV_ALIASES.items():
-        match = next((index[a] for a in aliases if a in index), None)
-        if match is None:
-            continue
-        value = layers[match]
-        want = AOV_CHANNELS.get(aov)
-        if want is not None:
-            if value.shape[0] < want:
-                raise LayerError(
-                    f"{source}: layer {match!r} (used as {aov}) has {value.shape[0]} channels, expected {want}"
-                )
-            value = value[:want]
-        if aov == "motion":
-            value = to_torchgi_motion(value, motion_convention or motion_convention_of(match))
-        found[aov] = value
-    missing = [r for r in required if r not in found]
-    if missing:
-        raise LayerError(
-            f"{source}: missing required layer(s) {', '.join(missing)}; found layers: "
-            f"{', '.join(repr(n) for n in layers) or '(none)'}; accepted names for "
-            + "; ".join(f"{m}: {', '.join(repr(a) for a in AOV_ALIASES.get(m, (m,)))}" for m in missing)
-        )
-    return found
+    return match_aovs(layers, required=required, source=source, motion_convention=motion_convention)[0]
 
 
 def read_aovs(path: str | os.PathLike, *, required: Iterable[str] = ("color",),

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchgi.core.check import check_finite, check_shape, require
+from torchgi.core.check import check_finite, check_positive, check_shape, require
 
 __all__ = ["to_srgb8", "write_png"]
 
@@ -25,6 +25,7 @@ def to_srgb8(image: torch.Tensor, *, exposure: float = 1.0) -> np.ndarray:
     """
     check_shape(image, "C H W", "image")
     check_finite(image, "image")
+    check_positive(exposure, "exposure")
     x = (image.detach().float().cpu() * exposure).clamp(0, 1)
     srgb = torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.pow(1 / 2.4) - 0.055)
     return (srgb * 255 + 0.5).to(torch.uint8).permute(1, 2, 0).numpy()

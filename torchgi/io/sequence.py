@@ -30,8 +30,10 @@ def frame_paths(inputs: Sequence[str | os.PathLike]) -> list[Path]:
 
     Raises:
         FileNotFoundError: nothing matched, or a listed file does not exist (the message names it).
-        ValueError: the same file twice, or two frames with one file name (their outputs would
-            collide).
+        ValueError: the same file twice, two frames with one file name (their outputs would
+            collide), frames of another image size than the first (read from the OpenEXR headers),
+            or, from a folder or a glob, files whose names differ other than in the frame number
+            (``shot_0001.exr`` beside ``other_0001.exr``).
 
     Example:
         >>> import tempfile
@@ -71,4 +73,50 @@ def frame_paths(inputs: Sequence[str | os.PathLike]) -> list[Path]:
     if len(set(names)) != len(names):
         twice = next(n for n in names if names.count(n) > 1)
         raise ValueError(f"input: two frames are named {twice} (the same file twice, or one name in two folders)")
+    if len(inputs) == 1 and len(paths) > 1:  # a folder or a glob takes every file that matches: one shot's only
+        _check_one_name(paths, str(inputs[0]))
+    _check_one_size(paths)
     return paths
+
+
+def _name_key(path: Path) -> tuple[str, str] | None:
+    """A frame's name without its frame number (the last run of digits): ``("shot_", ".exr")`` for
+    ``shot_0001.exr``; None for a name without digits."""
+    m = re.fullmatch(r"(.*?)(\d+)(\D*)", path.name)
+    return None if m is None else (m.group(1), m.group(3))
+
+
+def _check_one_name(paths: list[Path], spec: str) -> None:
+    """Refuse frames of a folder or glob whose names differ other than in their frame number."""
+    first = _name_key(paths[0])
+    for p in paths[1:]:
+        key = _name_key(p)
+        if key != first:
+            raise ValueError(
+                f"input: {spec} mixes frames named {paths[0].name} and {p.name}"
+                f"{'' if key and first else ' (one has no frame number)'}: a sequence is one name with a "
+                "frame number; give a name_####.exr pattern or a glob that matches one shot"
+            )
+
+
+def _check_one_size(paths: list[Path]) -> None:
+    """Refuse frames whose OpenEXR headers give another image size than the first frame's
+    (headers only; a file that is not a readable EXR is left to the reader, which names it)."""
+    try:
+        import OpenEXR
+    except ImportError:
+        return
+    first = None
+    for p in paths:
+        try:
+            exr = OpenEXR.InputFile(str(p))
+        except OSError:  # not an EXR: read_exr says so when the frame is read
+            continue
+        window = exr.header()["dataWindow"]
+        exr.close()
+        size = (window.max.x - window.min.x + 1, window.max.y - window.min.y + 1)
+        if first is None:
+            first = (p, size)
+        elif size != first[1]:
+            raise ValueError(f"input: {p.name} is {size[0]}x{size[1]} but {first[0].name} is "
+                             f"{first[1][0]}x{first[1][1]}: the frames of a sequence share one size")

@@ -1,4 +1,4 @@
-"""Adaptive sampling wired into the renderer (Bauszat et al. 2011, DESIGN §3.3), and beyond it.
+"""Adaptive sampling wired into the renderer (Bauszat et al. 2011; docs/design.md, Sampling), and beyond it.
 
 1. Render the noise-free guides (one ray per pixel centre).
 2. Importance from the filter's own geometry weights (:func:`importance_map`), background excluded.
@@ -20,11 +20,11 @@ from typing import TYPE_CHECKING, Any
 import torch
 
 from torchgi.buffers import GBuffer
-from torchgi.core.check import check_int
+from torchgi.core.check import check_int, check_positive
 from torchgi.core.errors import RangeError
 from torchgi.filters.box import box
 from torchgi.geometry import sigma_position_rule
-from torchgi.sampling.allocate import allocate
+from torchgi.sampling.allocate import MAX_BUDGET, allocate
 from torchgi.sampling.importance import importance_map
 
 if TYPE_CHECKING:  # the renderer imports its scene types lazily (embree is an extra)
@@ -51,7 +51,7 @@ def adaptive_counts(
 
     Args:
         guides: a GBuffer with ``normal``, ``position`` and ``hit`` (e.g. ``render_guides``).
-        rate: average samples per pixel on geometry (> 0).
+        rate: average samples per pixel on geometry, a finite number > 0.
         sigma_position: σ_x in scene units squared; None = :func:`sigma_position_rule` with 2 footprints.
 
     Returns:
@@ -64,8 +64,7 @@ def adaptive_counts(
         >>> int(c.sum()), int(c.min()) >= 1, int(c[..., 1:3].sum()) > int(c[..., [0, 3]].sum())
         (32, True, True)
     """
-    if not isinstance(rate, (int, float)) or isinstance(rate, bool) or not rate > 0:
-        raise RangeError(f"rate: expected a number > 0, got {rate!r}")
+    check_positive(rate, "rate")
     check_int(min_samples, "min_samples")
     hit = guides.hit
     if sigma_position is None:
@@ -73,6 +72,8 @@ def adaptive_counts(
     imp = importance_map(guides.normal, guides.position, window=window, sigma_normal=sigma_normal,
                          sigma_position=sigma_position, hit=hit)
     budget = round(rate * int(hit.flatten(1).sum(1).max()))
+    if budget > MAX_BUDGET:
+        raise RangeError(f"rate: {rate!r} samples per pixel make {budget} samples per image, more than 2**52")
     return allocate(imp, budget, min_samples=min_samples, mask=hit)
 
 
@@ -93,7 +94,8 @@ def adaptive_render(
 
     Args:
         scene: a Scene, YAML path or built-in name.
-        rate: indirect samples per pixel on geometry, on average (the budget is exact).
+        rate: indirect samples per pixel on geometry, on average (the budget is exact); a
+            finite number > 0.
         bounces, seed: as :func:`torchgi.render`.
         window, sigma_normal, sigma_position, min_samples: as :func:`adaptive_counts`.
         variance_share: in [0, 1): the share of the budget kept for a second, variance-driven
@@ -111,7 +113,8 @@ def adaptive_render(
     """
     from torchgi.render import load_scene, render, render_guides
 
-    if not 0 <= variance_share < 1:
+    check_positive(rate, "rate")
+    if isinstance(variance_share, bool) or not isinstance(variance_share, (int, float)) or not 0 <= variance_share < 1:
         raise RangeError(f"variance_share: expected a number in [0, 1), got {variance_share!r}")
     if isinstance(scene, str):
         scene = load_scene(scene)

@@ -1,4 +1,4 @@
-"""A fixed sample budget apportioned by importance (DESIGN §3.3), and its exclusive scan::
+"""A fixed sample budget apportioned by importance (docs/design.md, Sampling), and its exclusive scan::
 
     n_p = minSamples + floor(q_p / Q · s),   s = S - minSamples · numPixels,   Q = Σ q_p
 
@@ -18,6 +18,9 @@ from torchgi.core.errors import DTypeError, RangeError
 
 __all__ = ["allocate", "exclusive_scan"]
 
+# the largest budget per image whose float64 shares stay exact integers (2^52)
+MAX_BUDGET = 2**52
+
 
 def allocate(
     importance: torch.Tensor, budget: int, *, min_samples: int = 1, mask: torch.Tensor | None = None
@@ -26,7 +29,7 @@ def allocate(
 
     Args:
         importance: ``(B, 1, H, W)`` finite values >= 0 (e.g. :func:`importance_map`).
-        budget: samples per image ``S``; at least ``min_samples ·`` (eligible pixels).
+        budget: samples per image ``S``; at least ``min_samples ·`` (eligible pixels), at most 2^52.
         min_samples: samples every eligible pixel gets first.
         mask: ``(B, 1, H, W)`` bool, pixels that may be sampled (e.g. ``gb.hit``); the others
             get 0. Default: every pixel.
@@ -45,6 +48,8 @@ def allocate(
     check_finite(importance, "importance")
     check_range(importance, "importance", 0.0)
     check_int(budget, "budget")
+    if budget > MAX_BUDGET:
+        raise RangeError(f"budget: expected at most 2**52 samples per image, got {budget}")
     check_int(min_samples, "min_samples")
     B = importance.shape[0]
     q = importance.flatten(1)

@@ -1,4 +1,4 @@
-"""Batched sample processing (DESIGN §3.3): fixed-size batches of samples mapped to their
+"""Batched sample processing (docs/design.md, Sampling): fixed-size batches of samples mapped to their
 pixels through the exclusive scan of the per-pixel counts, and a race-free accumulation.
 
 Memory is bounded by the batch size: the sample → pixel map of a batch is found by binary
@@ -67,6 +67,7 @@ def accumulate(values: torch.Tensor, pixel: torch.Tensor, num_pixels: int) -> to
         >>> accumulate(torch.ones(3, 1), torch.tensor([0, 0, 2]), 4).flatten().tolist()
         [2.0, 0.0, 1.0, 0.0]
     """
+    check_int(num_pixels, "num_pixels")
     if values.dim() != 2 or pixel.dim() != 1 or values.shape[0] != pixel.shape[0]:
         raise ShapeError(f"values (N, C) and pixel (N,) must match, got {tuple(values.shape)}, {tuple(pixel.shape)}")
     if pixel.numel() and bool((pixel[1:] < pixel[:-1]).any()):
