@@ -72,6 +72,15 @@ CASES = {
     "ATrous": ("iterations", lambda v, _: filters.ATrous(iterations=v)(X, N, P), True, RangeError),
     "box": ("radius", lambda v, _: filters.box(X, v), False, RangeError),
     "Box": ("radius", lambda v, _: filters.Box(v)(X), False, RangeError),
+    "Box.__init__": ("radius", lambda v, _: filters.Box(v), False, RangeError),
+    "ATrous.__init__": ("sigma_color", lambda v, _: filters.ATrous(sigma_color=v), True, RangeError),
+    "CrossBilateral.__init__": ("radius", lambda v, _: filters.CrossBilateral(v, 1.0, 1.0), False, RangeError),
+    "CrossBilateral.sigma_guides": ("sigma_guides", lambda v, _: filters.CrossBilateral(1, 1.0, 1.0, (v,)), True,
+                                    RangeError),
+    "Material": ("roughness", lambda v, _: render.Material("glossy", roughness=v), True, ConfigError),
+    "Material.albedo": ("albedo", lambda v, _: render.Material("diffuse", albedo=(v, 0.5, 0.5)), False, ConfigError),
+    "PointLight": ("intensity", lambda v, _: render.PointLight((0, 1, 0), (1, v, 1)), False, ConfigError),
+    "Sky": ("radiance", lambda v, _: render.Sky((v, 1, 1)), False, ConfigError),
     "cross_bilateral": ("radius", lambda v, _: filters.cross_bilateral(
         X, radius=v, sigma_space=1.0, sigma_color=1.0), False, RangeError),
     "cross_bilateral.sigma_space": ("sigma_space", lambda v, _: filters.cross_bilateral(
@@ -125,6 +134,15 @@ def test_numbers_are_refused_by_name(case, value, tmp_path):
         call(VALUES[value], tmp_path)
     assert re.search(rf"\b{re.escape(arg)}\b", str(caught.value)), str(caught.value)
     assert not list(tmp_path.glob("*.onnx")) and not list(tmp_path.glob(".*"))
+
+
+def test_atrous_levels_have_an_upper_bound():
+    """À-Trous levels step 2^(i-1) px: a count no image can use (it once ran without end) is
+    refused by name, in the function and the module alike; 30 levels still run."""
+    for call in (lambda: filters.atrous(X, N, P, iterations=10**30), lambda: filters.ATrous(iterations=31)):
+        with pytest.raises(RangeError, match=r"^iterations: expected an int in \[1, 30\]"):
+            call()
+    assert filters.atrous(X, N, P, iterations=30).shape == X.shape
 
 
 def test_adaptive_rate_too_large_for_an_exact_budget():

@@ -27,6 +27,7 @@ from torchgi import backends
 from torchgi.core.check import (
     check_floating,
     check_int,
+    check_positive,
     check_range,
     check_same_device,
     check_same_floating,
@@ -38,6 +39,8 @@ from torchgi.core.dtypes import compute_dtype
 from torchgi.core.errors import RangeError, ShapeError
 
 __all__ = ["ATrous", "atrous"]
+
+MAX_ITERATIONS = 30  # level i steps 2^(i-1) px: past 30 levels the steps pass any image
 
 
 def _inverse(value: float | torch.Tensor | None, name: str, B: int, like: torch.Tensor, power: int = 1) -> torch.Tensor | None:
@@ -176,7 +179,15 @@ def _check_atrous_args(
             raise ShapeError(f"variance: expected 1 or {color.shape[1]} channels, got {variance.shape[1]}")
     check_same_device(named)
     check_same_floating(named)
+    _check_levels(iterations, subsample)
+
+
+def _check_levels(iterations: int, subsample: int) -> None:
+    """``iterations`` an int in [1, MAX_ITERATIONS], ``subsample`` a power of two >= 1."""
     check_int(iterations, "iterations", 1)
+    if iterations > MAX_ITERATIONS:
+        raise RangeError(f"iterations: expected an int in [1, {MAX_ITERATIONS}] (level i steps 2^(i-1) px: past "
+                         f"{MAX_ITERATIONS} levels the steps pass any image), got {iterations!r}")
     if not isinstance(subsample, int) or isinstance(subsample, bool) or subsample < 1 or subsample & (subsample - 1):
         raise ValueError(f"subsample: expected a power of two >= 1, got {subsample!r}")
 
@@ -204,13 +215,17 @@ class ATrous(nn.Module):
         learnable: bool = False,
     ) -> None:
         super().__init__()
+        _check_levels(iterations, subsample)
         self.iterations, self.color_weight, self.subsample, self.energy = iterations, color_weight, subsample, energy
         self.fused = fused
         for name, value in (("sigma_color", sigma_color), ("sigma_normal", sigma_normal),
                             ("sigma_position", sigma_position)):
             if value is None:
                 setattr(self, name, None)
-            elif learnable:
+                continue
+            if not isinstance(value, torch.Tensor):  # a 0-d tensor is checked where the call reads it
+                check_positive(value, name)
+            if learnable:
                 setattr(self, name, nn.Parameter(torch.tensor(float(value))))
             else:
                 self.register_buffer(name, torch.tensor(float(value)))

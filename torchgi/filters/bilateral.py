@@ -65,12 +65,7 @@ def cross_bilateral(
         check_shape(g, "B G H W", f"guides[{k}]", {"B": sizes["B"], "H": sizes["H"], "W": sizes["W"]})
     check_same_device(named)
     check_same_floating(named)
-    check_int(radius, "radius")
-    for name, v in [("sigma_space", sigma_space), ("sigma_color", sigma_color)] + [
-        (f"sigma_guides[{k}]", v) for k, v in enumerate(sigma_guides)
-    ]:
-        if v is not None:
-            check_positive(v, name)
+    _check_numbers(radius, sigma_space, sigma_color, sigma_guides)
     ct = compute_dtype(color.dtype)
     c, *gs = (t.to(ct) for t in finite_or_sanitized_all(named, sanitize))
     pc = Padded(c, radius)
@@ -94,6 +89,16 @@ def cross_bilateral(
     return (torch.cat(num, 1) / den).to(color.dtype)
 
 
+def _check_numbers(radius: int, sigma_space: float, sigma_color: float | None, sigma_guides: Sequence[float]) -> None:
+    """The radius an int >= 0, every σ given a finite float > 0 (each named)."""
+    check_int(radius, "radius")
+    for name, v in [("sigma_space", sigma_space), ("sigma_color", sigma_color)] + [
+        (f"sigma_guides[{k}]", v) for k, v in enumerate(sigma_guides)
+    ]:
+        if v is not None:
+            check_positive(v, name)
+
+
 class CrossBilateral(nn.Module):
     """Module form of :func:`cross_bilateral` (settings as attributes).
 
@@ -105,6 +110,7 @@ class CrossBilateral(nn.Module):
     def __init__(self, radius: int, sigma_space: float, sigma_color: float | None,
                  sigma_guides: Sequence[float] = ()) -> None:
         super().__init__()
+        _check_numbers(radius, sigma_space, sigma_color, tuple(sigma_guides))
         self.radius, self.sigma_space, self.sigma_color = radius, sigma_space, sigma_color
         self.sigma_guides = tuple(sigma_guides)
 

@@ -56,6 +56,7 @@ class Box(nn.Module):
 
     def __init__(self, radius: int) -> None:
         super().__init__()
+        check_int(radius, "radius")
         self.radius = radius
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:

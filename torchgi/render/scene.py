@@ -47,7 +47,7 @@ def _vec3(value: Any, key: str, *, low: float | None = None) -> tuple[float, flo
     if isinstance(value, (int, float)) and not isinstance(value, bool):
         value = [value] * 3
     try:
-        out = tuple(float(v) for v in value)
+        out = tuple(float(v) for v in value if not isinstance(v, bool))
     except (TypeError, ValueError):
         raise ConfigError(f"{key}: expected three numbers, got {value!r}") from None
     if len(out) != 3 or not all(math.isfinite(v) for v in out):
@@ -231,6 +231,15 @@ class Material:
     emission: tuple[float, float, float] = (0.0, 0.0, 0.0)
     roughness: float = 0.0
 
+    def __post_init__(self) -> None:
+        if self.type not in ("diffuse", "glossy"):
+            raise ConfigError(f"material.type: expected 'diffuse' or 'glossy', got {self.type!r}")
+        if max(_vec3(self.albedo, "material.albedo", low=0.0)) > 1:
+            raise ConfigError(f"material.albedo: expected values in [0, 1], got {self.albedo!r}")
+        _vec3(self.emission, "material.emission", low=0.0)
+        if self.type == "glossy" and _number(self.roughness, "material.roughness", 0.0, None) > 1:
+            raise ConfigError(f"material.roughness: expected a GGX alpha in (0, 1], got {self.roughness!r}")
+
     @property
     def emissive(self) -> bool:
         return max(self.emission) > 0
@@ -267,6 +276,10 @@ class PointLight:
     intensity: tuple[float, float, float]
     path: ObjectPath | None = None
 
+    def __post_init__(self) -> None:
+        _vec3(self.position, "light.position")
+        _vec3(self.intensity, "light.intensity", low=0.0)
+
     def posed(self, time: float | None) -> PointLight:
         """The still light at its position at ``time`` (None: the first keyframe's).
 
@@ -286,6 +299,9 @@ class Sky:
     """A constant environment: every ray that leaves the scene sees ``radiance``."""
 
     radiance: tuple[float, float, float]
+
+    def __post_init__(self) -> None:
+        _vec3(self.radiance, "light.radiance", low=0.0)
 
 
 LIGHTS: Registry[Any] = Registry("light")
