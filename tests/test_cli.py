@@ -298,3 +298,15 @@ def test_denoise_command_takes_the_sample_count_of_an_outside_render(tmp_path, c
     assert main(["denoise", str(tmp_path / "own.exr"), "--spp", "2", "--out", str(tmp_path / "x.exr")]) == 0
     assert main(["denoise", str(tmp_path / "mi.exr"), "--temporal", "--spp", "4", "--out", str(tmp_path / "t")]) == 2
     assert "--spp: not with --temporal" in capsys.readouterr().err
+
+
+def test_a_missing_output_folder_is_named_as_the_flag(tmp_path, capsys):
+    """The library says ``path: folder ... does not exist``; the shell user gave ``--out``."""
+    pytest.importorskip("embreex")
+    pytest.importorskip("OpenEXR")
+    missing = tmp_path / "nope" / "c.exr"
+    assert main(["render", "cornell", "--spp", "1", "--resolution", "8", "8", "--out", str(missing),
+                 "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert f"--out: folder {missing.parent} does not exist (create it first)" in err
+    assert not missing.parent.exists()

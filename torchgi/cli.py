@@ -453,7 +453,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"torchgi {args.command}: error: {message}", file=sys.stderr)
         return 2
     except (TorchGIError, FileNotFoundError, PermissionError, ValueError) as exc:
-        print(f"torchgi {args.command}: error: {exc}", file=sys.stderr)
+        message = str(exc)
+        if isinstance(exc, FileNotFoundError) and message.startswith("path: folder "):  # a writer's missing folder
+            message = message.replace("path: ", "--out: ", 1) + " (create it first)"
+        print(f"torchgi {args.command}: error: {message}", file=sys.stderr)
         return 2
 
 
