@@ -124,7 +124,7 @@ def bunny_scene(meshes_dir):
     with open(os.path.join(CONFIGS, "bunny.yaml")) as fh:
         cfg = yaml.safe_load(fh)
     cfg["meshes"][-1].pop("mesh")
-    cfg["meshes"][-1]["file"] = os.path.join(meshes_dir, "stanford_bunny", "stanford-bunny.obj")
+    cfg["meshes"][-1]["file"] = os.path.join(meshes_dir, "stanford_bunny", "stanford-bunny.ply")
     return scene_from_dict(cfg, CONFIGS, "bunny")
 
 

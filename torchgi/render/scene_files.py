@@ -52,7 +52,7 @@ def mesh_root() -> Path:
     not checked here: a scene that names a mesh missing from it says where it looked.
 
     Example:
-        >>> (mesh_root() / "stanford_bunny" / "stanford-bunny.obj").is_file()
+        >>> (mesh_root() / "stanford_bunny" / "stanford-bunny.ply").is_file()
         True
     """
     env = os.environ.get("TORCHGI_MESHES")
