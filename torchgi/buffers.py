@@ -9,7 +9,6 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
-import sys
 import warnings
 from collections.abc import Iterator, Sequence
 from typing import TYPE_CHECKING, Any
@@ -25,6 +24,7 @@ from torchgi.core.check import (
     check_tensor,
     finite_or_sanitized,
     is_recording,
+    user_stacklevel,
 )
 from torchgi.core.errors import DTypeError, LayerError, ShapeError
 
@@ -349,7 +349,7 @@ class GBuffer:
         if report.unknown and not return_report:
             warnings.warn(f"{path}: layer(s) {', '.join(map(repr, report.unknown))} not read: not a name torchgi "
                           "knows (torchgi.io.AOV_ALIASES lists them; GBuffer.from_exr(..., return_report=True) "
-                          "tells what was read from which layer)", stacklevel=_user_level())
+                          "tells what was read from which layer)", stacklevel=user_stacklevel())
         fields: dict[str, torch.Tensor] = {}
         for name, t in aovs.items():
             if name == "hit":
@@ -413,17 +413,7 @@ def _warn_if_colour_normals(normal: torch.Tensor) -> None:
     if bool(covered.any()) and 2 * int(off.sum()) > int(covered.sum()):
         warnings.warn("normal: no component is below 0 and most normals are not of unit length: this looks like a "
                       "normal map stored as a colour, in [0, 1]; GBuffer.normal is world-space unit normals, each "
-                      "component in [-1, 1] (for a map stored as (n + 1) / 2, pass 2 * normal - 1)", stacklevel=_user_level())
-
-
-def _user_level() -> int:
-    """The ``stacklevel`` of a warning issued by this function's caller that points at the first frame
-    outside torchgi and torch: the user's line, however deep the call went inside."""
-    own = (os.path.dirname(__file__), os.path.dirname(torch.__file__))
-    frame, level = sys._getframe(1), 1
-    while frame is not None and frame.f_code.co_filename.startswith(own):
-        frame, level = frame.f_back, level + 1
-    return level
+                      "component in [-1, 1] (for a map stored as (n + 1) / 2, pass 2 * normal - 1)", stacklevel=user_stacklevel())
 
 
 def _noise_free(gb: GBuffer) -> bool:

@@ -68,25 +68,10 @@ def cmd_info(args: argparse.Namespace) -> int:
     return 0
 
 
-def image_metrics(x: torch.Tensor, ref: torch.Tensor) -> dict[str, float]:
-    """The standard table for HDR images ``(B, 3, H, W)``: MSE, relMSE, PSNR and SSIM
-    (both on Reinhard-tone-mapped values, range 1) and HDR-FLIP."""
-    from torchgi import metrics
-
-    out = {
-        "mse": float(metrics.mse(x, ref)),
-        "relmse": float(metrics.relmse(x, ref)),
-        "psnr_db": float(metrics.psnr(x, ref, tonemap_method="reinhard")),
-    }
-    if min(x.shape[-2:]) >= 11:
-        out["ssim"] = float(metrics.ssim(metrics.tonemap(x), metrics.tonemap(ref), data_range=1.0))
-    out["flip"] = float(metrics.flip(x.clamp_min(0), ref.clamp_min(0)))
-    return out
-
-
 def cmd_metrics(args: argparse.Namespace) -> int:
     """Compare the colour layer of each IMG with that of ``--ref``. relMSE (and FLIP, SSIM) are not
     symmetric, so the reference is a flag and the output names it."""
+    from torchgi import metrics
     from torchgi.io import read_aovs
 
     ref = read_aovs(args.ref)["color"].float()[None]
@@ -95,7 +80,7 @@ def cmd_metrics(args: argparse.Namespace) -> int:
         img = read_aovs(path)["color"].float()[None]
         if img.shape != ref.shape:
             raise TorchGIError(f"{path}: size {tuple(img.shape[-2:])} differs from --ref's {tuple(ref.shape[-2:])}")
-        rows[path] = image_metrics(img, ref)
+        rows[path] = metrics.summary(img, ref)
     if args.json:
         print(json.dumps({"reference": args.ref, "images": rows}))
         return 0

@@ -23,7 +23,6 @@ import glob
 import hashlib
 import itertools
 import json
-import math
 import os
 import tempfile
 import zlib
@@ -34,7 +33,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from torchgi.core.check import check_int, check_option, require
+from torchgi.core.check import check_int, check_nonnegative, check_option, require
 from torchgi.core.errors import ConfigError, RangeError
 
 __all__ = ["DataGenConfig", "FilterFeatures", "ShardDataset", "Task", "load_config", "plan", "run_job", "run_task"]
@@ -535,8 +534,7 @@ class FilterFeatures(torch.nn.Module):
             check_option(m, "methods", ("atrous", "guided"))
         check_int(radius, "radius")
         check_int(iterations, "iterations", 1)
-        if isinstance(eps, bool) or not isinstance(eps, (int, float)) or not 0 <= eps < math.inf:
-            raise RangeError(f"eps: expected a finite float >= 0, got {eps!r}")
+        check_nonnegative(eps, "eps")
         self.methods, self.radius, self.eps, self.iterations = tuple(methods), radius, eps, iterations
 
     def forward(self, sample: Mapping[str, Any]) -> dict[str, Any]:

@@ -40,7 +40,7 @@ import torch
 
 from torchgi import backends, light
 from torchgi.buffers import GBuffer, _mean_spp, _noise_free, _require_guides, _warn_if_colour_normals, _with_samples
-from torchgi.core.check import check_finite, check_option, check_positive, finite_or_sanitized_all
+from torchgi.core.check import check_finite, check_nonnegative, check_option, check_positive, finite_or_sanitized_all
 from torchgi.core.dtypes import compute_dtype
 from torchgi.core.errors import ShapeError
 from torchgi.core.registry import Registry
@@ -139,8 +139,8 @@ class Denoiser(torch.nn.Module):
             check_positive(input_scale, "input_scale")
         check_budget(max_memory_mb, method, ("guided", "pyramid"))
         eps = filter_params.get("eps", GUIDED.eps)
-        if method == "guided" and (isinstance(eps, bool) or not isinstance(eps, (int, float)) or not 0 <= eps < math.inf):
-            raise ValueError(f"eps: expected a finite float >= 0, got {eps!r}")
+        if method == "guided":
+            check_nonnegative(eps, "eps")
         self.method, self.quality, self.hdr, self.input_scale = method, quality, hdr, input_scale
         self.filter_direct, self.sanitize, self.max_memory_mb = filter_direct, sanitize, max_memory_mb
         self.filter_params = dict(filter_params)

@@ -16,6 +16,7 @@ import torch
 from torchgi.core.check import (
     check_finite,
     check_floating,
+    check_nonnegative,
     check_option,
     check_positive,
     check_range,
@@ -23,9 +24,9 @@ from torchgi.core.check import (
     check_shape,
     require,
 )
-from torchgi.core.errors import RangeError, ShapeError
+from torchgi.core.errors import ShapeError
 
-__all__ = ["flip", "mse", "psnr", "relmse", "rmae", "ssim", "temporal", "tonemap"]
+__all__ = ["flip", "mse", "psnr", "relmse", "rmae", "ssim", "summary", "temporal", "tonemap"]
 
 _REDUCTIONS = ("mean", "none")
 
@@ -83,8 +84,7 @@ def relmse(
         tensor(0.9901)
     """
     _check_pair(x, ref)
-    if isinstance(eps, bool) or not isinstance(eps, (int, float)) or not 0 <= eps < math.inf:
-        raise RangeError(f"eps: expected a finite number >= 0, got {eps!r}")
+    check_nonnegative(eps, "eps")
     return _reduce((x - ref).square() / (ref.square() + eps), reduction)
 
 
@@ -225,3 +225,21 @@ def temporal(frames: torch.Tensor, refs: torch.Tensor, *, warmup: int = 0) -> di
     tx, ty = tonemap(x), tonemap(y)
     err = float(((tx[1:] - tx[:-1]) - (ty[1:] - ty[:-1])).double().square().mean())
     return {"trmae": float(rmae(dx, dy)), "tpsnr": float("inf") if err == 0 else 10 * math.log10(1 / err)}
+
+
+def summary(x: torch.Tensor, ref: torch.Tensor) -> dict[str, float]:
+    """The standard table for HDR images ``(B, 3, H, W)`` against ``ref``: ``mse``, ``relmse``,
+    ``psnr_db`` and ``ssim`` (both on Reinhard-tone-mapped values, range 1; SSIM only from 11
+    px, its window) and HDR-``flip`` (of the values clamped at 0). Means over the batch.
+
+    Example:
+        >>> ref = torch.rand(1, 3, 16, 16)
+        >>> sorted(summary(ref, ref))
+        ['flip', 'mse', 'psnr_db', 'relmse', 'ssim']
+    """
+    out = {"mse": float(mse(x, ref)), "relmse": float(relmse(x, ref)),
+           "psnr_db": float(psnr(x, ref, tonemap_method="reinhard"))}
+    if min(x.shape[-2:]) >= 11:
+        out["ssim"] = float(ssim(tonemap(x), tonemap(ref), data_range=1.0))
+    out["flip"] = float(flip(x.clamp_min(0), ref.clamp_min(0)))
+    return out

@@ -32,6 +32,7 @@ __all__ = [
     "check_finite",
     "check_floating",
     "check_int",
+    "check_nonnegative",
     "check_option",
     "check_positive",
     "check_range",
@@ -45,6 +46,7 @@ __all__ = [
     "is_recording",
     "is_tracing",
     "require",
+    "user_stacklevel",
 ]
 
 
@@ -199,6 +201,16 @@ def check_positive(value: Any, name: str) -> None:
         raise RangeError(f"{name}: expected a finite float > 0, got {value!r}")
 
 
+def check_nonnegative(value: Any, name: str) -> None:
+    """Raise :class:`RangeError` unless ``value`` is a finite real number ``>= 0``.
+
+    Example:
+        >>> check_nonnegative(0.0, "eps")
+    """
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value < float("inf"):
+        raise RangeError(f"{name}: expected a finite float >= 0, got {value!r}")
+
+
 def check_finite(x: torch.Tensor, name: str) -> None:
     """Raise :class:`NonFiniteError` if ``x`` holds NaN or +-Inf, with counts.
 
@@ -301,10 +313,15 @@ def _nothing() -> None:
 _OWN_CODE = (str(Path(__file__).resolve().parents[1]), str(Path(torch.__file__).resolve().parent))
 
 
-def _caller_stacklevel() -> int:
+def user_stacklevel() -> int:
     """The ``stacklevel`` for :func:`warnings.warn` called by this function's caller that points
     at the first frame outside torchgi and torch: the user's line that called the filter (or
-    the module), however deep the call went inside."""
+    the module), however deep the call went inside.
+
+    Example:
+        >>> user_stacklevel() >= 1
+        True
+    """
     frame, level = sys._getframe(1), 1
     while frame is not None and frame.f_code.co_filename.startswith(_OWN_CODE):
         frame, level = frame.f_back, level + 1
@@ -322,7 +339,7 @@ def _sanitized(named: Mapping[str, torch.Tensor | None]) -> list[torch.Tensor | 
                 x = torch.where(bad, torch.zeros((), dtype=x.dtype, device=x.device), x)
             elif bool(bad.any()):
                 warnings.warn(f"{name}: replaced {int(bad.sum())} non-finite values by 0 (sanitize=True)",
-                              stacklevel=_caller_stacklevel())
+                              stacklevel=user_stacklevel())
                 x = torch.where(bad, torch.zeros((), dtype=x.dtype, device=x.device), x)
         out.append(x)
     return out

@@ -30,6 +30,7 @@ from torchgi.buffers import GBuffer
 from torchgi.core.check import (
     check_floating,
     check_int,
+    check_nonnegative,
     check_same_device,
     check_same_floating,
     check_shape,
@@ -277,9 +278,8 @@ class Guided(nn.Module):
         check_int(subsample, "subsample", 1)
         self.radius, self.subsample = radius, subsample
         self._workspace: dict = {}
-        if not isinstance(eps, torch.Tensor) and (isinstance(eps, bool) or not isinstance(eps, (int, float))
-                                                  or not 0 <= eps < math.inf):
-            raise RangeError(f"eps: expected a finite float >= 0 or a tensor, got {eps!r}")
+        if not isinstance(eps, torch.Tensor):  # a tensor is checked where the call reads it
+            check_nonnegative(eps, "eps")
         value = torch.as_tensor(eps, dtype=torch.float32).clone()
         if learnable:
             self.eps = nn.Parameter(value)
