@@ -11,7 +11,10 @@ guided with subsample 2), its deployed guided and À-Trous modules, ``supersampl
 the filters ``box``, ``guided`` (guides of 1, 3 and 4 channels, subsample 2, float64), ``atrous``
 (1-3 weights, variance, subsample, energy, float64), ``cross_bilateral``; the sampling
 ``importance_map``, ``allocate``, ``adaptive_counts``. Each once with the default back ends and
-once with the torch code only. ``--compare`` prints the cases that differ (``torch.equal``) and
+once with the torch code only. Then the learned methods (pyramid untiled and tiled, with their
+weights; blend), the deployed guided (from a frame, without emission) and pyramid modules, the
+TemporalDenoiser (guided, pyramid, without the short pass, and at 256 px), ``DeployedTemporal``,
+and the exported guided, pyramid and temporal graphs in onnxruntime. ``--compare`` prints the cases that differ (``torch.equal``) and
 exits 1 if any does.
 """
 
@@ -53,6 +56,18 @@ def cases(gb, size: int):
             yield f"denoiser-{method}-{quality}", lambda m=method, q=quality: Denoiser(m, q)(gb)
     yield "denoiser-guided-sub2", lambda: Denoiser("guided", subsample=2)(gb)
     yield "denoiser-blend", lambda: Denoiser("blend")(gb)
+    yield "denoiser-pyramid", lambda: Denoiser("pyramid")(gb)
+    yield "denoiser-pyramid-weights", lambda: Denoiser("pyramid").weights(gb)
+    yield "denoiser-pyramid-tiled", lambda: Denoiser("pyramid", max_memory_mb=8)(gb)
+    yield "denoiser-pyramid-tiled-weights", lambda: Denoiser("pyramid", max_memory_mb=8).weights(gb)
+    yield "denoiser-spp4", lambda: Denoiser("guided")(gb, spp=4)
+    yield "denoiser-sanitize", lambda: Denoiser("atrous", sanitize=True, input_scale=2.0, iterations=3)(gb)
+    yield "deployed-pyramid", lambda: Denoiser("pyramid").deploy(spp=1)(gb.color, gb.emission, gb.albedo, gb.normal,
+                                                                       gb.depth)
+    yield "deployed-guided-frame", lambda: Denoiser("guided").deploy(frame=gb)(
+        *(getattr(gb, k) for k in Denoiser("guided").deploy(frame=gb).input_names))
+    yield "deployed-guided-noemission", lambda: Denoiser("guided").deploy(spp=2, emission=False)(
+        gb.color, gb.albedo, gb.normal, gb.depth)
     yield "denoiser-blend-weights", lambda: Denoiser("blend").weights(gb)
     yield "denoiser-guided-tiled", lambda: Denoiser("guided", max_memory_mb=2)(gb)
     yield "denoiser-guided-split", lambda: Denoiser("guided", filter_direct=False)(gb)
@@ -113,6 +128,7 @@ def capture(size: int) -> dict[str, torch.Tensor]:
                 out[f"{name}/render-adaptive"] = render(scene, spp=adaptive_counts(gb, 2.0), bounces=1, seed=5).color
         print(name, flush=True)
     out.update(temporal(size))
+    out.update(onnx(size))
     return out
 
 
@@ -126,9 +142,49 @@ def temporal(size: int) -> dict[str, torch.Tensor]:
     out = {f"sequence/{k}/{name}": getattr(f, name) for k, f in enumerate(frames) for name in ("color", "motion")}
     for mode in ("default", "torch"):
         with torch_only() if mode == "torch" else contextlib.nullcontext():
-            den = TemporalDenoiser()
-            for k, f in enumerate(frames):
-                out[f"temporal/{mode}/{k}"] = den(f)
+            for label, den in (("", TemporalDenoiser()), ("-pyramid", TemporalDenoiser(spatial="pyramid")),
+                               ("-noshort", TemporalDenoiser(short_pass=False))):
+                for k, f in enumerate(frames):
+                    out[f"temporal{label}/{mode}/{k}"] = den(f)
+    big = render_sequence(seq.with_resolution(256, 256), 3, spp=1, seed=2)  # above 256 px: the short pass runs
+    den = TemporalDenoiser()
+    for k, f in enumerate(big):
+        out[f"temporal-256/{k}"] = den(f)
+    from torchgi.temporal import DeployedTemporal, TemporalState
+
+    m, state = DeployedTemporal(), None
+    for k, f in enumerate(frames):
+        state = state or TemporalState.empty(f.color).tensors()
+        y = m(f.color, f.emission, f.albedo, f.normal, f.depth, f.motion, *state)
+        out[f"deployed-temporal/{k}"] = y[0]
+        state = (*y[1:4], y[4], f.normal, f.depth, y[5])
+    return out
+
+
+def onnx(size: int) -> dict[str, torch.Tensor]:
+    """Exported graphs (guided, pyramid, temporal) run in onnxruntime on a render."""
+    import tempfile
+
+    from torchgi import load_scene
+    from torchgi.export import OrtDenoiser, OrtSession, export_denoiser, export_temporal
+    from torchgi.temporal import TemporalState
+
+    root = Path(__file__).resolve().parents[1]
+    gb = render(load_scene(root / "configs/scenes/cornell.yaml").with_resolution(size, size), spp=4, bounces=1, seed=3)
+    out: dict[str, torch.Tensor] = {}
+    with tempfile.TemporaryDirectory() as d:
+        for method in ("guided", "pyramid"):
+            p = export_denoiser(method, Path(d) / f"{method}.onnx", spp=2)
+            out[f"onnx/{method}"] = OrtDenoiser(p)(gb)
+        p = export_denoiser("guided", Path(d) / "guided-var.onnx", frame=gb)
+        out["onnx/guided-frame"] = OrtDenoiser(p)(gb)
+        p = export_temporal(Path(d) / "temporal.onnx")
+        s = TemporalState.empty(gb.color)
+        y = OrtSession(p)(color=gb.color, emission=gb.emission, albedo=gb.albedo, normal=gb.normal, depth=gb.depth,
+                          motion=torch.zeros_like(gb.color[:, :2]), light=s.light, history=s.output,
+                          moments=s.moments, length=s.length, prev_normal=s.normal, prev_depth=s.depth,
+                          prev_surface=s.surface)
+        out["onnx/temporal"] = y[0]
     return out
 
 
