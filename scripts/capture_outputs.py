@@ -58,8 +58,6 @@ def cases(gb, size: int):
     yield "denoiser-blend", lambda: Denoiser("blend")(gb)
     yield "denoiser-pyramid", lambda: Denoiser("pyramid")(gb)
     yield "denoiser-pyramid-weights", lambda: Denoiser("pyramid").weights(gb)
-    yield "denoiser-pyramid-tiled", lambda: Denoiser("pyramid", max_memory_mb=8)(gb)
-    yield "denoiser-pyramid-tiled-weights", lambda: Denoiser("pyramid", max_memory_mb=8).weights(gb)
     yield "denoiser-spp4", lambda: Denoiser("guided")(gb, spp=4)
     yield "denoiser-sanitize", lambda: Denoiser("atrous", sanitize=True, input_scale=2.0, iterations=3)(gb)
     yield "deployed-pyramid", lambda: Denoiser("pyramid").deploy(spp=1)(gb.color, gb.emission, gb.albedo, gb.normal,
@@ -162,7 +160,8 @@ def temporal(size: int) -> dict[str, torch.Tensor]:
 
 
 def onnx(size: int) -> dict[str, torch.Tensor]:
-    """Exported graphs (guided, pyramid, temporal) run in onnxruntime on a render."""
+    """The pyramid and guided Denoisers in tiles on a 520x470 render; exported graphs (guided,
+    pyramid, temporal) run in onnxruntime on a render."""
     import tempfile
 
     from torchgi import load_scene
@@ -172,6 +171,10 @@ def onnx(size: int) -> dict[str, torch.Tensor]:
     root = Path(__file__).resolve().parents[1]
     gb = render(load_scene(root / "configs/scenes/cornell.yaml").with_resolution(size, size), spp=4, bounces=1, seed=3)
     out: dict[str, torch.Tensor] = {}
+    big = render(load_scene(root / "configs/scenes/cornell.yaml").with_resolution(520, 470), spp=4, bounces=1, seed=3)
+    out["pyramid-tiled"] = Denoiser("pyramid", max_memory_mb=200)(big)
+    out["pyramid-tiled-weights"] = Denoiser("pyramid", max_memory_mb=200).weights(big)
+    out["guided-tiled-big"] = Denoiser("guided", max_memory_mb=20)(big)
     with tempfile.TemporaryDirectory() as d:
         for method in ("guided", "pyramid"):
             p = export_denoiser(method, Path(d) / f"{method}.onnx", spp=2)
