@@ -67,7 +67,7 @@ def cases(gb, size: int):
     yield "deployed-guided-noemission", lambda: Denoiser("guided").deploy(spp=2, emission=False)(
         gb.color, gb.albedo, gb.normal, gb.depth)
     yield "denoiser-blend-weights", lambda: Denoiser("blend").weights(gb)
-    yield "denoiser-guided-tiled", lambda: Denoiser("guided", max_memory_mb=2)(gb)
+    yield "denoiser-guided-tiled", lambda: Denoiser("guided", max_memory_mb=4)(gb)
     yield "denoiser-guided-split", lambda: Denoiser("guided", filter_direct=False)(gb)
     yield "denoiser-no-emission", lambda: Denoiser("guided")(color=gb.color, albedo=gb.albedo, normal=gb.normal,
                                                                depth=gb.depth)
