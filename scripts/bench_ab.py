@@ -4,7 +4,8 @@ after, before, after, ...), for a refactor that must not move the timings.
     git worktree add /tmp/before <commit>
     python scripts/bench_ab.py --before /tmp/before --after . --rounds 4 --out out/bench-ab
 
-Cases, on 2 threads: the Denoiser (guided, À-Trous, blend) on a 512² Cornell box at 1 spp, eight
+Cases, on 2 threads: the Denoiser (guided, À-Trous, blend, pyramid) on a 512² Cornell box at 1 spp
+and guided at 4 spp (its back-off and choice among radii), eight
 TemporalDenoiser frames at 256², a 256² render at 16 spp, importance + allocation at 1024x768.
 Each process imports torchgi from its tree (checked), warms each case up once and reports the
 median of its repeats; the table gives, per case, the median over rounds of each side and the
@@ -36,10 +37,11 @@ from torchgi.render import render, scenes
 from torchgi.sampling import allocate, importance_map
 
 gb = render(scenes.cornell(512), spp=1, bounces=1, seed=1)
+gb4 = render(scenes.cornell(512), spp=4, bounces=1, seed=1)
 seq = [render(scenes.cornell(256), spp=1, bounces=1, seed=k).replace(motion=torch.zeros(1, 2, 256, 256))
        for k in range(8)]
 guides = render(scenes.grass(256).with_resolution(1024, 768), spp=1, bounces=0, seed=2)
-den = {m: torchgi.Denoiser(m) for m in ("guided", "atrous", "blend")}
+den = {m: torchgi.Denoiser(m) for m in ("guided", "atrous", "blend", "pyramid")}
 
 def temporal():
     t = torchgi.TemporalDenoiser()
@@ -54,6 +56,8 @@ cases = {
     "Denoiser guided 512²": lambda: den["guided"](gb),
     "Denoiser atrous 512²": lambda: den["atrous"](gb),
     "Denoiser blend 512²": lambda: den["blend"](gb),
+    "Denoiser pyramid 512²": lambda: den["pyramid"](gb),
+    "Denoiser guided 512² 4 spp": lambda: den["guided"](gb4),
     "TemporalDenoiser 8 frames 256²": temporal,
     "render cornell 256² 16 spp": lambda: render(scenes.cornell(256), spp=16, bounces=1, seed=3),
     "importance + allocate 1024x768": importance,

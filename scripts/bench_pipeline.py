@@ -62,7 +62,7 @@ def methods(inputs: dict[str, torch.Tensor], device: str) -> dict:
 
     guided = Denoiser("guided")
     gb = torchgi.GBuffer(**inputs)
-    radius = guided._radius(float(inputs["spp"].double().mean()) if "spp" in inputs else 1.0, GUIDED.radius)
+    radius = guided.deploy(spp=float(inputs["spp"].double().mean()) if "spp" in inputs else 1.0).params["radius"]
     guide, x, ws = guide_from_gbuffer(gb), inputs["color"].clone(), {}
     full = Denoiser("guided", subsample=1)
     fns = {

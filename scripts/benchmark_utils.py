@@ -138,15 +138,10 @@ def available_scenes(names: list[str], size: int):
 
 
 def without_back_off(gb, method: str = "guided") -> torch.Tensor:
-    """``Denoiser(method)(gb)`` with its back-off toward the input (``denoise._back_off``, which
-    runs :func:`torchgi.light.back_off`) replaced by the identity and its choice among radii from 4
-    spp (``Denoiser._radii``, :func:`torchgi.light.choose`) by its one radius: the filter's output."""
-    from torchgi import denoise
+    """``Denoiser(method)(gb)`` without its back-off toward the input (:func:`torchgi.light.back_off`)
+    nor the guided filter's choice among radii from 4 spp (:func:`torchgi.light.choose`): the
+    filter's output (``settings.pipeline.back_off=False``)."""
+    from torchgi.denoise import Denoiser
+    from torchgi.settings import DEFAULTS
 
-    saved = denoise._back_off, denoise.Denoiser._radii
-    denoise._back_off = lambda out, *_: out[0] if isinstance(out, list) else out
-    denoise.Denoiser._radii = lambda self, radius, *_: (radius,)
-    try:
-        return denoise.Denoiser(method)(gb)
-    finally:
-        denoise._back_off, denoise.Denoiser._radii = saved
+    return Denoiser(method, settings=DEFAULTS.replace(pipeline={"back_off": False}))(gb)

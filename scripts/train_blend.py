@@ -28,13 +28,14 @@ from pathlib import Path
 
 import torch
 
-from torchgi import light, metrics
+from torchgi import light, methods, metrics
 from torchgi.buffers import GBuffer
 from torchgi.data import ShardDataset
 from torchgi.denoise import Denoiser
-from torchgi.deployed import FIREFLY
 from torchgi.filters import box, guide_from
 from torchgi.filters.blend import BlendNet, blend_candidates, blend_features
+from torchgi.methods.base import noise_spp
+from torchgi.settings import DEFAULTS
 
 FEATURES = ("color", "albedo", "normal", "depth", "emission", "variance")
 
@@ -55,9 +56,10 @@ def filter_input(sample: dict, method: str) -> dict:
         seen["x"], seen["raw"] = x, raw
         return torch.zeros_like(x)
 
-    kept = light.restore(gb.color, gb.emission, None, gb.albedo, surface, record, FIREFLY[method], box, unclamped=True)
+    kept = light.restore(gb.color, gb.emission, None, gb.albedo, surface, record, methods.get(method).firefly(), box,
+                         unclamped=True)
     return {"x": seen["x"], "raw": seen["raw"], "guide": guide_from(gb.normal, gb.depth, depth_scale="image"),
-            "spp": Denoiser(method)._spp(gb, surface), "demod": light.demodulator(gb.albedo, surface),
+            "spp": noise_spp(gb, surface, DEFAULTS), "demod": light.demodulator(gb.albedo, surface),
             "kept": kept, "target": sample["target"][None], "gbuffer": gb, "name": sample["name"],
             "shard_spp": int(sample["spp"])}
 
@@ -132,7 +134,7 @@ def report(rows: list[dict], part: str) -> None:
 def data_sha256(folder: Path) -> str:
     """SHA-256 of the training data's content: the index's config, then each shard and reference
     file the index names (sorted by name) with the SHA-256 of its bytes. Recomputed by
-    ``tests/test_blend.py`` from the files themselves when they are present."""
+    ``tests/filters/test_blend.py`` from the files themselves when they are present."""
     index = json.loads((folder / "index.json").read_text())
     h = hashlib.sha256(json.dumps(index["config"], sort_keys=True).encode())
     names = sorted({s["file"] for s in index["shards"]} | {s["reference_file"] for s in index["shards"]})

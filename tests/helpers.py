@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import os
 from collections.abc import Iterator
 
 import numpy as np
@@ -48,21 +49,22 @@ def rel_range(out: torch.Tensor, ref: torch.Tensor | np.ndarray) -> float:
     return rel_error(out, ref, "range")
 
 
-def tile_budgets(monkeypatch, **pipeline: float) -> list[float]:
+def tile_budgets(monkeypatch, all_large: bool = False) -> list[float]:
     """The memory budget (MB) of every tiled Denoiser call from now on, appended to the list
-    returned (``tile_side`` spied on where the pyramid and ``tiled`` call it); ``pipeline``: fields
-    of ``settings.PIPELINE`` replaced for the Denoiser (e.g. ``auto_tiles_from_mb=0.0``)."""
-    import dataclasses
-
-    from torchgi import denoise
+    returned (``tile_side`` spied on where the pyramid and ``tiled`` call it); ``all_large``: every
+    call's untiled estimate taken as above ``settings.pipeline.auto_tiles_from_mb`` (for calls a
+    test cannot give settings, the CLI's; others pass ``settings=``)."""
     from torchgi.core import tiles
+    from torchgi.methods import base, pyramid
 
     budgets: list[float] = []
     real = tiles.tile_side
-    for module in (denoise, tiles):
+    for module in (pyramid, tiles):
         monkeypatch.setattr(module, "tile_side", lambda color, mb, *a: budgets.append(mb) or real(color, mb, *a))
-    if pipeline:
-        monkeypatch.setattr(denoise, "PIPELINE", dataclasses.replace(denoise.PIPELINE, **pipeline))
+    if all_large:
+        auto = tiles.auto_budget
+        monkeypatch.setattr(base, "auto_budget", lambda color, inputs, per_pixel, _, *a: auto(color, inputs, per_pixel,
+                                                                                             0.0, *a))
     return budgets
 
 
@@ -85,11 +87,11 @@ def check_weights_provenance(weights, script: str, load) -> None:
     """A shipped weights file (:meth:`save` JSON of a learned filter) is small, loads to its own
     config with ``load``, comes from a clean commit by ``script``, names its data by a SHA-256,
     and was trained on scenes that are none of the tuning or judged scenes, compared by geometry
-    and camera (tests/test_scene_sets.py), not by name."""
+    and camera (tests/render/test_scene_sets.py), not by name."""
     import json
     import re
 
-    from tests.test_scene_sets import SCENES, clashes, read_sets
+    from tests.render.test_scene_sets import SCENES, clashes, read_sets
 
     assert weights.stat().st_size < 2_000_000
     data = json.loads(weights.read_text())
@@ -137,7 +139,7 @@ def shipped_untrained_guided(monkeypatch, method: str, name: str, size: int) -> 
     import pytest
 
     import torchgi
-    from tests.test_scene_sets import load
+    from tests.render.test_scene_sets import load
     from torchgi import metrics
 
     pytest.importorskip("embreex", reason="the render extra is not installed")
@@ -190,3 +192,27 @@ def onnx_parity(tmp_path, method: str, sizes: tuple[int, ...]) -> tuple[list[str
         errors.append((rel_error(deployed(gb.color, gb.emission, gb.albedo, gb.normal, gb.depth), ours),
                        rel_error(ort(gb), ours)))
     return ort.input_names, errors
+
+
+# The camera-path scene files (configs/scenes/sequences): tests/render/test_sequences.py, tests/test_cli.py.
+SEQUENCES = os.path.join(os.path.dirname(__file__), "..", "configs", "scenes", "sequences")
+
+
+def sliding_cornell(size: int, shift: float = 80.0):
+    """The Cornell box with a camera sliding right and forwards (reveals the wall behind the tall block)."""
+    from torchgi.render import CameraPath, scenes
+
+    scene = scenes.cornell(size)
+    p = scene.camera.position
+    scene.path = CameraPath((0.0, 1.0), (p, (p[0] + shift, p[1] + 20, p[2] + 60)), ((278, 273, 0), (300, 260, 0)),
+                            (39.3, 38.0))
+    return scene
+
+
+def sliding_sequence(size: int, frames: int, spp: int = 1, seed: int = 1):
+    """``frames`` G-buffers of :func:`sliding_cornell` rendered along its camera path (skips the test
+    without the render extra)."""
+    pytest.importorskip("embreex")
+    import torchgi
+
+    return list(torchgi.render_sequence(sliding_cornell(size), frames, spp=spp, seed=seed))

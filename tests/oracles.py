@@ -186,7 +186,7 @@ def atrous_oracle(  # noqa: C901, PLR0912 - the oracle is one literal loop, to b
 
 
 # Weight subsets of the kernel tests (c colour, n normal, x position), then variance guidance and
-# sub-sampling: a level kernel against atrous_oracle (tests/test_native.py, tests/test_gpu.py).
+# sub-sampling: a level kernel against atrous_oracle (tests/backends/test_native.py, tests/backends/test_gpu.py).
 ATROUS_CASES = ["cnx", "c", "nx", "cn", "", "variance", "subsample"]
 
 

@@ -1,4 +1,5 @@
-"""The public surface: names that other code, benchmarks and checks call must stay."""
+"""The public surface: names that other code, benchmarks and checks call must stay (the stable API:
+docs/architecture.md, "The stable API")."""
 
 import importlib
 
@@ -7,7 +8,12 @@ import pytest
 import torchgi
 
 PUBLIC = {
-    "torchgi": ["GBuffer", "Denoiser", "render", "load_scene", "scenes", "__version__"],
+    "torchgi": ["GBuffer", "Denoiser", "TemporalDenoiser", "render", "render_sequence", "load_scene", "scenes",
+                "__version__"],
+    "torchgi.methods": ["Method", "register", "get", "names"],
+    "torchgi.settings": ["Settings", "DEFAULTS", "PipelineSettings", "GuidedSettings", "ATrousSettings",
+                         "BilateralSettings", "TemporalSettings", "describe"],
+    "torchgi.backends": ["use", "status"],
     "torchgi.render": ["render", "render_guides", "load_scene", "scenes", "Scene", "Camera", "Material", "Mesh",
                        "PointLight", "Sky"],
     "torchgi.data": ["run_job", "load_config", "ShardDataset", "FilterFeatures"],
@@ -21,7 +27,7 @@ PUBLIC = {
     "torchgi.filters": ["atrous", "ATrous", "guided", "Guided", "box", "Box", "cross_bilateral", "CrossBilateral",
                         "guide_from_gbuffer"],
     "torchgi.sampling": ["importance_map", "allocate", "exclusive_scan", "adaptive_render", "adaptive_counts"],
-    "torchgi.export": ["export_onnx", "OrtSession"],
+    "torchgi.export": ["export_onnx", "export_denoiser", "export_temporal", "OrtSession", "OrtDenoiser"],
     "torchgi.cli": ["main"],
 }
 

@@ -1,4 +1,6 @@
+import importlib.util
 import json
+import os
 import shutil
 import subprocess
 
@@ -6,7 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from tests.helpers import tile_budgets
+import torchgi
+from tests.helpers import SEQUENCES, tile_budgets
 from torchgi.cli import main
 from torchgi.io import write_exr
 
@@ -75,6 +78,30 @@ def test_render_command_writes_a_multilayer_exr_and_never_overwrites(tmp_path, c
     assert main(args + ["--overwrite"]) == 0
 
 
+@pytest.mark.skipif(importlib.util.find_spec("embreex") is None, reason="the render extra is not installed")
+def test_cli_renders_frames_with_a_motion_layer(tmp_path, capsys, meshes_dir):
+    pytest.importorskip("OpenEXR")
+    from torchgi.cli import main
+    from torchgi.io import read_aovs, read_exr, write_exr
+
+    out = tmp_path / "seq.exr"
+    args = ["render", os.path.join(SEQUENCES, "cornell_slide.yaml"), "--frames", "2", "--spp", "1",
+            "--resolution", "12", "10", "--out", str(out), "--no-progress"]
+    assert main(args) == 0
+    second = tmp_path / "seq_0001.exr"
+    assert (tmp_path / "seq_0000.exr").exists() and second.exists()
+    motion = torchgi.GBuffer.from_exr(second).motion
+    assert motion.shape == (1, 2, 10, 12) and motion.abs().max() > 0
+    before = second.read_bytes()
+    assert main(args) == 2 and "seq_0000" in capsys.readouterr().err and second.read_bytes() == before
+    # other renderers' names for the layer
+    write_exr(tmp_path / "b.exr", {"ViewLayer.Vector": torch.rand(4, 3, 5)})
+    assert read_aovs(tmp_path / "b.exr", required=("motion",))["motion"].shape == (2, 3, 5)
+    write_exr(tmp_path / "a.exr", {"motionvector": torch.rand(3, 3, 5)})
+    assert read_aovs(tmp_path / "a.exr", required=("motion",))["motion"].shape == (2, 3, 5)
+    assert list(read_exr(second)["motion"].shape) == [2, 10, 12]
+
+
 @pytest.mark.parametrize("method", ["pyramid", "blend", "guided", "atrous", "bilateral", "none"])
 def test_denoise_command_gives_the_python_call_bit_for_bit(tmp_path, method):
     """Every Denoiser method from the shell (issue 30): the file it writes holds exactly what
@@ -128,7 +155,7 @@ def test_denoise_command_on_a_mitsuba_render(tmp_path, capsys, monkeypatch):
     assert main(["denoise", str(tmp_path / "noisy.exr"), "--max-memory-mb", "none", "--out", str(tiled),
                  "--overwrite"]) == 0  # untiled, as the default ("auto") at this size
     assert torch.equal(read_aovs(tiled)["color"][None], den)
-    budgets = tile_budgets(monkeypatch, auto_tiles_from_mb=0.0)
+    budgets = tile_budgets(monkeypatch, all_large=True)
     for flag, tiled_by in (([], [512.0]), (["--max-memory-mb", "none"], []), (["--max-memory-mb", "auto"], [512.0])):
         budgets.clear()  # with every call "large": the default and "auto" tile (the floor's budget), "none" does not
         assert main(["denoise", str(tmp_path / "noisy.exr"), *flag, "--out", str(tiled), "--overwrite"]) == 0
@@ -147,9 +174,9 @@ def test_denoise_command_on_a_mitsuba_render(tmp_path, capsys, monkeypatch):
 
 
 def _sequence_files(folder, frames: int = 4):
-    """A rendered camera sequence (test_temporal's sliding Cornell box, 24x20, 1 spp) as torchgi EXR files."""
+    """A rendered camera sequence (tests/helpers.py's sliding Cornell box, 24x20, 1 spp) as torchgi EXR files."""
     import torchgi
-    from tests.test_temporal import sliding_cornell
+    from tests.helpers import sliding_cornell
 
     folder.mkdir()
     for k, gb in enumerate(torchgi.render_sequence(sliding_cornell(24).with_resolution(24, 20), frames, spp=1)):
@@ -217,8 +244,7 @@ def test_temporal_export_command_matches_the_python_step(tmp_path, capsys):
     pytest.importorskip("embreex")
     pytest.importorskip("onnxruntime")
     import torchgi
-    from tests.helpers import rel_error
-    from tests.test_temporal import sliding_cornell
+    from tests.helpers import rel_error, sliding_cornell
     from torchgi.export import OrtSession
     from torchgi.temporal import DeployedTemporal, TemporalState
 

@@ -29,6 +29,7 @@ LAYERS = (
     ("filters",),
     ("render",),
     ("sampling",),
+    ("methods",),
     ("deployed",),
     ("denoise",),
     ("temporal", "data"),
@@ -200,3 +201,42 @@ def test_every_module_imports_first_in_a_fresh_process():
     proc = subprocess.run([sys.executable, "-c", code, *names], capture_output=True, text=True, timeout=300,
                           check=False)
     assert proc.returncode == 0, proc.stderr[-2000:]
+
+
+def test_no_method_name_is_compared_outside_the_methods_package():
+    """What a Denoiser method is lives in its class (torchgi/methods/): the shared pipeline, its
+    deployed form and the TemporalDenoiser ask the class, never compare the method's name."""
+    found = []
+    for path in _modules():
+        if "methods" in path.relative_to(PACKAGE).parts:
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Compare):
+                names = [n for n in [node.left, *node.comparators]
+                         if isinstance(n, ast.Attribute) and n.attr in ("method", "spatial_method")
+                         or isinstance(n, ast.Name) and n.id in ("method", "spatial")]
+                strings = [n for n in ast.walk(node) if isinstance(n, ast.Constant) and n.value in METHOD_NAMES]
+                if names and strings:
+                    found.append(f"{path.relative_to(PACKAGE)}:{node.lineno}")
+    assert found == []
+
+
+def test_the_denoiser_class_keeps_the_shared_pipeline_only():
+    tree = ast.parse((PACKAGE / "denoise.py").read_text())
+    (cls,) = [n for n in tree.body if isinstance(n, ast.ClassDef) and n.name == "Denoiser"]
+    assert cls.end_lineno - cls.lineno + 1 <= 200
+
+
+def test_no_test_monkeypatches_a_settings_global():
+    """Tests pass ``settings=`` (a :class:`torchgi.settings.Settings`) instead."""
+    groups = ("PIPELINE", "GUIDED", "ATROUS", "BILATERAL", "TEMPORAL", "DEFAULTS")
+    found = []
+    for path in sorted((PACKAGE.parent / "tests").rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "setattr"
+                    and any(isinstance(a, ast.Constant) and a.value in groups for a in node.args)):
+                found.append(f"{path.name}:{node.lineno}")
+    assert found == []
+
+
+METHOD_NAMES = ("pyramid", "blend", "guided", "atrous", "bilateral", "none")

@@ -1,3 +1,5 @@
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -82,3 +84,17 @@ def test_mse_is_differentiable():
     metrics.relmse(x, ref).backward()
     want = 2 * (x.detach() - ref) / (ref**2 + 0.01) / x.numel()
     torch.testing.assert_close(x.grad, want)
+
+
+def test_temporal_metrics_hand_computed():
+    ref = torch.ones(3, 1, 1, 1, 2)
+    x = ref.clone()
+    x[1, ..., 0] = 1.5  # the output flickers up by 0.5 in one of two pixels, then back
+    tm = metrics.temporal(x, ref)
+    # differences +0.5, -0.5 in one pixel of two over two steps, rMAE |d| / 0.01
+    assert tm["trmae"] == pytest.approx(0.5 * 0.5 / 0.01)
+    d = 1.5 / 2.5 - 0.5  # Reinhard of 1.5 minus Reinhard of 1
+    assert tm["tpsnr"] == pytest.approx(10 * math.log10(1 / (d * d / 2)))
+    assert metrics.temporal(x, ref, warmup=1)["trmae"] == pytest.approx(0.5 * 0.5 / 0.01)
+    with pytest.raises(ValueError, match="warmup"):
+        metrics.temporal(x, ref, warmup=2)

@@ -113,3 +113,12 @@ def test_the_filters_alone_recipe_runs_and_has_the_error_it_says(capsys):
     exec(compile(code, "docs/api.md", "exec"), {})  # noqa: S102 - the page's own code
     recipe, denoiser = (float(v) for v in re.findall(r"tensor\(([\d.e-]+)\)", capsys.readouterr().out))
     assert recipe > 3 * denoiser
+
+
+def test_the_which_to_use_table_names_every_registered_method_and_no_other():
+    """The README's table reads the registry's names (``torchgi.methods.names()``)."""
+    from torchgi import methods
+
+    section = README.read_text(encoding="utf-8").split("## Which to use", 1)[1].split("\n## ", 1)[0]
+    named = set(re.findall(r'\("([a-z]+)"\)', section))
+    assert named == set(methods.names())

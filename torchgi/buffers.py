@@ -386,7 +386,7 @@ def _with_samples(gb: GBuffer, spp: Any, by: str) -> GBuffer:
     return GBuffer._unchecked(**dict(gb.items()), spp=torch.full((B, 1, H, W), float(spp), device=gb.device))
 
 
-def _require_guides(gb: GBuffer, method: str, needs: Sequence[str]) -> None:
+def require_guides(gb: GBuffer, method: str, needs: Sequence[str]) -> None:
     """Refuse by name an input without a guide layer that ``method`` needs (never a crash or a
     silently worse result)."""
     why = {"depth": "the guide its network was trained with (distance along the camera ray)",
@@ -424,6 +424,6 @@ def _noise_free(gb: GBuffer) -> bool:
     return int(gb.spp.min()) >= 2 and not bool(gb.variance.any())
 
 
-def _mean_spp(spp: torch.Tensor) -> float:
+def mean_spp(spp: torch.Tensor) -> float:
     """The mean of a ``(B,1,H,W)`` sample-count plane (0 for an empty one)."""
     return float(spp.sum()) / max(spp.numel(), 1)

@@ -1,7 +1,7 @@
 """The exportable form of the Denoiser (:meth:`torchgi.Denoiser.deploy`): its pipeline with every
 choice fixed, as plain tensor code for ONNX export - with or without an emission input - and the
-hole filling that keeps a graph's output finite. The per-method firefly clamp factors both forms
-use live here.
+hole filling that keeps a graph's output finite. Each method's exported filter is its
+:meth:`torchgi.methods.Method.deployed_filter`.
 """
 
 from __future__ import annotations
@@ -10,19 +10,13 @@ from typing import Any
 
 import torch
 
-from torchgi import light
+from torchgi import light, methods
 from torchgi.backends.torch_code.filter_box import box_pool
-from torchgi.core.check import check_option, is_recording
-from torchgi.filters import atrous, blend, box, guide_from, guided
-from torchgi.filters.pyramid import pyramid
-from torchgi.settings import ATROUS, BILATERAL, GUIDED, PIPELINE
+from torchgi.core.check import check_option, check_positive, is_recording
+from torchgi.filters import box
+from torchgi.settings import PIPELINE
 
-__all__ = ["EXPORTABLE", "FIREFLY", "UNCLAMPED", "DeployedDenoiser", "DeployedDenoiserWithoutEmission", "deployed"]
-
-EXPORTABLE = ("pyramid", "blend", "guided", "atrous")  # the methods Denoiser.deploy() fixes for ONNX
-# fireflies are clamped at this many times their local level before each method's filter
-FIREFLY = {"pyramid": GUIDED.firefly, "blend": GUIDED.firefly, "guided": GUIDED.firefly, "atrous": ATROUS.firefly, "bilateral": BILATERAL.firefly, "none": GUIDED.firefly}
-UNCLAMPED = ("pyramid",)  # the methods whose filter also gets the light before the firefly clamp
+__all__ = ["DeployedDenoiser", "DeployedDenoiserWithoutEmission", "deployed"]
 
 
 def _fill_holes(tensors: list[torch.Tensor]) -> list[torch.Tensor]:
@@ -83,18 +77,24 @@ class DeployedDenoiser(torch.nn.Module):
     emission = True  # the graph's inputs include an emission layer
 
     def __init__(self, method: str, params: dict[str, Any], net: torch.nn.Module | None = None,
-                 variance: bool = False) -> None:
+                 variance: bool = False, firefly: float | None = None) -> None:
         super().__init__()
-        check_option(method, "method", EXPORTABLE)
-        if (net is None) != (method in ("guided", "atrous")):
-            raise ValueError("net: the learned methods ('pyramid', 'blend') need their network, the others none")
+        check_option(method, "method", methods.names(exportable=True))
+        kind = methods.get(method)
+        if (net is None) == kind.learned:
+            learned = ", ".join(repr(n) for n in methods.names(learned=True))
+            raise ValueError(f"net: the learned methods ({learned}) need their network, the others none")
         if variance and not float(params.get("samples", 0)) >= 2:
             raise ValueError(f"variance: the back-off needs a sample count of 2 or more, got {params.get('samples')}")
+        if firefly is not None:
+            check_positive(firefly, "firefly")
         self.method, self.params, self.net, self.variance = method, dict(params), net, variance
+        self.firefly = kind.firefly() if firefly is None else float(firefly)  # fireflies clamped at this x local level
+        self._kind = kind
 
     @property
     def input_names(self) -> tuple[str, ...]:
-        last = "position" if self.method == "atrous" else "depth"
+        last = self._kind.geometry
         return (("color",) + (("emission",) if self.emission else ()) + ("albedo", "normal", last)
                 + (("variance",) if self.variance else ()))
 
@@ -110,7 +110,7 @@ class DeployedDenoiser(torch.nn.Module):
             True
         """
         named = dict(zip(self.input_names, _fill_holes(self._ordered(inputs, by_name)), strict=True))
-        geometry = named["position" if self.method == "atrous" else "depth"]
+        geometry = named[self._kind.geometry]
         return self._run(named["color"], named.get("emission"), named["albedo"], named["normal"], geometry,
                          named.get("variance"))
 
@@ -142,21 +142,11 @@ class DeployedDenoiser(torch.nn.Module):
         scene_level = light.level(color, emission, None, albedo, surface)
 
         def filter_fn(x: torch.Tensor, radius: int | None = None, raw: torch.Tensor | None = None) -> torch.Tensor:
-            if self.method == "pyramid":
-                return pyramid(x, guide_from(normal, geometry, depth_scale="image"), spp=self.params["spp"],
-                               net=self.net, raw=raw)
-            if self.method == "blend":
-                return blend(x, guide_from(normal, geometry, depth_scale="image"), spp=self.params["spp"], net=self.net)
-            if self.method == "guided":
-                return guided(x, guide_from(normal, geometry, depth_scale="image"), radius=radius or self.params["radius"],
-                              eps=self.params["eps"], subsample=self.params.get("subsample", 1))
-            return atrous(x, normal, geometry, iterations=self.params["iterations"],
-                          sigma_normal=self.params["sigma_normal"], sigma_position=self.params["sigma_position"],
-                          sigma_color=self.params["sigma_color"])
+            return self._kind.deployed_filter(self.params, self.net, x, normal, geometry, radius, raw)
 
         radii = self.params.get("radii", (None,)) if variance is not None else (None,)
         outs = [light.restore(color, emission, None, albedo, surface, lambda x, *raw, r=r: filter_fn(x, r, *raw),
-                              FIREFLY[self.method], box, scene_level, unclamped=self.method in UNCLAMPED) for r in radii]
+                              self.firefly, box, scene_level, unclamped=self._kind.unclamped) for r in radii]
         if variance is None:
             return outs[0]
         emit = light.emitting(color, emission, albedo, surface, scene_level)
@@ -183,16 +173,17 @@ class DeployedDenoiserWithoutEmission(DeployedDenoiser):
 
 
 def deployed(method: str, params: dict[str, Any], net: torch.nn.Module | None, emission: bool,
-             variance: bool = False) -> DeployedDenoiser:
+             variance: bool = False, firefly: float | None = None) -> DeployedDenoiser:
     """The exportable module :meth:`torchgi.Denoiser.deploy` returns for ``method`` (one of
-    :data:`EXPORTABLE`) with its fixed ``params`` and network: :class:`DeployedDenoiser`, or
-    :class:`DeployedDenoiserWithoutEmission` when ``emission`` is False; with ``variance`` a
-    variance input and the back-off (``params["samples"]``: the render's sample count, >= 2).
+    ``methods.names(exportable=True)``) with its fixed ``params`` and network:
+    :class:`DeployedDenoiser`, or :class:`DeployedDenoiserWithoutEmission` when ``emission`` is
+    False; with ``variance`` a variance input and the back-off (``params["samples"]``: the
+    render's sample count, >= 2); ``firefly`` the clamp factor (None: the method's default).
 
     Example:
         >>> deployed("guided", {"radius": 2, "eps": 1e-4}, None, emission=False)
         DeployedDenoiserWithoutEmission(method='guided', radius=2, eps=0.0001, emission=False)
     """
     if emission:
-        return DeployedDenoiser(method, params, net, variance)
-    return DeployedDenoiserWithoutEmission(method, params, net, variance)
+        return DeployedDenoiser(method, params, net, variance, firefly)
+    return DeployedDenoiserWithoutEmission(method, params, net, variance, firefly)

@@ -182,6 +182,7 @@ def export_denoiser(
         >>> OrtDenoiser(p).input_names
         ['color', 'emission', 'albedo', 'normal', 'depth']
     """
+    from torchgi import methods
     from torchgi.denoise import Denoiser
 
     for name, value in (("spp", spp), ("sigma_position", sigma_position)):
@@ -194,7 +195,7 @@ def export_denoiser(
     channels = {"depth": 1, "variance": 3 if getattr(frame, "variance", None) is None else frame.variance.shape[1]}
     examples = [torch.rand(B, channels.get(name, 3), H, W, generator=g) for name in module.input_names]
     return export_onnx(module, examples, path, input_names=list(module.input_names), overwrite=overwrite,
-                       optimize=method != "atrous")
+                       optimize=methods.get(method).onnx_optimize)
 
 
 def export_temporal(path: str | os.PathLike, *, fresh: bool = True, overwrite: bool = False) -> Path:

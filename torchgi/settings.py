@@ -15,8 +15,8 @@ import dataclasses
 import math
 from typing import Any
 
-__all__ = ["ATROUS", "BILATERAL", "GUIDED", "PIPELINE", "TEMPORAL", "ATrousSettings", "BilateralSettings",
-           "GuidedSettings", "PipelineSettings", "TemporalSettings", "describe"]
+__all__ = ["ATROUS", "BILATERAL", "DEFAULTS", "GUIDED", "PIPELINE", "TEMPORAL", "ATrousSettings", "BilateralSettings",
+           "GuidedSettings", "PipelineSettings", "Settings", "TemporalSettings", "check_settings", "describe"]
 
 
 def _setting(default: Any, low: float, high: float, unit: str, reason: str) -> Any:
@@ -24,8 +24,28 @@ def _setting(default: Any, low: float, high: float, unit: str, reason: str) -> A
     return dataclasses.field(default=default, metadata={"range": (low, high), "unit": unit, "reason": reason})
 
 
+class _Ranged:
+    """Checks on construction that every field holds a number of its default's kind (a bool, an
+    int, a float; never NaN) within its ``range`` metadata."""
+
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):  # type: ignore[arg-type]
+            value, low, high = getattr(self, f.name), *f.metadata["range"]
+            name = f"{type(self).__name__}.{f.name}"
+            if isinstance(f.default, bool):
+                if not isinstance(value, bool):
+                    raise TypeError(f"{name}: expected True or False, got {value!r}")
+                continue
+            kinds = (int,) if isinstance(f.default, int) else (int, float)
+            if isinstance(value, bool) or not isinstance(value, kinds):
+                kind = "an int" if kinds == (int,) else "a number"
+                raise TypeError(f"{name}: expected {kind}, got {value!r}")
+            if not low <= value <= high:  # (NaN fails both)
+                raise ValueError(f"{name}: expected a value in [{low}, {high}] ({f.metadata['unit']}), got {value!r}")
+
+
 @dataclasses.dataclass(frozen=True)
-class PipelineSettings:
+class PipelineSettings(_Ranged):
     """The steps around every method's filter (:mod:`torchgi.denoise`)."""
 
     light: float = _setting(8.0, 1.0, math.inf, "x median demodulated light",
@@ -58,6 +78,9 @@ class PipelineSettings:
     auto_floor_mb: float = _setting(512.0, 0.0, math.inf, "MB", "the least budget of automatic tiles: smaller "
                                     "tiles repeat the pyramid's 208 px overlap too often (400 MB at 4K: 2.4x the time "
                                     "of 800 MB)")
+    back_off: bool = _setting(True, 0, 1, "on / off", "with a measured variance, back off toward the input where "
+                              "the filter's residual exceeds the noise (and let the guided filter choose among "
+                              "radii); off: the filter's output as it is (benchmarks' 'no back-off' rows)")
     fast: float = _setting(0.5, 0.0, math.inf, "x", "quality 'fast' scales radii and footprints by this")
     balanced: float = _setting(1.0, 0.0, math.inf, "x", "quality 'balanced'")
     high: float = _setting(1.5, 0.0, math.inf, "x", "quality 'high'")
@@ -68,7 +91,7 @@ class PipelineSettings:
 
 
 @dataclasses.dataclass(frozen=True)
-class GuidedSettings:
+class GuidedSettings(_Ranged):
     """``Denoiser("guided")``: the guided filter on normal + depth guides (Bauszat et al. 2011)."""
 
     radius: int = _setting(4, 1, 64, "px at 1 spp", "the best compromise over the tuning scenes; shrinks as "
@@ -98,7 +121,7 @@ class GuidedSettings:
 
 
 @dataclasses.dataclass(frozen=True)
-class ATrousSettings:
+class ATrousSettings(_Ranged):
     """``Denoiser("atrous")``: edge-avoiding À-Trous (Dammertz et al. 2010)."""
 
     footprint: float = _setting(16.0, 1.0, math.inf, "px at 1 spp",
@@ -115,7 +138,7 @@ class ATrousSettings:
 
 
 @dataclasses.dataclass(frozen=True)
-class BilateralSettings:
+class BilateralSettings(_Ranged):
     """``Denoiser("bilateral")``: brute-force cross-bilateral on normal + depth."""
 
     radius: int = _setting(6, 1, 64, "px at 1 spp", "shrinks as 1/sqrt(spp); σ_space is half of it")
@@ -126,7 +149,7 @@ class BilateralSettings:
 
 
 @dataclasses.dataclass(frozen=True)
-class TemporalSettings:
+class TemporalSettings(_Ranged):
     """:class:`torchgi.TemporalDenoiser` (SVGF-class accumulation before the guided filter)."""
 
     alpha: float = _setting(0.2, 0.0, 1.0, "weight of the new frame",
@@ -168,6 +191,85 @@ GUIDED = GuidedSettings()
 ATROUS = ATrousSettings()
 BILATERAL = BilateralSettings()
 TEMPORAL = TemporalSettings()
+
+# read by the compiled kernels for the whole process: one value for every instance (Settings refuses others)
+PROCESS_WIDE = {"pipeline": ("light", "light_square", "firefly_radius", "albedo_floor", "albedo_ceiling",
+                             "hole_radius", "backoff_radius", "backoff_margin"),
+                "guided": ("choose_noise", "choose_temperature")}
+
+
+@dataclasses.dataclass(frozen=True)
+class Settings:
+    """Every setting of one :class:`torchgi.Denoiser` or :class:`torchgi.TemporalDenoiser`, by
+    group (as NRD's per-denoiser settings structs): ``pipeline`` (the steps around every filter),
+    ``guided``, ``atrous``, ``bilateral`` (each method's) and ``temporal``. Frozen; each group
+    checks its ranges on construction; :meth:`replace` changes some fields of some groups. The
+    fields in ``PROCESS_WIDE`` are read by the compiled kernels for the whole process: a value
+    other than the default is refused.
+
+    Example:
+        >>> s = DEFAULTS.replace(guided={"firefly": 3.0}, temporal={"follow": 0.0})
+        >>> s.guided.firefly, s.temporal.follow, s.guided.radius
+        (3.0, 0.0, 4)
+    """
+
+    pipeline: PipelineSettings = PIPELINE
+    guided: GuidedSettings = GUIDED
+    atrous: ATrousSettings = ATROUS
+    bilateral: BilateralSettings = BILATERAL
+    temporal: TemporalSettings = TEMPORAL
+
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            group = getattr(self, f.name)
+            if type(group) is not type(f.default):
+                raise TypeError(f"settings.{f.name}: expected a {type(f.default).__name__}, got {group!r}")
+            for name in PROCESS_WIDE.get(f.name, ()):
+                if getattr(group, name) != getattr(f.default, name):
+                    raise ValueError(f"settings.{f.name}.{name}: read by the compiled kernels for the whole process, "
+                                     f"so it stays {getattr(f.default, name)!r}; got {getattr(group, name)!r}")
+
+    def replace(self, **groups: dict[str, Any]) -> Settings:
+        """These settings with some fields changed, ``group={field: value, ...}`` per group (checked
+        as on construction: an unknown group or field raises naming it)."""
+        changed = {}
+        for group, fields in groups.items():
+            if group not in {f.name for f in dataclasses.fields(self)}:
+                raise TypeError(f"{group}: not a settings group (pipeline, guided, atrous, bilateral, temporal)")
+            current = getattr(self, group)
+            known = {f.name for f in dataclasses.fields(current)}
+            for name in fields:
+                if name not in known:
+                    raise TypeError(f"{group}.{name}: not a setting of {type(current).__name__}")
+            changed[group] = dataclasses.replace(current, **fields)
+        return dataclasses.replace(self, **changed)
+
+    def changes(self) -> dict[str, Any]:
+        """``{"group.field": value}`` of the fields that differ from the defaults (what ``repr``
+        of a Denoiser shows).
+
+        Example:
+            >>> DEFAULTS.replace(temporal={"follow": 0.0}).changes()
+            {'temporal.follow': 0.0}
+        """
+        return {f"{g.name}.{f.name}": getattr(getattr(self, g.name), f.name) for g in dataclasses.fields(self)
+                for f in dataclasses.fields(getattr(self, g.name))
+                if getattr(getattr(self, g.name), f.name) != getattr(g.default, f.name)}
+
+
+DEFAULTS = Settings()
+
+
+def check_settings(settings: Any) -> Settings:
+    """``settings`` if it is a :class:`Settings`, else a TypeError naming the argument.
+
+    Example:
+        >>> check_settings(DEFAULTS) is DEFAULTS
+        True
+    """
+    if not isinstance(settings, Settings):
+        raise TypeError(f"settings: expected a torchgi.settings.Settings, got {type(settings).__name__}")
+    return settings
 
 
 def describe(settings: Any) -> list[dict[str, Any]]:

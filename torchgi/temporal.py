@@ -33,6 +33,10 @@ Each frame, on the light demodulated by albedo (``(color - emission) / albedo`` 
    TEMPORAL.output_alpha)`` for this frame (``length`` after the drop of 3): flicker the filter leaves is averaged out, and a
    change larger than the noise (a moving highlight) passes through.
 
+``TEMPORAL``, ``GUIDED`` and ``PIPELINE`` above name the groups ``temporal``, ``guided`` and
+``pipeline`` of the :class:`~torchgi.settings.Settings` given (``settings=``, default
+:data:`~torchgi.settings.DEFAULTS`).
+
 The accumulated light (not the filtered one) is the light history: feeding the filtered light
 back (SVGF's choice) blurred shading over frames on the tuning sequence (docs/temporal.md). The
 state is plain tensors (:class:`TemporalState`), so :func:`temporal_step` and
@@ -46,17 +50,17 @@ from collections.abc import Callable
 
 import torch
 
-from torchgi import backends, light
+from torchgi import backends, light, methods
 from torchgi.buffers import GBuffer
 from torchgi.core.check import check_option, finite_or_sanitized_all, is_recording
 from torchgi.core.errors import DTypeError, ShapeError
 from torchgi.denoise import Denoiser
 from torchgi.filters import box
-from torchgi.settings import GUIDED, PIPELINE, TEMPORAL
+from torchgi.settings import DEFAULTS, Settings, check_settings
 
 __all__ = ["SPATIAL", "DeployedTemporal", "TemporalDenoiser", "TemporalState", "temporal_step"]
 
-SPATIAL = ("guided", "pyramid", "blend")  # the TemporalDenoiser's spatial filters
+SPATIAL = methods.names(temporal=True)  # the TemporalDenoiser's spatial filters (the registry's)
 
 
 @dataclasses.dataclass
@@ -99,26 +103,27 @@ Spatial = Callable[..., torch.Tensor]
 
 
 def _blend_fresh(out: torch.Tensor, length: torch.Tensor, inputs: dict[str, torch.Tensor | None],
-                 fresh: Spatial, share: float, short: Spatial | None = None) -> torch.Tensor:
-    """``out`` where the history is long; where it is shorter than ``TEMPORAL.variance_history``
+                 fresh: Spatial, share: float, short: Spatial | None, settings: Settings) -> torch.Tensor:
+    """``out`` where the history is long; where it is shorter than ``settings.temporal.variance_history``
     frames, blended towards ``fresh`` (the per-frame Denoiser) of the same inputs, weight 1 for a
     new pixel; only when at least ``share`` of the pixels are new (0: always), else towards
     ``short`` (None: not blended). Eager calls filter only the rows and columns around such pixels
     (and the filter's reach)."""
+    t = settings.temporal
     recording = is_recording()
     if not recording and share > 0 and float((length == 1).float().mean()) < share:  # most frames
         if short is None:
             return out
         fresh = short
-    w = ((TEMPORAL.variance_history - length) / max(TEMPORAL.variance_history - 1, 1)).clamp(0, 1)
+    w = ((t.variance_history - length) / max(t.variance_history - 1, 1)).clamp(0, 1)
     if recording:
         return out + w * (fresh(**inputs) - out)
     rows, cols = w.amax((0, 1, 3)) > 0, w.amax((0, 1, 2)) > 0
     if not bool(rows.any()):
         return out
     # the box of the box of the wider of the two filters, the firefly window
-    halo = 4 * max(GUIDED.radius, TEMPORAL.short_radius) + 2 * PIPELINE.firefly_radius + 4
-    r, c = rows.nonzero()[:, 0], cols.nonzero()[:, 0]
+    halo = 4 * max(settings.guided.radius, t.short_radius) + 2 * settings.pipeline.firefly_radius + 4
+    r, c = rows.nonzero().flatten(), cols.nonzero().flatten()  # the rows and columns to filter
     H, W = out.shape[-2:]
     r0, r1 = max(int(r[0]) - halo, 0), min(int(r[-1]) + halo + 1, H)
     c0, c1 = max(int(c[0]) - halo, 0), min(int(c[-1]) + halo + 1, W)
@@ -131,11 +136,80 @@ def _blend_fresh(out: torch.Tensor, length: torch.Tensor, inputs: dict[str, torc
     return out
 
 
+# temporal_step's stages, in the order it runs them (module docstring, 1-5)
+def _demodulated(color: torch.Tensor, emission: torch.Tensor, albedo: torch.Tensor, surface: torch.Tensor,
+                 settings: Settings) -> tuple[torch.Tensor, torch.Tensor]:
+    """1: this frame's demodulated light and its firefly bound, ``settings.guided.firefly`` x its local level (as
+    the Denoiser's), which the accumulation scales it down to before it enters the history: ``(x, bound)``."""
+    demod = light.demodulator(albedo, surface)
+    x = (color - emission) / demod
+    level = light.level(color, emission, None, albedo, surface)
+    return x, light.firefly_bound(x.amax(1, keepdim=True), level, settings.guided.firefly, box)
+
+
+def _reproject_and_accumulate(x: torch.Tensor, bound: torch.Tensor, motion: torch.Tensor, normal: torch.Tensor,
+                              depth: torch.Tensor, surface: torch.Tensor, state: TemporalState, settings: Settings,
+                              workspace: dict | None) -> backends.Accumulated:
+    """2-3: the light ``x`` (clamped at ``bound``) averaged into ``state``'s history reprojected by ``motion`` where
+    the guides agree; returns the accumulation's planes by name."""
+    t = settings.temporal
+    return backends.Accumulated(backends.run(backends.AccumulateOp(
+        x, bound, motion, normal, depth, surface, *state.tensors(), t.alpha, t.max_history, t.normal_tolerance,
+        t.depth_tolerance, workspace)))
+
+
+def _drop_changed_history(x: torch.Tensor, bound: torch.Tensor, acc: backends.Accumulated, albedo: torch.Tensor,
+                          surface: torch.Tensor, emission: torch.Tensor, settings: Settings,
+                          workspace: dict | None) -> backends.Changed:
+    """3, the change test: ``acc``'s history dropped where the light changed, made to follow this frame's below that;
+    returns the history kept, its variance and the spatial filter's colour input by name."""
+    t = settings.temporal
+    lum = acc.luminance
+    mean, mean_square = box(torch.cat([lum, lum * lum], 1), t.variance_radius).split(1, 1)
+    spatial_var = (mean_square - mean.square()).clamp_min(0)
+    near = wide = None
+    radii = (t.change_radius, t.change_radius * t.change_scale)
+    if t.change_threshold > 0:  # the light changed (module docstring): boxes of this frame's and the history's luminance
+        luma = torch.tensor(backends.base.LUMA, dtype=x.dtype, device=x.device).view(1, 3, 1, 1)
+        planes = torch.cat([lum, (acc.light * luma).sum(1, keepdim=True), spatial_var], 1)
+        near, wide = (box(planes, r) for r in radii)
+    return backends.Changed(backends.run(backends.ChangeOp(
+        x, bound, acc.packed, spatial_var, near, wide, albedo, surface, emission, radii, t.change_threshold,
+        t.variance_history, t.follow, workspace)))
+
+
+def _filter(kept: backends.Changed, guides: dict[str, torch.Tensor | None], spatial: Spatial, fresh: Spatial | None,
+            fresh_share: float, short: Spatial | None, spatial_spp: torch.Tensor | None,
+            settings: Settings) -> torch.Tensor:
+    """4: ``spatial`` of ``kept.color`` with ``guides`` (emission, albedo, normal, depth, hit), blended towards
+    ``fresh`` or ``short`` where the history is short (:func:`_blend_fresh`); returns the filtered radiance."""
+    inputs = {"color": kept.color, **guides}
+    if spatial_spp is None:
+        out = spatial(**inputs)
+    else:
+        out = spatial(**inputs, spp=(spatial_spp * kept.frames).round().clamp_min(1).to(torch.int64))
+    if fresh is not None:
+        out = _blend_fresh(out, kept.length, inputs, fresh, fresh_share, short, settings)
+    return out
+
+
+def _update_output_history(out: torch.Tensor, emission: torch.Tensor, albedo: torch.Tensor, surface: torch.Tensor,
+                           acc: backends.Accumulated, kept: backends.Changed, settings: Settings,
+                           workspace: dict | None) -> tuple[torch.Tensor, torch.Tensor]:
+    """5: the reprojected output history ``acc.output`` clamped to within ``sqrt(clamp x`` the accumulated light's
+    noise variance) of the filtered ``out``, averaged with it at a weight that follows the history length after the
+    change test's drop; returns ``(next output history (demodulated), the frame's image)``."""
+    t = settings.temporal
+    return backends.run(backends.HistoryOp(out, emission, albedo, surface, box(kept.spread, 1), acc.output,
+                                           kept.length, acc.prev_length, t.clamp, t.output_alpha, workspace))
+
+
 def temporal_step(
     color: torch.Tensor, albedo: torch.Tensor, normal: torch.Tensor, depth: torch.Tensor, motion: torch.Tensor,
     state: TemporalState | None = None, *, emission: torch.Tensor | None = None, hit: torch.Tensor | None = None,
     spatial: Spatial | None = None, fresh: Spatial | None = None, fresh_share: float = 0.0,
     short: Spatial | None = None, spatial_spp: torch.Tensor | None = None, workspace: dict | None = None,
+    settings: Settings = DEFAULTS,
 ) -> tuple[torch.Tensor, TemporalState]:
     """One frame of temporal denoising (module docstring), stateless: ``(output, next_state)``.
 
@@ -167,6 +241,9 @@ def temporal_step(
         workspace: a dict the CPU kernels keep their buffers in between calls (no fresh pages
             each frame; :class:`TemporalDenoiser` keeps one), or None. The state returned lives
             in it: the next call with the same dict overwrites it, so pass that call this state.
+        settings: the :class:`~torchgi.settings.Settings` read (its ``temporal``, ``guided`` and
+            ``pipeline`` groups, the names ``TEMPORAL``, ``GUIDED``, ``PIPELINE`` above), also those of
+            the default ``spatial``.
 
     Returns:
         The ``(B,3,H,W)`` denoised radiance (input dtype and device) and the state for the next frame.
@@ -179,44 +256,22 @@ def temporal_step(
         >>> out.shape, int(state.length.max())
         (torch.Size([1, 3, 16, 16]), 2)
     """
-    t = TEMPORAL
+    check_settings(settings)
     if hit is not None and hit.dtype != torch.bool:
         raise DTypeError(f"hit: expected a bool tensor, got {hit.dtype}")
-    spatial = spatial or Denoiser("guided", radius=t.radius, eps=t.eps, subsample=1)
+    t = settings.temporal
+    spatial = spatial or Denoiser("guided", radius=t.radius, eps=t.eps, subsample=1, settings=settings)
     surface = light.surface_mask(hit, albedo)
     emission = torch.zeros_like(color) if emission is None else emission
-    demod = light.demodulator(albedo, surface)
     state = TemporalState.empty(color) if state is None else state
-    x = (color - emission) / demod
-    # fireflies: above GUIDED.firefly x their local level (as the Denoiser does), before they enter the history
-    level = light.level(color, emission, None, albedo, surface)
-    bound = light.firefly_bound(x.amax(1, keepdim=True), level, GUIDED.firefly, box)
-    step = backends.run(backends.AccumulateOp(x, bound, motion, normal, depth, surface, *state.tensors(), t.alpha,
-                                              t.max_history, t.normal_tolerance, t.depth_tolerance, workspace))
-    hist_out, hist_length, lum = step[:, 3:6], step[:, 9:10], step[:, 12:13]
-    m = box(torch.cat([lum, lum * lum], 1), t.variance_radius)
-    spatial_var = (m[:, 1:2] - m[:, :1].square()).clamp_min(0)
-    near = wide = None
-    radii = (t.change_radius, t.change_radius * t.change_scale)
-    if t.change_threshold > 0:  # the light changed (module docstring): boxes of this frame's and the history's luminance
-        luma = torch.tensor(backends.base.LUMA, dtype=x.dtype, device=x.device).view(1, 3, 1, 1)
-        planes = torch.cat([lum, (step[:, :3] * luma).sum(1, keepdim=True), spatial_var], 1)
-        near, wide = (box(planes, r) for r in radii)
-    mid = backends.run(backends.ChangeOp(x, bound, step, spatial_var, near, wide, albedo, surface, emission, radii,
-                                         t.change_threshold, t.variance_history, t.follow, workspace))
-    acc, moments, length, frames, spread, color_in = mid.split([3, 2, 1, 1, 1, 3], 1)
-    inputs = {"color": color_in, "emission": emission, "albedo": albedo, "normal": normal, "depth": depth, "hit": hit}
-    if spatial_spp is None:
-        out = spatial(**inputs)
-    else:
-        out = spatial(**inputs, spp=(spatial_spp * frames).round().clamp_min(1).to(torch.int64))
-    if fresh is not None:
-        out = _blend_fresh(out, length, inputs, fresh, fresh_share, short)
-    # the output history (demodulated), within sqrt(clamp x the accumulated light's noise variance) of this frame's;
-    # its weight follows the history length after the change test's drop
-    lit, image = backends.run(backends.HistoryOp(out, emission, albedo, surface, box(spread, 1), hist_out,
-                                                 length, hist_length, t.clamp, t.output_alpha, workspace))
-    return image, TemporalState(acc, lit, moments, torch.round(length), normal, depth, surface.to(x.dtype))
+    x, bound = _demodulated(color, emission, albedo, surface, settings)
+    acc = _reproject_and_accumulate(x, bound, motion, normal, depth, surface, state, settings, workspace)
+    kept = _drop_changed_history(x, bound, acc, albedo, surface, emission, settings, workspace)
+    guides = {"emission": emission, "albedo": albedo, "normal": normal, "depth": depth, "hit": hit}
+    out = _filter(kept, guides, spatial, fresh, fresh_share, short, spatial_spp, settings)
+    history, image = _update_output_history(out, emission, albedo, surface, acc, kept, settings, workspace)
+    return image, TemporalState(kept.light, history, kept.moments, torch.round(kept.length), normal, depth,
+                                surface.to(x.dtype))
 
 
 def _check_inputs(gb: GBuffer) -> GBuffer:
@@ -255,6 +310,9 @@ class TemporalDenoiser(torch.nn.Module):
             about 1.4x faster per frame, new pixels noisier; docs/temporal.md, "Short histories").
         sanitize: NaN/Inf in ``color`` or ``emission`` raises :class:`~torchgi.core.NonFiniteError`
             naming it (False) or is replaced by 0 with a warning (True); the guides must be finite.
+        settings: a :class:`~torchgi.settings.Settings` (default :data:`~torchgi.settings.DEFAULTS`):
+            its ``temporal`` group (``TEMPORAL`` here and in the module docstring), and the whole of
+            it for the Denoisers this one builds (the spatial filter, the per-frame one, the short pass).
 
     Example:
         >>> from torchgi.render import render_sequence, scenes
@@ -264,22 +322,26 @@ class TemporalDenoiser(torch.nn.Module):
         torch.Size([1, 3, 16, 16])
     """
 
-    def __init__(self, *, spatial: str = "guided", short_pass: bool = True, sanitize: bool = False) -> None:
+    def __init__(self, *, spatial: str = "guided", short_pass: bool = True, sanitize: bool = False,
+                 settings: Settings = DEFAULTS) -> None:
 
         super().__init__()
         check_option(spatial, "spatial", SPATIAL)
         if not isinstance(short_pass, bool):
             raise TypeError(f"short_pass: expected True or False, got {short_pass!r}")
+        self.settings = check_settings(settings)
         self.sanitize, self.spatial_method = sanitize, spatial
         self.state: TemporalState | None = None
         self._workspace: dict = {}  # the kernels' buffers between frames (the state lives in them)
         # kept between calls (its buffers); called on inputs checked once per frame
-        self.spatial = (Denoiser("guided", radius=TEMPORAL.radius, eps=TEMPORAL.eps, subsample=1)
-                        if spatial == "guided" else Denoiser(spatial))
-        self.fresh = Denoiser("guided")
-        self.short = (Denoiser("guided", radius=TEMPORAL.short_radius, eps=TEMPORAL.eps, subsample=1)
+        t = settings.temporal
+        self._learned = methods.get(spatial).learned  # told the frames' samples; else the guided filter at t.radius
+        self.spatial = (Denoiser(spatial, settings=settings) if self._learned
+                        else Denoiser(spatial, radius=t.radius, eps=t.eps, subsample=1, settings=settings))
+        self.fresh = Denoiser("guided", settings=settings)
+        self.short = (Denoiser("guided", radius=t.short_radius, eps=t.eps, subsample=1, settings=settings)
                       if short_pass else None)
-        if spatial == "guided" and self.short is not None:
+        if not self._learned and self.short is not None:
             # one pipeline's scratch buffers for both (they run in turn; results are new tensors)
             self.short._workspace = self.spatial._workspace
 
@@ -288,7 +350,8 @@ class TemporalDenoiser(torch.nn.Module):
         self.state = None
 
     def extra_repr(self) -> str:
-        return f"spatial={self.spatial_method!r}, short_pass={self.short is not None}, sanitize={self.sanitize}"
+        out = f"spatial={self.spatial_method!r}, short_pass={self.short is not None}, sanitize={self.sanitize}"
+        return out if self.settings == DEFAULTS else f"{out}, settings={self.settings.changes()!r}"
 
     def forward(self, gb: GBuffer | None = None, **tensors: torch.Tensor) -> torch.Tensor:
         gb = _check_inputs(GBuffer.from_inputs(gb, tensors, by="TemporalDenoiser"))
@@ -297,15 +360,16 @@ class TemporalDenoiser(torch.nn.Module):
         if s is not None and (s.light.shape != color.shape or s.light.dtype != color.dtype
                               or s.light.device != color.device):
             s = None
-        small = min(color.shape[-2:]) < GUIDED.subsample_from
-        share = 0.0 if small else TEMPORAL.fresh_share
+        small = min(color.shape[-2:]) < self.settings.guided.subsample_from
+        share = 0.0 if small else self.settings.temporal.fresh_share
         short = None if small or self.short is None else _checked(self.short)
         spp = None
-        if self.spatial_method != "guided":
+        if self._learned:
             spp = gb.spp if gb.spp is not None else torch.ones_like(gb.depth, dtype=torch.int64)
         out, self.state = temporal_step(color, gb.albedo, gb.normal, gb.depth, gb.motion, s, emission=emission,
                                         hit=gb.hit, spatial=_checked(self.spatial), fresh=_checked(self.fresh),
-                                        fresh_share=share, short=short, spatial_spp=spp, workspace=self._workspace)
+                                        fresh_share=share, short=short, spatial_spp=spp, workspace=self._workspace,
+                                        settings=self.settings)
         return out
 
 
@@ -320,7 +384,7 @@ class DeployedTemporal(torch.nn.Module):
     :meth:`TemporalState.empty`. ``fresh``: blend new pixels towards the per-frame Denoiser (what
     :class:`TemporalDenoiser` does below 256 px on the short side; fixed here, as the radius is).
     Surfaces are the pixels of non-zero albedo; ``emission`` is required (zeros when no light
-    source is in view).
+    source is in view). ``settings``: as :class:`TemporalDenoiser`'s.
 
     Example:
         >>> m = DeployedTemporal()
@@ -330,11 +394,13 @@ class DeployedTemporal(torch.nn.Module):
         [3, 3, 3, 2, 1, 1]
     """
 
-    def __init__(self, fresh: bool = True) -> None:
+    def __init__(self, fresh: bool = True, *, settings: Settings = DEFAULTS) -> None:
 
         super().__init__()
-        self.spatial = Denoiser("guided", radius=TEMPORAL.radius, eps=TEMPORAL.eps).deploy(spp=1)
-        self.fresh = Denoiser("guided").deploy(spp=1) if fresh else None
+        self.settings = check_settings(settings)
+        t = settings.temporal
+        self.spatial = Denoiser("guided", radius=t.radius, eps=t.eps, settings=settings).deploy(spp=1)
+        self.fresh = Denoiser("guided", settings=settings).deploy(spp=1) if fresh else None
 
     def _spatial(self, **k: torch.Tensor) -> torch.Tensor:
         return self.spatial(k["color"], k["emission"], k["albedo"], k["normal"], k["depth"])
@@ -352,5 +418,6 @@ class DeployedTemporal(torch.nn.Module):
                 prev_surface: torch.Tensor) -> tuple[torch.Tensor, ...]:
         state = TemporalState(light, history, moments, length, prev_normal, prev_depth, prev_surface)
         out, nxt = temporal_step(color, albedo, normal, depth, motion, state, emission=emission,
-                                 spatial=self._spatial, fresh=None if self.fresh is None else self._fresh)
+                                 spatial=self._spatial, fresh=None if self.fresh is None else self._fresh,
+                                 settings=self.settings)
         return out, nxt.light, nxt.output, nxt.moments, nxt.length, nxt.surface

@@ -25,7 +25,7 @@ from typing import Any
 import torch
 
 from torchgi.backends.pyramid_ops import AppliedMeansOp, BlockMeanOp, FineBandOp, MixHalfOp, ModelResidualOp
-from torchgi.backends.temporal_ops import LUMA, AccumulateOp, ChangeOp, HistoryOp
+from torchgi.backends.temporal_ops import LUMA, Accumulated, AccumulateOp, Changed, ChangeOp, HistoryOp
 from torchgi.backends.tracer_ops import GuideRaysOp, PathOp, TraceSetup, chunks, embree_started, mark_embree_started
 from torchgi.core.check import is_tracing
 from torchgi.core.dtypes import compute_dtype
@@ -37,17 +37,20 @@ __all__ = [
     "ORDER",
     "ATrousOp",
     "AccumulateOp",
+    "Accumulated",
     "AllocateOp",
     "AppliedMeansOp",
     "BackOffOp",
     "BlockMeanOp",
     "BoxOp",
     "ChangeOp",
+    "Changed",
     "ChooseOp",
     "EdgeShareOp",
     "FineBandOp",
     "GuideRaysOp",
     "GuideSpec",
+    "GuideStats",
     "GuideStatsOp",
     "GuidedOp",
     "HistoryOp",
@@ -213,6 +216,44 @@ class GuideStatsOp:
 
     def tensors(self) -> tuple[torch.Tensor | None, ...]:
         return (self.normal, self.depth)
+
+
+@dataclass(frozen=True, eq=False)
+class GuideStats:
+    """Named views of :class:`GuideStatsOp`'s ``(B, 15)`` result (``packed``; the layout is
+    defined here only)."""
+
+    packed: torch.Tensor
+
+    @property
+    def minima(self) -> torch.Tensor:
+        """``(B, 4)`` the minima of normal x, y, z and depth (+inf without depth)."""
+        return self.packed[:, 0:4]
+
+    @property
+    def maxima(self) -> torch.Tensor:
+        """``(B, 4)`` their maxima (-inf without depth)."""
+        return self.packed[:, 4:8]
+
+    @property
+    def depth_max(self) -> torch.Tensor:
+        """``(B,)`` the largest depth on hit pixels (-inf where none)."""
+        return self.packed[:, 8]
+
+    @property
+    def nonfinite_normal(self) -> torch.Tensor:
+        """``(B,)`` how many values of the normal are NaN/Inf."""
+        return self.packed[:, 9]
+
+    @property
+    def nonfinite_depth(self) -> torch.Tensor:
+        """``(B,)`` how many of the depth are."""
+        return self.packed[:, 10]
+
+    @property
+    def sums(self) -> torch.Tensor:
+        """``(B, 4)`` the channel sums of normal x, y, z and depth (0 without)."""
+        return self.packed[:, 11:]
 
 
 @dataclass(eq=False, slots=True)

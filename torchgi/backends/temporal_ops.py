@@ -1,7 +1,8 @@
 """The temporal denoiser's ops at the back-end seam, in the order :func:`torchgi.temporal.temporal_step`
 runs them: the reprojection and accumulation (:class:`AccumulateOp`), the change test and what the
-spatial filter is given (:class:`ChangeOp`), the output history (:class:`HistoryOp`). Re-exported
-by :mod:`torchgi.backends.base`."""
+spatial filter is given (:class:`ChangeOp`), the output history (:class:`HistoryOp`); and the
+planes of the first two's packed results by name (:class:`Accumulated`, :class:`Changed`: their
+layouts are defined there only). Re-exported by :mod:`torchgi.backends.base`."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ from dataclasses import dataclass
 
 import torch
 
-__all__ = ["LUMA", "AccumulateOp", "ChangeOp", "HistoryOp"]
+__all__ = ["LUMA", "AccumulateOp", "Accumulated", "ChangeOp", "Changed", "HistoryOp"]
 
 LUMA = (0.2126, 0.7152, 0.0722)  # the luminance AccumulateOp returns and moments are of (Rec. 709 weights)
 
@@ -22,10 +23,8 @@ class AccumulateOp:
     ``surface (B,1)`` bool, and the history ``light (B,3)``, ``output (B,3)``, ``moments (B,2)``,
     ``length (B,1)``, ``prev_normal (B,3)``, ``prev_depth (B,1)``, ``prev_surface (B,1)`` (1.0 on
     geometry), all of one float dtype and device but ``surface``; ``alpha``, ``max_history``,
-    ``normal_tolerance``, ``depth_tolerance`` as in ``settings.TEMPORAL``. Returns ``(B,13,H,W)``:
-    the accumulated light (3), the reprojected output history (3), the accumulated moments (2),
-    the new history length (1), the reprojected one (1, 0: no history), the moments' variance
-    (1), the number of frames averaged (1) and the clamped light's luminance (1). ``workspace``:
+    ``normal_tolerance``, ``depth_tolerance`` as in ``settings.TemporalSettings``. Returns
+    ``(B,13,H,W)``, its planes named by :class:`Accumulated` (the layout). ``workspace``:
     a dict the CPU kernels keep their result's buffer in between calls (each call overwrites the
     last one's), or None: a new tensor."""
 
@@ -53,13 +52,62 @@ class AccumulateOp:
                 self.prev_normal, self.prev_depth, self.prev_surface)
 
 
+@dataclass(frozen=True, eq=False)
+class Accumulated:
+    """:class:`AccumulateOp`'s ``(B,13,H,W)`` result (``packed``, what :class:`ChangeOp` takes as
+    ``step``) by name: each plane a view of it (no copy). The layout is defined here only; every
+    back end writes it in this order."""
+
+    packed: torch.Tensor
+
+    @property
+    def light(self) -> torch.Tensor:
+        """``(B,3)`` the accumulated light (channels 0-2)."""
+        return self.packed[:, 0:3]
+
+    @property
+    def output(self) -> torch.Tensor:
+        """``(B,3)`` the reprojected output history (3-5)."""
+        return self.packed[:, 3:6]
+
+    @property
+    def moments(self) -> torch.Tensor:
+        """``(B,2)`` the accumulated luminance moments, mean and mean square (6-7)."""
+        return self.packed[:, 6:8]
+
+    @property
+    def length(self) -> torch.Tensor:
+        """``(B,1)`` the new history length (8)."""
+        return self.packed[:, 8:9]
+
+    @property
+    def prev_length(self) -> torch.Tensor:
+        """``(B,1)`` the reprojected history length (9; 0: no history)."""
+        return self.packed[:, 9:10]
+
+    @property
+    def variance(self) -> torch.Tensor:
+        """``(B,1)`` the moments' variance (10)."""
+        return self.packed[:, 10:11]
+
+    @property
+    def frames(self) -> torch.Tensor:
+        """``(B,1)`` the number of frames averaged (11)."""
+        return self.packed[:, 11:12]
+
+    @property
+    def luminance(self) -> torch.Tensor:
+        """``(B,1)`` the luminance (:data:`LUMA`) of this frame's light after its firefly clamp (12)."""
+        return self.packed[:, 12:13]
+
+
 @dataclass(eq=False, slots=True)
 class ChangeOp:
     """:func:`torchgi.temporal.temporal_step` after the accumulation: where the light changed, the
     history dropped (its change test, module docstring of :mod:`torchgi.temporal`), the variance
     chosen, and the spatial filter's input remodulated. ``x (B,3,H,W)`` the demodulated light
     before its firefly clamp at ``bound (B,1,H,W)``; ``step (B,13,H,W)`` :class:`AccumulateOp`'s
-    result; ``spatial_var (B,1,H,W)`` this frame's spatial variance of the luminance; ``near`` and
+    result (:attr:`Accumulated.packed`); ``spatial_var (B,1,H,W)`` this frame's spatial variance of the luminance; ``near`` and
     ``wide`` ``(B,3,H,W)`` the box means at ``radii[0]`` and ``radii[1]`` of (this frame's
     luminance, the accumulated light's, ``spatial_var``), or None for no change test;
     ``threshold`` in sigmas of the window mean's noise; below it, the history's light and moments are
@@ -67,9 +115,8 @@ class ChangeOp:
     sigma)²)`` of their change ``d`` (per radius, the scales multiplied; 0: not); ``variance_history`` frames from which the
     moments' variance replaces the spatial one; ``albedo (B,3)``, ``surface (B,1)`` bool and
     ``emission (B,3)`` to remodulate. All of one float dtype and device but ``surface``. Returns
-    ``(B,11,H,W)``: the accumulated light (3), moments (2), history length (1) and frames averaged
-    (1) after the drop, the variance over the frames averaged (1: the moments' variance from
-    ``variance_history`` frames on, else ``spatial_var``) and the spatial filter's colour input (3). ``workspace`` as :class:`AccumulateOp`'s."""
+    ``(B,11,H,W)``, its planes named by :class:`Changed` (the layout). ``workspace`` as
+    :class:`AccumulateOp`'s."""
 
     x: torch.Tensor
     bound: torch.Tensor
@@ -88,6 +135,46 @@ class ChangeOp:
 
     def tensors(self) -> tuple[torch.Tensor | None, ...]:
         return (self.x, self.bound, self.step, self.spatial_var, self.near, self.wide, self.albedo, self.emission)
+
+
+@dataclass(frozen=True, eq=False)
+class Changed:
+    """:class:`ChangeOp`'s ``(B,11,H,W)`` result (``packed``) by name: the history after the
+    change test's drop, each plane a view of it (no copy). The layout is defined here only; every
+    back end writes it in this order."""
+
+    packed: torch.Tensor
+
+    @property
+    def light(self) -> torch.Tensor:
+        """``(B,3)`` the accumulated light after the drop (channels 0-2)."""
+        return self.packed[:, 0:3]
+
+    @property
+    def moments(self) -> torch.Tensor:
+        """``(B,2)`` the luminance moments after the drop (3-4)."""
+        return self.packed[:, 3:5]
+
+    @property
+    def length(self) -> torch.Tensor:
+        """``(B,1)`` the history length after the drop (5)."""
+        return self.packed[:, 5:6]
+
+    @property
+    def frames(self) -> torch.Tensor:
+        """``(B,1)`` the frames averaged after the drop (6)."""
+        return self.packed[:, 6:7]
+
+    @property
+    def spread(self) -> torch.Tensor:
+        """``(B,1)`` the variance over the frames averaged (7: the moments' variance from
+        ``variance_history`` frames on, else ``spatial_var``, divided by the frames)."""
+        return self.packed[:, 7:8]
+
+    @property
+    def color(self) -> torch.Tensor:
+        """``(B,3)`` the spatial filter's colour input, the light remodulated (8-10)."""
+        return self.packed[:, 8:11]
 
 
 @dataclass(eq=False, slots=True)

@@ -1,5 +1,6 @@
-"""The old switch of the compiled kernels, kept for scripts that use it: the kernels now live
-in :mod:`torchgi.backends`, which chooses between them.
+"""The old switch of the compiled kernels, kept for scripts that use it (deprecated: removed in
+torchgi 0.3; use :func:`torchgi.backends.use` and :func:`torchgi.backends.status`): the kernels
+now live in :mod:`torchgi.backends`, which chooses between them.
 
 Example:
     >>> from torchgi.filters import native
@@ -11,6 +12,7 @@ Example:
 from __future__ import annotations
 
 import contextlib
+import warnings
 
 from torchgi import backends
 
@@ -25,6 +27,7 @@ def disabled() -> contextlib.AbstractContextManager[None]:
         ...     available()
         False
     """
+    _deprecated("disabled", 'backends.use("torch")')
     return backends.use("torch")
 
 
@@ -36,6 +39,7 @@ def enabled() -> bool:
         >>> enabled() in (True, False)
         True
     """
+    _deprecated("enabled", 'backends.enabled(...)')
     return backends.enabled("c") or backends.enabled("triton")
 
 
@@ -46,6 +50,7 @@ def available() -> bool:
         >>> available() in (True, False)
         True
     """
+    _deprecated("available", 'backends.status()["c"]')
     return backends.status()["c"].startswith("compiled kernels in use")
 
 
@@ -56,4 +61,10 @@ def status() -> str:
         >>> isinstance(status(), str)
         True
     """
+    _deprecated("status", 'backends.status()["c"]')
     return backends.status()["c"]
+
+
+def _deprecated(name: str, instead: str) -> None:
+    warnings.warn(f"torchgi.filters.native.{name} is deprecated and will be removed in torchgi 0.3: use {instead}",
+                  DeprecationWarning, stacklevel=3)

@@ -11,7 +11,7 @@
  * floor(r · 2^16) (exact and monotonic), then, within the one bucket that holds the cut, by
  * sorting its few members. Scratch: bucket, N uint16; hist, nt x 65536 uint32. Passes run on
  * nt OpenMP threads (see OVER_BANDS); with nt = 1 their `if` clauses keep them on the calling
- * thread (a forked one-thread child runs this: tests/test_native.py). Returns 0, or -1 when
+ * thread (a forked one-thread child runs this: tests/backends/test_native.py). Returns 0, or -1 when
  * memory runs out.
  */
 #define BUCKETS 65536

@@ -18,7 +18,7 @@ _BH, _BW, _WARPS, _UNROLL = 2, 128, 4, 2
 def _unroll(C: int, variance: bool) -> int:
     """Taps per loop step of the À-Trous kernel for ``C`` colour channels: one with a variance
     to propagate or 4 channels, where two need over 128 registers (offline ptxas for sm_90;
-    tests/test_gpu.py checks the limit)."""
+    tests/backends/test_gpu.py checks the limit)."""
     return 1 if variance or C > 3 else _UNROLL
 
 

@@ -142,7 +142,7 @@ def test_the_shipped_weights_name_the_data_they_were_trained_on():
     import os
     from pathlib import Path
 
-    folder = Path(os.environ.get("TORCHGI_BLEND_DATA", Path(__file__).resolve().parents[1] / "out" / "datagen-blend"))
+    folder = Path(os.environ.get("TORCHGI_BLEND_DATA", Path(__file__).resolve().parents[2] / "out" / "datagen-blend"))
     check_data_hash(WEIGHTS, folder, "configs/data_gen/blend.yaml")
 
 

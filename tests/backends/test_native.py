@@ -1,4 +1,4 @@
-"""The C back end (torchgi.backends.c_kernels) beyond the grid of tests/test_backends.py: its build,
+"""The C back end (torchgi.backends.c_kernels) beyond the grid of tests/backends/test_backends.py: its build,
 bands of rows on two threads, a forked child, and the fall-backs when it is off or cannot be built."""
 
 from __future__ import annotations

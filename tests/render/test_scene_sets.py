@@ -10,7 +10,7 @@ import yaml
 import torchgi
 from tests.helpers import scene_fingerprint
 
-SCENES = Path(__file__).resolve().parents[1] / "configs" / "scenes"
+SCENES = Path(__file__).resolve().parents[2] / "configs" / "scenes"
 SETS = ("tuning", "training", "judged")
 MITSUBA_CORNELL = "mitsuba_cornell"  # Mitsuba's own box: its geometry is no torchgi scene's
 

@@ -13,7 +13,7 @@ import pytest
 from torchgi.core import ConfigError
 from torchgi.io.mesh import read_mesh
 
-CONFIG_MESHES = os.path.join(os.path.dirname(__file__), "..", "configs", "scenes", "meshes")
+CONFIG_MESHES = os.path.join(os.path.dirname(__file__), "..", "..", "configs", "scenes", "meshes")
 
 
 def test_obj_index_forms_negative_indices_and_polygons(tmp_path):

@@ -14,6 +14,7 @@ from tests.oracles import box_oracle
 from torchgi import backends
 from torchgi.core import NonFiniteError
 from torchgi.denoise import Denoiser
+from torchgi.settings import DEFAULTS
 
 
 @pytest.fixture(scope="module")
@@ -151,7 +152,7 @@ def test_tiles_give_the_untiled_result(render, subsample, crop, spp):
 @pytest.mark.parametrize("method", ["guided", "pyramid"])
 def test_auto_memory_tiles_only_calls_estimated_above_the_threshold(render, monkeypatch, method):
     """max_memory_mb="auto" (the default): untiled while the estimate (a tile's bytes per pixel
-    over the image, and the output) is at most PIPELINE.auto_tiles_from_mb, above it in tiles of
+    over the image, and the output) is at most settings.pipeline.auto_tiles_from_mb, above it in tiles of
     auto_budget (2) x the inputs' memory, at least auto_floor_mb; None never tiles. The estimate by hand: the
     guided pipeline 4 (19 + 22) B per pixel at B = 1 (tiles.guided_bytes), the pyramid 480; the
     five float32 inputs 13 x 4 B per pixel, the output 12."""
@@ -160,8 +161,10 @@ def test_auto_memory_tiles_only_calls_estimated_above_the_threshold(render, monk
     whole = ({"guided": 164, "pyramid": 480}[method] + 12) * px / 2**20
 
     def run(threshold: float, floor: float = 0.0, times: float = 2.0, **kw) -> tuple[torch.Tensor, list[float]]:
-        budgets = tile_budgets(monkeypatch, auto_tiles_from_mb=threshold, auto_floor_mb=floor, auto_budget=times)
-        return Denoiser(method, **kw)(**inputs), budgets
+        budgets = tile_budgets(monkeypatch)
+        settings = DEFAULTS.replace(pipeline={"auto_tiles_from_mb": threshold, "auto_floor_mb": floor,
+                                              "auto_budget": times})
+        return Denoiser(method, settings=settings, **kw)(**inputs), budgets
 
     untiled, budgets = run(whole * 1.001)
     assert budgets == []

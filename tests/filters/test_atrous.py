@@ -10,7 +10,7 @@ from torchgi import backends
 from torchgi.core import DTypeError, NonFiniteError, RangeError, ShapeError
 from torchgi.filters import ATrous, atrous
 
-from .oracles import atrous_oracle
+from ..oracles import atrous_oracle
 
 
 def buffers(B=1, H=13, W=17, seed=0):

@@ -167,7 +167,7 @@ def _interpret(code: str) -> list[float]:
     """Run ``code`` (formatted with the repository root) with the Triton interpreter on and the C
     kernels off (they would take CPU calls first); returns the numbers of the last line it prints."""
     pytest.importorskip("triton")
-    root = str(Path(__file__).resolve().parents[1])
+    root = str(Path(__file__).resolve().parents[2])
     env = dict(os.environ, TRITON_INTERPRET="1", TORCHGI_NATIVE="1")
     code = "from torchgi.backends import c_kernels\nc_kernels.build.library = lambda: None\n" + code.format(root=root)
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=root,
@@ -350,4 +350,4 @@ def test_temporal_denoiser_on_the_triton_pipeline_in_the_interpreter():
     pytest.importorskip("embreex")
     worst, accumulation = _interpret(_INTERPRETED_TEMPORAL)
     assert worst < 2e-4  # measured 9.0e-6 with the accumulation in the torch code
-    assert accumulation < 1e-5  # as the C kernel's test (tests/test_temporal.py)
+    assert accumulation < 1e-5  # as the C kernel's test (tests/backends/test_temporal_ops.py)

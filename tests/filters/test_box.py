@@ -6,7 +6,7 @@ from torchgi.backends.torch_code import box_pool as _box_pool
 from torchgi.core import NonFiniteError, ShapeError
 from torchgi.filters import Box, box
 
-from .oracles import box_oracle
+from ..oracles import box_oracle
 
 SIZES = [(1, 1, 0), (1, 1, 5), (5, 7, 1), (5, 7, 3), (5, 7, 10), (17, 33, 0), (40, 3, 2), (33, 17, 16),
          (35, 50, 20), (16, 32, 15), (16, 32, 16), (16, 32, 17), (31, 47, 4), (64, 80, 7)]

@@ -8,7 +8,7 @@ from torchgi import GBuffer, backends
 from torchgi.core import DeviceError, DTypeError, NonFiniteError, RangeError, ShapeError
 from torchgi.filters import Guided, guide_from_gbuffer, guided
 
-from .oracles import box_oracle, fast_guided_oracle, guided_oracle, scene
+from ..oracles import box_oracle, fast_guided_oracle, guided_oracle, scene
 
 
 @pytest.mark.parametrize("n", [1, 2, 3, 4])

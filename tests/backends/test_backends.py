@@ -25,7 +25,7 @@ from tests.oracles import (
     scene,
     upsample,
 )
-from tests.test_sampling import geometry, hamilton_oracle, importance_oracle
+from tests.sampling.test_sampling import geometry, hamilton_oracle, importance_oracle
 from torchgi import backends
 from torchgi.core import OptionError
 from torchgi.filters import atrous, box, guided

@@ -25,9 +25,9 @@ from torchgi.render.scene import MATERIALS, Camera, Mesh, PointLight, Scene, Sky
 from torchgi.render.scene_files import load_scene, mesh_root, scene_from_dict
 from torchgi.render.tiles import guide_rays_op
 
-from .oracles import mean_z, z_pass_rate
+from ..oracles import mean_z, z_pass_rate
 
-CONFIGS = os.path.join(os.path.dirname(__file__), "..", "configs", "scenes")
+CONFIGS = os.path.join(os.path.dirname(__file__), "..", "..", "configs", "scenes")
 
 
 def diffuse(albedo, emission=(0, 0, 0)):

@@ -5,7 +5,7 @@ from tests.helpers import rel_error as rel
 from torchgi.core import DTypeError, NonFiniteError, RangeError
 from torchgi.filters import CrossBilateral, cross_bilateral
 
-from .oracles import bilateral_oracle
+from ..oracles import bilateral_oracle
 
 
 def data(H=11, W=14, seed=0):

@@ -12,7 +12,7 @@ from torchgi import metrics
 from torchgi.core import NonFiniteError
 from torchgi.denoise import Denoiser
 
-PRESETS = Path(__file__).resolve().parents[1] / "configs" / "denoise"
+PRESETS = Path(__file__).resolve().parents[2] / "configs" / "denoise"
 
 
 @pytest.fixture(scope="module")
@@ -30,12 +30,11 @@ def test_every_method_lowers_the_error(cornell, method):
     assert float(metrics.relmse(out, ref.color)) < 0.8 * float(metrics.relmse(noisy.color, ref.color))
     # and the filter itself does the work: the same pipeline with an identity filter (its light
     # sources and firefly clamp alone give 0.32-0.56x the noisy error here) has 1.7x the error
-    from torchgi import light
-    from torchgi.deployed import FIREFLY
+    from torchgi import light, methods
     from torchgi.filters import box
 
     surface = light.surface_mask(noisy.hit, noisy.albedo)
-    identity = light.restore(noisy.color, noisy.emission, None, noisy.albedo, surface, lambda x: x, FIREFLY[method], box)
+    identity = light.restore(noisy.color, noisy.emission, None, noisy.albedo, surface, lambda x: x, methods.get(method).firefly(), box)
     assert float(metrics.relmse(out, ref.color)) < 0.6 * float(metrics.relmse(identity, ref.color))
 
 

@@ -22,7 +22,7 @@ from tests.oracles import motion_oracle
 
 W, H, FRAMES = 64, 48, 4
 MESHES = "configs/scenes/meshes"
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def moving_scene() -> dict:

@@ -21,7 +21,7 @@ from tests.helpers import (
 )
 from tests.helpers import rel_error as rel
 from tests.oracles import block_means, fast_guided_oracle, guided_oracle, upsample
-from torchgi import denoise
+from torchgi import methods
 from torchgi.core import NonFiniteError, RangeError
 from torchgi.denoise import Denoiser
 from torchgi.filters.pyramid import ALIGN, REACH, WEIGHTS, Pyramid, PyramidNet, default_net, pyramid, pyramid_stats
@@ -266,7 +266,7 @@ def test_the_shipped_weights_name_the_data_they_were_trained_on():
     import os
     from pathlib import Path
 
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     folder = Path(os.environ.get("TORCHGI_LEARNED_DATA", root / "out" / "datagen-learned"))
     check_data_hash(WEIGHTS, folder, "configs/data_gen/learned.yaml")
 
@@ -350,8 +350,8 @@ def test_the_denoiser_in_tiles_gives_the_untiled_result(monkeypatch, spp, emissi
         gb = gb.replace(emission=None)
     whole = Denoiser("pyramid")
     tiles = []
-    real = denoise.tiles
-    monkeypatch.setattr(denoise, "tiles", lambda *a: (tiles.append(t) or t for t in real(*a)))
+    real = methods.pyramid.tiles
+    monkeypatch.setattr(methods.pyramid, "tiles", lambda *a: (tiles.append(t) or t for t in real(*a)))
     tiled = Denoiser("pyramid", max_memory_mb=200)
     out = tiled(gb)
     assert len(tiles) % 2 == 0 and len(tiles) // 2 >= 9  # the statistics' pass and the filter's, 3x3 tiles or more

@@ -1,0 +1,88 @@
+"""One checklist for every public filter op, as kornia's ``BaseTester``: the Module equals the
+function, the input dtype and device are kept, hostile inputs are refused by name, the gradient
+matches finite differences (float64). Each op's oracle (float64 brute force) and its ONNX export
+are in its own file (``test_<op>.py``, ``tests/test_onnx.py``)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import pytest
+import torch
+
+from torchgi import filters
+from torchgi.core import NonFiniteError, ShapeError
+from torchgi.filters.blend import default_net as blend_net
+from torchgi.filters.pyramid import default_net as pyramid_net
+
+
+def _inputs(B: int = 1, H: int = 12, W: int = 10, dtype: torch.dtype = torch.float32,
+            device: torch.device | str = "cpu") -> dict[str, torch.Tensor]:
+    g = torch.Generator().manual_seed(3)
+
+    def r(c: int) -> torch.Tensor:
+        return torch.rand(B, c, H, W, generator=g, dtype=torch.float64).to(dtype=dtype, device=device)
+
+    normal = torch.nn.functional.normalize(r(3) - 0.5, dim=1)
+    return {"x": r(3) + 0.1, "guide": r(4), "normal": normal, "position": r(3), "depth": r(1) + 0.5}
+
+
+# name -> (function of the inputs, Module of the inputs, the input the gradient is checked for)
+CASES: dict[str, tuple[Callable, Callable, str]] = {
+    "box": (lambda t: filters.box(t["x"], 2), lambda t: filters.Box(2)(t["x"]), "x"),
+    "guided": (lambda t: filters.guided(t["x"], t["guide"], radius=2, eps=1e-2),
+               lambda t: filters.Guided(radius=2, eps=1e-2)(t["x"], t["guide"]), "x"),
+    "atrous": (lambda t: filters.atrous(t["x"], t["normal"], t["position"], iterations=2, sigma_color=1.0),
+               lambda t: filters.ATrous(2, sigma_color=1.0)(t["x"], t["normal"], t["position"]), "x"),
+    "cross_bilateral": (lambda t: filters.cross_bilateral(t["x"], [t["normal"]], radius=2, sigma_space=1.0,
+                                                          sigma_color=1.0, sigma_guides=[0.3]),
+                        lambda t: filters.CrossBilateral(2, 1.0, 1.0, [0.3])(t["x"], t["normal"]), "x"),
+    "blend": (lambda t: filters.blend(t["x"], t["guide"]), lambda t: filters.Blend()(t["x"], t["guide"]), "x"),
+    "pyramid": (lambda t: filters.pyramid(t["x"], t["guide"]), lambda t: filters.Pyramid()(t["x"], t["guide"]), "x"),
+}
+
+
+@pytest.mark.parametrize("op", sorted(CASES))
+def test_the_module_equals_the_function(op):
+    fn, module, _ = CASES[op]
+    t = _inputs()
+    assert torch.equal(module(t), fn(t))
+
+
+@pytest.mark.parametrize("op", sorted(CASES))
+@pytest.mark.parametrize("dt", [torch.float32, torch.float64])
+def test_dtype_and_device_are_kept(op, dt, device):
+    fn, _, _ = CASES[op]
+    out = fn(_inputs(dtype=dt, device=device))
+    assert out.dtype == dt and out.device.type == device.type and out.shape[-2:] == (12, 10)
+    assert torch.isfinite(out).all()
+
+
+@pytest.mark.parametrize("op", sorted(CASES))
+def test_hostile_inputs_are_refused_by_name(op):
+    fn, _, name = CASES[op]
+    t = _inputs()
+    t[name] = t[name].clone()
+    t[name][0, 0, 3, 4] = float("nan")
+    with pytest.raises(NonFiniteError):
+        fn(t)
+    t = _inputs()
+    t[name] = t[name][0]  # (C, H, W): no batch dimension
+    with pytest.raises((ShapeError, ValueError)):
+        fn(t)
+
+
+# the learned ops in float64 need their network in float64 too (its float32 weights round the gradient)
+LEARNED64 = {
+    "blend": lambda t: filters.blend(t["x"], t["guide"], net=blend_net().double()),
+    "pyramid": lambda t: filters.pyramid(t["x"], t["guide"], net=pyramid_net().double()),
+}
+
+
+@pytest.mark.parametrize("op", sorted(CASES))
+def test_the_gradient_matches_finite_differences(op):
+    fn, _, name = CASES[op]
+    fn = LEARNED64.get(op, fn)
+    t = _inputs(H=8, W=9, dtype=torch.float64)
+    src = t[name].clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda v: fn({**t, name: v}), (src,), eps=1e-6, atol=1e-5, fast_mode=True)

@@ -1,0 +1,109 @@
+"""The methods registry and per-instance settings: a new method is one class and one
+registration; each Denoiser instance reads its own settings, checked on construction."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import pytest
+import torch
+
+import torchgi
+from torchgi import light, methods
+from torchgi.denoise import Denoiser
+from torchgi.filters import box
+from torchgi.settings import DEFAULTS, Settings
+
+
+@pytest.fixture(scope="module")
+def gb():
+    return torchgi.render(torchgi.scenes.cornell(32), spp=1, bounces=1, seed=4)
+
+
+def test_a_new_method_is_one_class_and_one_registration(gb):
+    """A method that halves the light: the Denoiser runs the shared pipeline around it, which by
+    hand is ``light.restore`` with that filter (1 spp: no back-off)."""
+
+    class Halve(methods.Method):
+        name = "halve-test"
+
+        def filter(self, x, gb, surface, raw=None, *, workspace=None):
+            return x / 2, None
+
+    methods.register(Halve)
+    try:
+        assert "halve-test" in methods.names() and "halve-test" not in methods.names(exportable=True)
+        out = Denoiser("halve-test")(gb)
+        surface = light.surface_mask(gb.hit, gb.albedo)
+        want = light.restore(gb.color, gb.emission, None, gb.albedo, surface, lambda x: x / 2, 4.0, box)
+        assert torch.equal(out, want)
+        with pytest.raises(ValueError, match="already registered"):
+            methods.register(Halve)
+        with pytest.raises(ValueError, match="only .* deploy"):
+            Denoiser("halve-test").deploy()
+    finally:
+        methods._REGISTRY.pop("halve-test")
+    with pytest.raises(ValueError, match="method"):
+        Denoiser("halve-test")
+    with pytest.raises(TypeError, match="method"):
+        methods.register(int)
+
+
+def test_the_registry_says_what_each_method_is():
+    assert methods.names() == ("pyramid", "blend", "guided", "atrous", "bilateral", "none")
+    assert methods.names(learned=True) == ("pyramid", "blend")
+    assert methods.names(temporal=True) == ("pyramid", "blend", "guided")
+    assert methods.names(tiles=True) == ("pyramid", "guided")
+    assert {n: methods.get(n).needs for n in methods.names() if methods.get(n).needs} == {
+        "pyramid": ("depth",), "blend": ("depth",), "atrous": ("position",)}
+    assert [methods.get(n).firefly() for n in methods.names()] == [4.0, 4.0, 4.0, 2.0, 2.0, 4.0]
+
+
+def test_settings_are_per_instance(gb):
+    """A lower firefly bound changes this instance's output and no other's; the defaults given
+    explicitly change nothing (bit for bit)."""
+    four = torchgi.render(torchgi.scenes.cornell(32), spp=4, bounces=1, seed=4)
+    low = DEFAULTS.replace(guided={"firefly": 1.5})
+    for method in ("guided", "pyramid"):
+        default = Denoiser(method)(four)
+        assert torch.equal(Denoiser(method, settings=DEFAULTS)(four), default)
+        changed = Denoiser(method, settings=low)(four)
+        assert not torch.equal(changed, default)
+        assert torch.equal(Denoiser(method)(four), default)
+    assert "settings={'guided.firefly': 1.5}" in repr(Denoiser(settings=low))
+    assert "settings" not in repr(Denoiser())
+    assert Denoiser(settings=low).deploy(spp=1).firefly == 1.5
+
+
+def test_the_back_off_switch_is_a_setting():
+    """pipeline.back_off=False: no back-off, no choice among radii, in the eager and deployed forms."""
+    gb = torchgi.render(torchgi.scenes.cornell(32), spp=4, bounces=1, seed=4)
+    off = DEFAULTS.replace(pipeline={"back_off": False})
+    plain = Denoiser("guided", radius=Denoiser("guided").deploy(frame=gb).params["radius"])
+    assert torch.equal(Denoiser("guided", settings=off)(gb), plain(gb.replace(variance=None)))
+    assert "radii" not in Denoiser("guided", settings=off).deploy(frame=gb).params
+    assert not Denoiser("guided", settings=off).deploy(frame=gb).variance
+
+
+@pytest.mark.parametrize("change, error", [
+    ({"guided": {"radius": 0}}, ValueError), ({"guided": {"radius": 2.5}}, TypeError),
+    ({"guided": {"eps": math.nan}}, ValueError), ({"temporal": {"alpha": 1.5}}, ValueError),
+    ({"atrous": {"max_iterations": True}}, TypeError), ({"pipeline": {"back_off": 1}}, TypeError),
+    ({"pipeline": {"light": 4.0}}, ValueError), ({"guided": {"choose_noise": 1.0}}, ValueError),
+    ({"guided": {"radiuss": 3}}, TypeError), ({"colour": {}}, TypeError),
+])
+def test_bad_settings_are_refused_by_name(change, error):
+    group, fields = next(iter(change.items()))
+    with pytest.raises(error, match=f"{group}|{next(iter(fields), group)}"):
+        DEFAULTS.replace(**change)
+
+
+def test_settings_are_frozen_and_typed():
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        DEFAULTS.guided = DEFAULTS.guided
+    with pytest.raises(TypeError, match="settings"):
+        Denoiser(settings={"guided": {}})
+    with pytest.raises(TypeError, match="settings.guided"):
+        Settings(guided=DEFAULTS.atrous)
+    assert DEFAULTS.replace(temporal={"follow": 0.0}).changes() == {"temporal.follow": 0.0}
