@@ -331,9 +331,10 @@ def plot(rows: list[dict], out: Path) -> None:
         plt.close(fig)
 
 
-def case_args(doc: str, out: str, spp: list[int]) -> argparse.Namespace:
+def case_args(doc: str, out: str, spp: list[int], repeats: int | None = None) -> argparse.Namespace:
     """The command line of a benchmark over :func:`cases` (``--out``, ``--set`` / ``--scenes``,
-    ``--spp``, ``--size``, ``--ref-spp``, ``--bounces``) parsed, ``scenes`` resolved from the set."""
+    ``--spp``, ``--size``, ``--ref-spp``, ``--bounces``, and ``--repeats`` with that default where
+    ``repeats`` is given) parsed, ``scenes`` resolved from the set."""
     ap = argparse.ArgumentParser(description=doc.splitlines()[0])
     ap.add_argument("--out", default=out)
     ap.add_argument("--set", default="judged", choices=("judged", "tuning", "training"),
@@ -343,6 +344,8 @@ def case_args(doc: str, out: str, spp: list[int]) -> argparse.Namespace:
     ap.add_argument("--size", type=int, default=256)
     ap.add_argument("--ref-spp", type=int, default=1024)
     ap.add_argument("--bounces", type=int, default=2)
+    if repeats is not None:
+        ap.add_argument("--repeats", type=int, default=repeats, help="timed calls per measurement (median)")
     args = ap.parse_args()
     args.scenes = args.scenes or scene_sets()[args.set]
     return args

@@ -7,7 +7,7 @@
 For each scene of ``configs/scenes/sets.yaml``'s ``--set`` (judged by default: never used for a
 default) and each spp: one noisy render (seed 1) against a ``--ref-spp`` reference (seed 999),
 denoised by the default ``Denoiser()``, the same without its back-off toward the input
-(``denoise._back_off`` replaced by the identity: the filter at its one radius, as it was before issue 33), ``Denoiser("atrous")``, ``Denoiser("blend")`` and Intel Open Image Denoise high
+(``settings.pipeline.back_off=False``: the filter at its one radius, as it was before issue 33), ``Denoiser("atrous")``, ``Denoiser("blend")`` and Intel Open Image Denoise high
 (pyoidn, both protocols of ``bench_quality.py``; the better counts) → relMSE, PSNR, SSIM, FLIP.
 Writes ``spp.csv/json/md`` and ``spp_<scene>.png`` (relMSE against spp, log-log, per method beside
 the noisy input), and checks issue 33's lines for the default Denoiser: below the noisy input's

@@ -5,6 +5,7 @@ are in its own file (``test_<op>.py``, ``tests/test_onnx.py``)."""
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Callable
 
 import pytest
@@ -72,10 +73,11 @@ def test_hostile_inputs_are_refused_by_name(op):
         fn(t)
 
 
-# the learned ops in float64 need their network in float64 too (its float32 weights round the gradient)
+# the learned ops in float64 need their network in float64 too (its float32 weights round the gradient);
+# a copy: default_net() is the one shared network every Denoiser uses
 LEARNED64 = {
-    "blend": lambda t: filters.blend(t["x"], t["guide"], net=blend_net().double()),
-    "pyramid": lambda t: filters.pyramid(t["x"], t["guide"], net=pyramid_net().double()),
+    "blend": lambda t: filters.blend(t["x"], t["guide"], net=copy.deepcopy(blend_net()).double()),
+    "pyramid": lambda t: filters.pyramid(t["x"], t["guide"], net=copy.deepcopy(pyramid_net()).double()),
 }
 
 
@@ -86,3 +88,4 @@ def test_the_gradient_matches_finite_differences(op):
     t = _inputs(H=8, W=9, dtype=torch.float64)
     src = t[name].clone().requires_grad_(True)
     assert torch.autograd.gradcheck(lambda v: fn({**t, name: v}), (src,), eps=1e-6, atol=1e-5, fast_mode=True)
+    assert next(blend_net().parameters()).dtype == next(pyramid_net().parameters()).dtype == torch.float32

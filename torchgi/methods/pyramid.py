@@ -34,7 +34,7 @@ class Pyramid(Method):
         >>> from torchgi import Denoiser
         >>> from torchgi.render import render, scenes
         >>> Denoiser("pyramid").weights(render(scenes.cornell(16), spp=1)).shape
-        torch.Size([1, 9, 4, 4])
+        torch.Size([1, 13, 4, 4])
     """
 
     name = "pyramid"
