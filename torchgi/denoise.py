@@ -53,8 +53,6 @@ __all__ = ["DENOISERS", "EXPORTABLE", "METHODS", "QUALITIES", "Denoiser", "Deplo
 METHODS = methods.names()  # the registry's names (torchgi.methods)
 EXPORTABLE = methods.names(exportable=True)  # the methods Denoiser.deploy() fixes for ONNX
 QUALITIES = ("fast", "balanced", "high")
-# the guide layers a method cannot run without, beyond albedo and normal (its call refuses an input without them)
-NEEDS = {name: methods.get(name).needs for name in METHODS if methods.get(name).needs}
 
 
 class Denoiser(torch.nn.Module):
@@ -91,7 +89,7 @@ class Denoiser(torch.nn.Module):
     Call with a :class:`~torchgi.GBuffer` or with named ``(B, C, H, W)`` tensors: ``color``
     (or ``direct`` + ``indirect``), ``albedo``, ``normal`` (world space, [-1, 1]), and when
     available ``position``, ``depth``, ``emission``, ``variance``, ``spp``, ``hit``; a method's
-    ``needs`` (:data:`NEEDS`: "pyramid" and "blend" ``depth``, "atrous" ``position``) are
+    ``needs`` (``methods.get(name).needs``: "pyramid" and "blend" ``depth``, "atrous" ``position``) are
     refused by name when missing. ``spp`` may also be a number, the sample count of a render
     that recorded none (an int or float >= 1; ``den(gb, spp=4)`` is
     ``den(gb.replace(spp=torch.full((B, 1, H, W), 4)))``); without one a GBuffer without ``spp``

@@ -11,11 +11,12 @@ from typing import Any, ClassVar
 import torch
 
 from torchgi import backends, light
-from torchgi.buffers import GBuffer, mean_spp
+from torchgi.buffers import GBuffer, mean_spp, require_guides
 from torchgi.core.errors import ShapeError
 from torchgi.core.tiles import auto_budget
 from torchgi.filters import box
 from torchgi.settings import Settings
+from torchgi.supersample import composite, distribute
 
 __all__ = ["Method", "back_off", "budget", "noise_spp"]
 
@@ -119,9 +120,6 @@ class Method:
     def supersample(self, gb: GBuffer, samples: Any, filter_direct: bool, hdr: bool,
                     workspace: dict) -> torch.Tensor:
         """:meth:`torchgi.Denoiser.supersample` (its docstring) with this method's filter."""
-        from torchgi.buffers import require_guides
-        from torchgi.supersample import composite, distribute
-
         for name in ("emission", "direct", "indirect", "albedo", "normal", "depth"):
             if getattr(gb, name) is None:
                 raise ShapeError(f"gb.{name}: required by supersample (render with render_guide_rays)")
@@ -193,7 +191,7 @@ def back_off(out: torch.Tensor | list[torch.Tensor], gb: GBuffer, surface: torch
     if isinstance(out, list) and len(out) == 1:
         out = out[0]
     if v is None or (isinstance(n, float) and n < 2) or not settings.pipeline.back_off:
-        return out[0] if isinstance(out, list) else out
+        return out
     emit = light.emitting(c, e, a, on, level)
     if isinstance(out, list):
         out = backends.run(backends.ChooseOp(tuple(out), radii, v, emit))
