@@ -26,7 +26,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_quality import MITSUBA, MITSUBA_CORNELL, case_args, cases, scores
+from bench_quality import MITSUBA, MITSUBA_CORNELL, case_args, cases, chosen, scores
 from benchmark_utils import markdown_table, metadata, oidn, write_results
 
 from torchgi import methods
@@ -61,7 +61,7 @@ def denoisers() -> dict:
 
 
 def run(args) -> list[dict]:
-    rows, fns = [], denoisers()
+    rows, fns = [], {k: f for k, f in denoisers().items() if chosen(k, args)}
     args.scenes = [s for s in args.scenes if not s.startswith(MITSUBA) and s != MITSUBA_CORNELL]  # torchgi renders
     for name, ref, noisy_fn, _scene in cases(args):
         for spp in args.spp:

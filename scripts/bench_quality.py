@@ -182,18 +182,23 @@ def methods_for(scene, noisy, t_noisy, spp, args, peer_fns) -> dict:
                                     else None, t_noisy),
         "torchgi bilateral": (lambda gb=noisy: Denoiser("bilateral")(gb), t_noisy),
     }
-    if scene is not None:  # the methods that render: torchgi scenes only
+    if scene is not None and chosen("torchgi adaptive", args):  # the methods that render: torchgi scenes only
         (adaptive, _), t_adaptive = rendered(
             lambda: adaptive_render(scene, rate=float(spp), bounces=args.bounces, seed=1))
         methods["torchgi adaptive+guided"] = (lambda gb=adaptive, d=Denoiser("guided"): d(gb), t_adaptive)
         methods["torchgi adaptive+atrous"] = (lambda gb=adaptive: Denoiser("atrous")(gb), t_adaptive)
-        if spp > 1:
+        if spp > 1 and chosen("torchgi guided+guide rays", args):
             (guide, eye), t_guide = rendered(
                 lambda: torchgi.render.render_guide_rays(scene, spp=spp, bounces=args.bounces, seed=1))
             methods["torchgi guided+guide rays"] = (
                 lambda g=guide, e=eye, d=Denoiser("guided"): d.supersample(g, e), t_guide)
     methods.update({k: (lambda gb=noisy, f=f: f(gb), t_noisy) for k, f in peer_fns.items()})
-    return methods
+    return {k: v for k, v in methods.items() if chosen(k, args)}
+
+
+def chosen(method: str, args) -> bool:
+    """Whether ``--only`` (substrings of method names; none: every method) takes ``method``."""
+    return not args.only or any(o in method for o in args.only)
 
 
 def scores(out, ref) -> dict:
@@ -213,8 +218,10 @@ def run(args) -> list[dict]:
     for name, ref, noisy_fn, scene in cases(args):
         for spp in args.spp:
             noisy, t_noisy = rendered(lambda: noisy_fn(spp))
-            choice_map(noisy, out_dir / f"blend_choice_{name}_{spp}spp.png")
-            pyramid_map(noisy, out_dir / f"pyramid_choice_{name}_{spp}spp.png")
+            if chosen("torchgi blend", args):
+                choice_map(noisy, out_dir / f"blend_choice_{name}_{spp}spp.png")
+            if chosen("torchgi pyramid", args):
+                pyramid_map(noisy, out_dir / f"pyramid_choice_{name}_{spp}spp.png")
             for method, (fn, render_s) in methods_for(scene, noisy, t_noisy, spp, args, peer_fns).items():
                 if fn is None:
                     continue  # SVGF needs a variance: none at 1 spp or from Mitsuba
@@ -284,9 +291,11 @@ def claims(rows: list[dict], default: str) -> list[str]:
     lines = []
     for scene, spp in dict.fromkeys((r["scene"], r["spp"]) for r in rows):
         by = {r["method"]: r for r in rows if r["scene"] == scene and r["spp"] == spp}
-        g, a, b = (by[f"torchgi {m}"]["relmse"] for m in ("guided", "atrous", "bilateral"))
-        lines.append(f"{scene} {spp} spp: Fig. 8 ordering (guided below À-Trous and cross-bilateral): "
-                     f"{'holds' if g < a and g < b else 'does not hold'} ({g:.4g} / {a:.4g} / {b:.4g})")
+        fig8 = [f"torchgi {m}" for m in ("guided", "atrous", "bilateral")]
+        if all(m in by for m in fig8):  # (not where --only left them out)
+            g, a, b = (by[m]["relmse"] for m in fig8)
+            lines.append(f"{scene} {spp} spp: Fig. 8 ordering (guided below À-Trous and cross-bilateral): "
+                         f"{'holds' if g < a and g < b else 'does not hold'} ({g:.4g} / {a:.4g} / {b:.4g})")
         ours = min((r for m, r in by.items() if m.startswith("torchgi")), key=lambda r: r["relmse"])
         peers_ = [by[m] for m in CLASSICAL if m in by]
         best_peer = min(peers_, key=lambda r: r["relmse"]) if peers_ else None
@@ -296,7 +305,7 @@ def claims(rows: list[dict], default: str) -> list[str]:
                      f"({'beaten' if ours['relmse'] < best_peer['relmse'] else 'NOT beaten'})")
         lines.append(line)
         highs = [by[m] for m in OIDN_HIGH if m in by]
-        if highs:
+        if highs and default in by:
             o, d = min(highs, key=lambda r: r["relmse"]), by[default]
             bound = 1.0 if spp == 1 else 1.3
             ok = d["relmse"] <= bound * o["relmse"]
@@ -344,6 +353,8 @@ def case_args(doc: str, out: str, spp: list[int], repeats: int | None = None) ->
     ap.add_argument("--size", type=int, default=256)
     ap.add_argument("--ref-spp", type=int, default=1024)
     ap.add_argument("--bounces", type=int, default=2)
+    ap.add_argument("--only", nargs="+", default=None,
+                    help="run only the methods whose names contain one of these (e.g. 'pyramid' 'OIDN')")
     if repeats is not None:
         ap.add_argument("--repeats", type=int, default=repeats, help="timed calls per measurement (median)")
     args = ap.parse_args()

@@ -46,6 +46,7 @@ def methods() -> dict:
 
         out[OIDN[0]] = lambda gb: oidn(gb, "high", False)
         out[OIDN[1]] = lambda gb: oidn(gb, "high", True)
+        out["OIDN fast"] = lambda gb: oidn(gb, "fast", False)
     except ImportError:
         pass
     return out

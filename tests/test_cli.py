@@ -78,6 +78,25 @@ def test_render_command_writes_a_multilayer_exr_and_never_overwrites(tmp_path, c
     assert main(args + ["--overwrite"]) == 0
 
 
+def test_render_command_takes_mirror_guides(tmp_path, capsys):
+    """--mirror-guides R: the EXR's albedo is render(mirror_guides=R)'s (a polished floor of
+    roughness 0.06 followed at 0.1), not the first hit's; refused with --frames."""
+    pytest.importorskip("embreex")
+    pytest.importorskip("OpenEXR")
+    import torchgi
+
+    scene = "configs/scenes/train/mirror_lamps.yaml"
+    out = tmp_path / "mirror.exr"
+    args = ["render", scene, "--spp", "1", "--resolution", "16", "12", "--out", str(out), "--no-progress"]
+    assert main([*args, "--mirror-guides", "0.1"]) == 0
+    gb = torchgi.GBuffer.from_exr(out, required=("color", "albedo", "normal"))
+    base = torchgi.load_scene(scene).with_resolution(16, 12)
+    want = torchgi.render(base, spp=1, mirror_guides=0.1)
+    assert torch.equal(gb.albedo, want.albedo) and not torch.equal(gb.albedo, torchgi.render(base, spp=1).albedo)
+    assert main([*args, "--overwrite", "--mirror-guides", "0.1", "--frames", "2"]) == 2
+    assert "--mirror-guides" in capsys.readouterr().err
+
+
 @pytest.mark.skipif(importlib.util.find_spec("embreex") is None, reason="the render extra is not installed")
 def test_cli_renders_frames_with_a_motion_layer(tmp_path, capsys, meshes_dir):
     pytest.importorskip("OpenEXR")

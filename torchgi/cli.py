@@ -97,6 +97,8 @@ def cmd_render(args: argparse.Namespace) -> int:
     scene = torchgi.load_scene(args.scene)
     if args.resolution:
         scene = scene.with_resolution(*args.resolution)
+    if args.frames is not None and args.mirror_guides is not None:
+        raise ValueError("--mirror-guides: not with --frames (a still render's guides only)")
     kwargs = {"workers": args.workers, "progress": None if args.progress else False}
     duration = scene.duration
     if args.frames is not None and (duration is None or duration[0] == duration[1]):
@@ -105,7 +107,8 @@ def cmd_render(args: argparse.Namespace) -> int:
                          "camera.path (see configs/scenes/sequences)")
     t0 = time.perf_counter()
     if args.frames is None:
-        gb = torchgi.render(scene, spp=args.spp, bounces=args.bounces, seed=args.seed, **kwargs)
+        gb = torchgi.render(scene, spp=args.spp, bounces=args.bounces, seed=args.seed,
+                            mirror_guides=args.mirror_guides, **kwargs)
         written = gb.to_exr(args.out, overwrite=args.overwrite)
     else:  # <out>_<frame:04d>.exr, each with a motion layer; every name is checked before any render
         root, ext = os.path.splitext(args.out)
@@ -401,6 +404,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resolution", type=_positive_int, nargs=2, metavar=("W", "H"), help="override the camera's")
     p.add_argument("--workers", type=_positive_int, default=None, help="tracer threads or processes (default: all)")
     p.add_argument("--frames", type=_positive_int, help="N frames of the camera's and meshes' paths: <out>_<frame:04d>.exr, motion layer")
+    p.add_argument("--mirror-guides", type=float, default=None, metavar="ROUGHNESS",
+                   help="albedo and normal of what mirrors smoother than ROUGHNESS reflect (e.g. 0.05)")
     _out_flags(p, "output EXR")
     p.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
     p.set_defaults(func=cmd_render)

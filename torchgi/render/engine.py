@@ -37,7 +37,7 @@ from torchgi.render.integrators.common import CAMERA_DIMS, SKIPS, guides
 from torchgi.render.sampler import sample_keys, uniform
 from torchgi.render.scene import Camera, Scene, SceneArrays
 from torchgi.render.scene_files import load_scene
-from torchgi.render.tiles import INTEGRATORS, _context, film_tile, guide_rays_op, path_op
+from torchgi.render.tiles import INTEGRATORS, _context, film_tile, guide_rays_op, path_op, through_mirrors
 from torchgi.supersample import EyeSamples
 
 __all__ = [
@@ -221,11 +221,21 @@ def render_guides(scene: Scene | str | os.PathLike[str], *, chunk_size: int = 1 
     return _guides(scene, chunk_size, torch.get_num_threads())
 
 
-def _guides(scene: Scene, chunk_size: int, threads: int) -> GBuffer:
+def _guides(scene: Scene, chunk_size: int, threads: int, mirror_guides: float | None = None) -> GBuffer:
     width, height = scene.camera.resolution
     arrays = scene.arrays()
     g = backends.run(guide_rays_op(arrays, scene.camera, chunk_size, threads))
+    if mirror_guides is not None:
+        g["albedo"], g["normal"] = through_mirrors(arrays, scene.camera, mirror_guides, g["albedo"], g["normal"],
+                                                   chunk_size)
     return GBuffer(**{k: v.reshape(1, -1, height, width) for k, v in g.items()})
+
+
+def _check_mirror_guides(mirror_guides: float | None) -> None:
+    """``mirror_guides``: None or a roughness in (0, 1], else the error naming it."""
+    if mirror_guides is not None and (isinstance(mirror_guides, bool) or not isinstance(mirror_guides, (int, float))
+                                      or not 0 < mirror_guides <= 1):
+        raise RangeError(f"mirror_guides: expected None or a roughness in (0, 1], got {mirror_guides!r}")
 
 
 def render_guide_rays(
@@ -316,6 +326,7 @@ def render(
     chunk_size: int = 1 << 15,
     progress: bool | None = None,
     skip_unneeded: bool | Collection[str] = True,
+    mirror_guides: float | None = None,
 ) -> GBuffer:
     """Path-trace a scene into a :class:`~torchgi.GBuffer` (CPU, float32).
 
@@ -339,6 +350,11 @@ def render(
             False = none, or the names to keep from ``SKIPS`` ("absent_lights", "dead_paths",
             "last_vertex_rays"). Skips change no pixel beyond noise; turning them off is for
             benchmarks and tests.
+        mirror_guides: None (the guides of the first hit), or a roughness in (0, 1]: on glossy
+            surfaces rougher than none of it (near-mirrors) the ``albedo`` and ``normal`` are
+            those of the first hit the mirror reflection meets that is not one (up to 4
+            reflections; a mirror that shows the background keeps its own), as Intel Open Image
+            Denoise asks of its guides; ``position``, ``depth`` and ``hit`` stay the first hit's.
 
     Returns:
         GBuffer with ``color = emission + direct + indirect``, ``emission``, ``direct``,
@@ -356,6 +372,7 @@ def render(
     if not isinstance(scene, Scene):
         scene = load_scene(scene)
     skips = _check_render_args(bounces, seed, integrator, skip_unneeded, chunk_size, workers)
+    _check_mirror_guides(mirror_guides)
     camera = scene.camera
     width, height = camera.resolution
     counts = _counts(spp, camera)
@@ -372,7 +389,7 @@ def render(
     jobs = functools.partial(_Job, scene.arrays(), camera, integrator, bounces, seed)
     with _progress_bar(total, progress, f"render {scene.name}") as bar:
         rows = _trace(jobs, passes, skips, chunk_size, workers, total, allowed, bar)
-    g = _guides(scene, chunk_size, workers or torch.get_num_threads())
+    g = _guides(scene, chunk_size, workers or torch.get_num_threads(), mirror_guides)
 
     def image(x: torch.Tensor) -> torch.Tensor:  # (C, B*H*W) -> (B, C, H, W)
         return x.reshape(x.shape[0], batch, height, width).permute(1, 0, 2, 3).contiguous()

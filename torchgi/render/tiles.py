@@ -18,13 +18,13 @@ from torchgi import backends
 from torchgi.render.accel import Accel
 from torchgi.render.camera import camera_frame
 from torchgi.render.film import BLOCK, Film
-from torchgi.render.integrators import basic, path
+from torchgi.render.integrators import basic, common, path
 from torchgi.render.integrators.common import RR_START, SKIPS, Context, guides
 from torchgi.render.lights import Tables
 from torchgi.render.sampler import key_head
 from torchgi.render.scene import Camera, SceneArrays
 
-__all__ = ["INTEGRATORS", "film_tile", "guide_rays_op", "path_op", "trace_setup"]
+__all__ = ["INTEGRATORS", "film_tile", "guide_rays_op", "path_op", "through_mirrors", "trace_setup"]
 
 INTEGRATORS: dict[str, Callable[..., torch.Tensor]] = {"path": path.radiance, "basic": basic.radiance}
 
@@ -123,6 +123,33 @@ def _guide_wavefronts(op: backends.GuideRaysOp) -> dict[str, torch.Tensor]:
         for k, v in guides(ctx, pixel).items():
             g[k][:, start : start + pixel.numel()] = v
     return g
+
+
+def through_mirrors(arrays: SceneArrays, camera: Camera, max_roughness: float, albedo: torch.Tensor,
+                    normal: torch.Tensor, chunk_size: int = 1 << 15) -> tuple[torch.Tensor, torch.Tensor]:
+    """The guides ``albedo``, ``normal`` ``(3, H·W)`` of ``camera``'s pixel centres with those of
+    the first non-specular hit where the first hit is a mirror (roughness below ``max_roughness``:
+    :func:`~torchgi.render.integrators.common.through_mirrors`, embreex and the torch code,
+    ``chunk_size`` rays at a time); new tensors.
+
+    Example:
+        >>> from torchgi.render import scenes
+        >>> s = scenes.cornell(4)
+        >>> g = backends.run(guide_rays_op(s.arrays(), s.camera))
+        >>> a, n = through_mirrors(s.arrays(), s.camera, 0.1, g["albedo"], g["normal"])
+        >>> torch.equal(a, g["albedo"])   # no glossy surface: the first hit's guides
+        True
+    """
+    width, height = camera.resolution
+    ctx = _context(arrays, camera, 0, 0)
+    albedo, normal = albedo.clone(), normal.clone()
+    for start in range(0, width * height, chunk_size):
+        pixel = torch.arange(start, min(start + chunk_size, width * height))
+        a, n, found = common.through_mirrors(ctx, pixel, max_roughness)
+        part = slice(start, start + pixel.numel())
+        albedo[:, part] = torch.where(found, a, albedo[:, part])
+        normal[:, part] = torch.where(found, n, normal[:, part])
+    return albedo, normal
 
 
 def film_tile(op: backends.PathOp, integrator: str) -> tuple[np.ndarray, np.ndarray]:
