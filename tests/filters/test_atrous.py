@@ -180,7 +180,29 @@ def test_module_and_per_batch_sigmas():
     assert rel(per[1], atrous_oracle(c[1], n[1], x[1], iterations=2, sigma_color=2.0)) < 1e-5
     learn = ATrous(iterations=2, sigma_color=0.5, learnable=True)
     learn(c, n, x).square().sum().backward()
-    assert learn.sigma_color.grad is not None and math.isfinite(float(learn.sigma_color.grad))
+    raw = learn.parametrizations.sigma_color.original
+    assert raw.grad is not None and math.isfinite(float(raw.grad))
+
+
+def test_learnable_sigmas_stay_in_range_under_any_step():
+    """σ = softplus(a free parameter): 5 SGD steps at lr 10 (which drove a plain Parameter below
+    0, then RangeError) leave every σ > 0 and the filter working; printing warns nothing."""
+    import warnings
+
+    c, n, x = buffers(seed=5)
+    m = ATrous(iterations=2, sigma_color=0.5, sigma_normal=0.2, sigma_position=0.3, learnable=True)
+    assert abs(float(m.sigma_position.detach()) - 0.3) < 1e-6
+    opt = torch.optim.SGD(m.parameters(), lr=10.0)
+    for _ in range(5):
+        opt.zero_grad()
+        (m(c, n, x) - 3 * c).square().sum().backward()
+        opt.step()
+    for name in ("sigma_color", "sigma_normal", "sigma_position"):
+        assert float(getattr(m, name).detach()) > 0, name
+    assert bool(torch.isfinite(m(c, n, x)).all())
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert "sigma_color=" in repr(m)
 
 
 def test_pointwise_formulation_matches_oracle():

@@ -173,7 +173,30 @@ def test_module_holds_eps_and_learns():
     m.release()
     learn = Guided(radius=2, eps=0.05, learnable=True)
     learn(p, I).sum().backward()
-    assert learn.eps.grad is not None and math.isfinite(float(learn.eps.grad))
+    raw = learn.parametrizations.eps.original
+    assert raw.grad is not None and math.isfinite(float(raw.grad))
+
+
+def test_a_learnable_eps_stays_in_range_under_any_step():
+    """eps = softplus(a free parameter): it reads back as given, and 5 SGD steps at lr 10 (which
+    drove a plain Parameter below 0, then RangeError, in 2-5 steps) leave it > 0 and the filter
+    working; printing warns nothing; a learnable eps of 0 is refused by name."""
+    import warnings
+
+    p, I = scene(1, 16, 16, 4)
+    m = Guided(radius=2, eps=torch.tensor([0.01, 0.02, 0.01, 0.03]), learnable=True)
+    torch.testing.assert_close(m.eps.detach(), torch.tensor([0.01, 0.02, 0.01, 0.03]))
+    opt = torch.optim.SGD(m.parameters(), lr=10.0)
+    for _ in range(5):
+        opt.zero_grad()
+        (m(p, I) - 2 * p).square().sum().backward()  # pulls eps down hard
+        opt.step()
+    assert bool((m.eps > 0).all()) and bool(torch.isfinite(m(p, I)).all())
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert "eps=" in repr(m)
+    with pytest.raises(ValueError, match="eps"):
+        Guided(eps=0.0, learnable=True)
 
 
 def test_guide_from_gbuffer():

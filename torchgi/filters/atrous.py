@@ -37,6 +37,7 @@ from torchgi.core.check import (
 )
 from torchgi.core.dtypes import compute_dtype
 from torchgi.core.errors import RangeError, ShapeError
+from torchgi.filters.learned import register_positive
 
 __all__ = ["ATrous", "atrous"]
 
@@ -193,7 +194,10 @@ def _check_levels(iterations: int, subsample: int) -> None:
 
 
 class ATrous(nn.Module):
-    """Module form of :func:`atrous`; σ's are buffers, or Parameters with ``learnable=True``.
+    """Module form of :func:`atrous`; σ's are buffers, or with ``learnable=True`` learnable
+    parameters that stay > 0 (``self.sigma_color`` reads the σ, the optimiser updates
+    ``parametrizations.sigma_color.original``, ``σ = softplus(original)``); a σ given as None
+    stays None (``sigma_color=None``: from each image's maximum, not learned).
 
     Example:
         >>> f = ATrous(iterations=3, sigma_color=1.0)
@@ -226,7 +230,7 @@ class ATrous(nn.Module):
             if not isinstance(value, torch.Tensor):  # a 0-d tensor is checked where the call reads it
                 check_positive(value, name)
             if learnable:
-                setattr(self, name, nn.Parameter(torch.tensor(float(value))))
+                register_positive(self, name, torch.tensor(float(value)))
             else:
                 self.register_buffer(name, torch.tensor(float(value)))
 
@@ -245,7 +249,7 @@ class ATrous(nn.Module):
 
     def extra_repr(self) -> str:
         def val(t: torch.Tensor | None) -> str:
-            return "None" if t is None else f"{float(t):g}"
+            return "None" if t is None else f"{float(t.detach()):g}"
 
         return (f"iterations={self.iterations}, sigma_color={val(self.sigma_color)}, "
                 f"sigma_normal={val(self.sigma_normal)}, sigma_position={val(self.sigma_position)}, "

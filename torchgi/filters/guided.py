@@ -40,6 +40,7 @@ from torchgi.core.check import (
 from torchgi.core.dtypes import compute_dtype
 from torchgi.core.errors import RangeError, ShapeError
 from torchgi.core.workspace import kept_buffer
+from torchgi.filters.learned import register_positive
 
 __all__ = ["Guided", "depth_scales", "guide_from", "guide_from_gbuffer", "guided"]
 
@@ -261,7 +262,9 @@ class Guided(nn.Module):
     Args:
         radius: window radius in pixels.
         eps: float or ``(G,)`` tensor, guide units squared.
-        learnable: make ``eps`` an ``nn.Parameter``.
+        learnable: make ``eps`` learnable (> 0): ``self.eps`` reads it in guide units squared,
+            the optimiser updates ``parametrizations.eps.original`` (``eps = softplus(original)``),
+            so no step leaves the range.
         subsample: see :func:`guided`.
 
     Example:
@@ -282,7 +285,7 @@ class Guided(nn.Module):
             check_nonnegative(eps, "eps")
         value = torch.as_tensor(eps, dtype=torch.float32).clone()
         if learnable:
-            self.eps = nn.Parameter(value)
+            register_positive(self, "eps", value)
         else:
             self.register_buffer("eps", value)
 
@@ -297,4 +300,4 @@ class Guided(nn.Module):
 
     def extra_repr(self) -> str:
         sub = f", subsample={self.subsample}" if self.subsample > 1 else ""
-        return f"radius={self.radius}, eps={self.eps.tolist()}{sub}"
+        return f"radius={self.radius}, eps={self.eps.detach().tolist()}{sub}"
