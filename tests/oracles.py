@@ -134,9 +134,10 @@ def atrous_oracle(  # noqa: C901, PLR0912 - the oracle is one literal loop, to b
         c = c * valid
         fill = int(math.log2(subsample))
     if var is None:
-        sc = max(c.max(), np.finfo(np.float32).tiny) if sigma_color is None else sigma_color
+        sc = max(c.max(), np.finfo(np.float32).tiny) if sigma_color is None else arr(sigma_color)
     else:
-        sc = 4.0 if sigma_color is None else sigma_color
+        sc = 4.0 if sigma_color is None else arr(sigma_color)
+    sc = sc.reshape(H, W) if np.size(sc) == H * W and H * W > 1 else float(sc)  # a map, or one value
     total_in = c.sum(axis=(1, 2))
     for i in range(iterations):
         s = 2**i
@@ -161,7 +162,8 @@ def atrous_oracle(  # noqa: C901, PLR0912 - the oracle is one literal loop, to b
                         d = 0.0
                         if use_c:
                             dc = float(((c[:, py, px] - c[:, qy, qx]) ** 2).sum())
-                            d += dc / (sc * sc * blur[py, px] + 1e-12) if var is not None else dc / (sc * 2.0**-i)
+                            sp = float(sc[py, px]) if np.ndim(sc) == 2 else sc  # a per-pixel map: this pixel's
+                            d += dc / (sp * sp * blur[py, px] + 1e-12) if var is not None else dc / (sp * 2.0**-i)
                         if n is not None and sigma_normal is not None:
                             d += float(((n[:, py, px] - n[:, qy, qx]) ** 2).sum()) / (s * s * sigma_normal)
                         if x is not None and sigma_position is not None:

@@ -144,8 +144,8 @@ class ATrousOp:
 
     ``normal`` / ``position`` ``(B,3,H,W)`` raw guides (None: no such weight, as when their
     inverse σ is None); ``variance (B,C,H,W)`` propagated along (SVGF) or None; ``valid
-    (B,1,H,W)`` bool sources of sub-sampling or None; ``inv_color (B,1,1,1)`` is ``1/σ_rt``, or
-    ``1/σ²`` with a variance; ``inv_normal`` / ``inv_position`` ``(B,1,1,1)`` or None. The
+    (B,1,H,W)`` bool sources of sub-sampling or None; ``inv_color (B,1,1,1)`` (or a per-pixel
+    ``(B,1,H,W)`` map) is ``1/σ_rt``, or ``1/σ²`` with a variance; ``inv_normal`` / ``inv_position`` ``(B,1,1,1)`` or None. The
     colour weight is on from level ``fill`` when ``color_weight``. Returns the filtered colour
     and, with ``return_details``, the detail coefficients of each level."""
 

@@ -44,21 +44,27 @@ __all__ = ["ATrous", "atrous"]
 MAX_ITERATIONS = 30  # level i steps 2^(i-1) px: past 30 levels the steps pass any image
 
 
-def _inverse(value: float | torch.Tensor | None, name: str, B: int, like: torch.Tensor, power: int = 1) -> torch.Tensor | None:
+def _inverse(value: float | torch.Tensor | None, name: str, B: int, like: torch.Tensor, power: int = 1,
+             per_pixel: bool = False) -> torch.Tensor | None:
     """``value^-power`` of a float or ``(B,)`` tensor parameter as ``(B, 1, 1, 1)`` in ``like``'s
-    dtype/device. A float is checked and inverted on the host and filled in on the device (one
-    launch, no synchronisation)."""
+    dtype/device; with ``per_pixel`` also a ``(B, 1, H, W)`` map of ``like``'s size, returned as
+    such. A float is checked and inverted on the host and filled in on the device (one launch,
+    no synchronisation)."""
     if value is None:
         return None
     if isinstance(value, torch.Tensor):
         check_same_device({name: value, "color": like})
         check_floating(value, name)
-        if value.shape not in ((), (1,), (B,)):
-            raise ShapeError(f"{name}: expected a float or shape ({B},), got {tuple(value.shape)}")
+        plane = (B, 1, *like.shape[-2:])
+        if value.shape not in ((), (1,), (B,)) and not (per_pixel and tuple(value.shape) == plane):
+            raise ShapeError(f"{name}: expected a float or shape ({B},)"
+                             + (f" or a {plane} map" if per_pixel else "") + f", got {tuple(value.shape)}")
         t = value.to(like.dtype)
         if not is_recording() and bool((~torch.isfinite(t) | (t <= 0)).any()):
             raise RangeError(f"{name}: expected finite values > 0 (a float or a ({B},) tensor), got "
                              f"{t.flatten().tolist()[:4]}")
+        if t.dim() == 4:
+            return t.pow(-power)
         return t.pow(-power).reshape(-1, 1, 1, 1).expand(B, 1, 1, 1)
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < math.inf:
         raise RangeError(f"{name}: expected finite values > 0 (a float or a ({B},) tensor), got {value!r}")
@@ -89,9 +95,10 @@ def atrous(
         normal: ``(B, 3, H, W)`` world-space normals in [-1, 1]; None switches ``w_n`` off.
         position: ``(B, 3, H, W)`` world-space positions, scene units; None switches ``w_x`` off.
         iterations: N >= 1 levels; the footprint is ``4·2^N + 1`` pixels wide.
-        sigma_color: σ_rt in colour units squared, float or ``(B,)``; None = the paper's
-            default, the image's maximum (per image). With ``variance`` it is the number of
-            standard deviations instead (None = 4, as SVGF).
+        sigma_color: σ_rt in colour units squared, float, ``(B,)`` or a ``(B, 1, H, W)`` map
+            (per pixel: a pixel's own σ weighs its neighbours; gradients reach the map); None =
+            the paper's default, the image's maximum (per image). With ``variance`` it is the
+            number of standard deviations instead (None = 4, as SVGF).
         sigma_normal, sigma_position: σ_n (normal distance squared) and σ_x (scene units
             squared), float or ``(B,)``; None switches the weight off.
         variance: ``(B, 1|C, H, W)`` per-pixel variance of ``color``: the colour weight becomes
@@ -141,11 +148,11 @@ def atrous(
         valid = (ys[:, None] & xs[None, :]).expand(B, 1, H, W)
         c = c * valid.to(c.dtype)
     if var is not None:  # variance-guided: σ_rt counts standard deviations
-        inv_c = _inverse(4.0 if sigma_color is None else sigma_color, "sigma_color", B, c, power=2)
+        inv_c = _inverse(4.0 if sigma_color is None else sigma_color, "sigma_color", B, c, power=2, per_pixel=True)
     elif sigma_color is None:  # the paper's default: the image's maximum
         inv_c = 1.0 / c.detach().flatten(1).amax(1).clamp_min(torch.finfo(c.dtype).tiny).reshape(B, 1, 1, 1)
     else:
-        inv_c = _inverse(sigma_color, "sigma_color", B, c)
+        inv_c = _inverse(sigma_color, "sigma_color", B, c, per_pixel=True)
     op = backends.ATrousOp(
         c, n, x, var, valid, inv_c,
         _inverse(sigma_normal, "sigma_normal", B, c) if n is not None else None,

@@ -80,5 +80,7 @@ def supports(op: str, desc: BoxOp | GuidedOp | ATrousOp | RestoreOp | Accumulate
         return "the Triton accumulation takes images of fewer than 2^31 pixels"
     if op == "atrous" and desc.color.shape[1] > MAX_CHANNELS:
         return f"the À-Trous kernel takes at most {MAX_CHANNELS} colour channels"
+    if op == "atrous" and desc.inv_color.shape[-2:] != (1, 1):
+        return "a per-pixel sigma_color map: the torch code"
     return None
 
