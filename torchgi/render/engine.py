@@ -29,7 +29,7 @@ import torch
 
 from torchgi import backends
 from torchgi.buffers import GBuffer
-from torchgi.core.check import check_int, check_option
+from torchgi.core.check import check_int, check_option, check_positive
 from torchgi.core.errors import DeviceError, DTypeError, RangeError, ShapeError
 from torchgi.render.camera import camera_rays, motion_vectors
 from torchgi.render.film import BLOCK
@@ -233,8 +233,10 @@ def _guides(scene: Scene, chunk_size: int, threads: int, mirror_guides: float | 
 
 def _check_mirror_guides(mirror_guides: float | None) -> None:
     """``mirror_guides``: None or a roughness in (0, 1], else the error naming it."""
-    if mirror_guides is not None and (isinstance(mirror_guides, bool) or not isinstance(mirror_guides, (int, float))
-                                      or not 0 < mirror_guides <= 1):
+    if mirror_guides is None:
+        return
+    check_positive(mirror_guides, "mirror_guides")
+    if mirror_guides > 1:
         raise RangeError(f"mirror_guides: expected None or a roughness in (0, 1], got {mirror_guides!r}")
 
 

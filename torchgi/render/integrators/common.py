@@ -153,20 +153,17 @@ def through_mirrors(ctx: Context, pixel: torch.Tensor, max_roughness: float,
     surface (elsewhere - no mirror, or a mirror that shows the background - the first hit's
     guides stand).
     """
+    albedo, normal = torch.zeros(3, pixel.numel()), torch.zeros(3, pixel.numel())
+    found = torch.zeros(pixel.numel(), dtype=torch.bool)  # rays that followed a mirror to a surface that is not one
+    if not ctx.tables.any_glossy:  # no glossy material: no mirror, nothing to trace
+        return albedo, normal, found
     origin, direction = camera_rays(ctx.camera, pixel, None)
     t, prim = ctx.accel.intersect(origin, direction)
-    moved = torch.zeros(pixel.numel(), dtype=torch.bool)  # rays that followed a mirror
-    found = torch.zeros_like(moved)  # ... and met a surface that is not one
-    albedo = torch.zeros(3, pixel.numel())
-    normal = torch.zeros(3, pixel.numel())
+    moved = torch.zeros_like(found)  # rays that followed a mirror
     live = prim >= 0
     for _ in range(bounces + 1):
         s = surface(ctx, origin + direction * torch.where(live, t, 0.0), direction, prim.clamp(min=0))
-        mirror = live & (s.alpha < max_roughness)
-        if s.glossy is not None:
-            mirror &= s.glossy
-        else:
-            mirror &= False
+        mirror = live & s.glossy & (s.alpha < max_roughness)
         met = live & ~mirror & moved
         albedo = torch.where(met, s.albedo, albedo)
         normal = torch.where(met, s.normal, normal)
