@@ -36,7 +36,11 @@ def guided_oracle(p: torch.Tensor, I: torch.Tensor, r: int, eps, coefficients: b
     sigma = II - mI[:, :, None] * mI[:, None]
     cov = Ip - mI[:, :, None] * mp[:, None]
     e = torch.as_tensor(eps, dtype=torch.float64).expand(n) if not torch.is_tensor(eps) or eps.dim() < 2 else eps
-    A = sigma.permute(0, 3, 4, 1, 2) + torch.diag_embed(e.double().reshape(-1, n)[:, None, None].expand(B, 1, 1, n))
+    if e.dim() == 4:  # a per-pixel map (B, 1 | n, H, W)
+        diag = e.double().expand(B, n, H, W).permute(0, 2, 3, 1)
+    else:
+        diag = e.double().reshape(-1, n)[:, None, None].expand(B, 1, 1, n)
+    A = sigma.permute(0, 3, 4, 1, 2) + torch.diag_embed(diag)
     a = torch.linalg.solve(A, cov.permute(0, 3, 4, 1, 2))  # (B, H, W, n, C)
     a = a.permute(0, 3, 4, 1, 2)  # (B, n, C, H, W)
     b = mp - (a * mI[:, :, None]).sum(1)

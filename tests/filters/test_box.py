@@ -39,6 +39,19 @@ def test_gradcheck():
     assert torch.autograd.gradcheck(lambda t: box(t, 2), (x,))
 
 
+@pytest.mark.parametrize("H, W, r", [(9, 13, 2), (5, 7, 10), (64, 80, 7)])
+def test_float32_gradient_matches_float64_oracle(H, W, r):
+    """The box's backward (a box of g / N times N, through the seam: compiled for float32)
+    against autograd through the float64 cumulative-sum oracle."""
+    x = torch.rand(2, 3, H, W, generator=torch.Generator().manual_seed(r))
+    g = torch.randn(2, 3, H, W, generator=torch.Generator().manual_seed(r + 1))
+    x64 = x.double().requires_grad_()
+    (want,) = torch.autograd.grad((box_oracle(x64, r) * g.double()).sum(), x64)
+    x32 = x.clone().requires_grad_()
+    (got,) = torch.autograd.grad((box(x32, r) * g).sum(), x32)
+    torch.testing.assert_close(got.double(), want, rtol=1e-5, atol=1e-5)
+
+
 def test_noncontiguous_inputs():
     x = torch.rand(2, 3, 20, 30)
     torch.testing.assert_close(box(x.transpose(2, 3), 3), box(x.transpose(2, 3).contiguous(), 3))

@@ -6,6 +6,7 @@ are in its own file (``test_<op>.py``, ``tests/test_onnx.py``)."""
 from __future__ import annotations
 
 import copy
+import functools
 from collections.abc import Callable
 
 import pytest
@@ -75,9 +76,14 @@ def test_hostile_inputs_are_refused_by_name(op):
 
 # the learned ops in float64 need their network in float64 too (its float32 weights round the gradient);
 # a copy: default_net() is the one shared network every Denoiser uses
+@functools.cache
+def _net64(default_net: Callable[[], torch.nn.Module]) -> torch.nn.Module:
+    return copy.deepcopy(default_net()).double()
+
+
 LEARNED64 = {
-    "blend": lambda t: filters.blend(t["x"], t["guide"], net=copy.deepcopy(blend_net()).double()),
-    "pyramid": lambda t: filters.pyramid(t["x"], t["guide"], net=copy.deepcopy(pyramid_net()).double()),
+    "blend": lambda t: filters.blend(t["x"], t["guide"], net=_net64(blend_net)),
+    "pyramid": lambda t: filters.pyramid(t["x"], t["guide"], net=_net64(pyramid_net)),
 }
 
 
@@ -89,3 +95,28 @@ def test_the_gradient_matches_finite_differences(op):
     src = t[name].clone().requires_grad_(True)
     assert torch.autograd.gradcheck(lambda v: fn({**t, name: v}), (src,), eps=1e-6, atol=1e-5, fast_mode=True)
     assert next(blend_net().parameters()).dtype == next(pyramid_net().parameters()).dtype == torch.float32
+
+
+# every filter with its default arguments (the required ones only), every differentiable input
+DEFAULTS: dict[str, tuple[Callable, list[str]]] = {
+    "box": (lambda t: filters.box(t["x"], 2), ["x"]),
+    "guided": (lambda t: filters.guided(t["x"], t["guide"]), ["x", "guide"]),
+    "atrous": (lambda t: filters.atrous(t["x"], t["normal"], t["position"]), ["x", "normal", "position"]),
+    "cross_bilateral": (lambda t: filters.cross_bilateral(t["x"], [t["normal"]], radius=2, sigma_space=1.0,
+                                                          sigma_color=0.5, sigma_guides=[0.3]), ["x", "normal"]),
+    **{k: (v, ["x", "guide"]) for k, v in LEARNED64.items()},
+}
+
+
+@pytest.mark.parametrize("op", sorted(DEFAULTS))
+def test_float64_gradcheck_with_default_arguments(op):
+    """float64 gradcheck of each filter with its defaults (the bilateral has none: it is given its
+    σ's): the full Jacobian with respect to the colour (where À-Trous' default σ_rt, the image's
+    maximum, enters; the learned ops' many small guided filters make it take too long for them),
+    a random projection of it (fast mode) with respect to every tensor input."""
+    fn, names = DEFAULTS[op]
+    t = _inputs(H=4, W=5, dtype=torch.float64)
+    args = tuple(t[k].clone().requires_grad_(True) for k in names)
+    if op not in LEARNED64:
+        assert torch.autograd.gradcheck(lambda v: fn({**t, names[0]: v}), args[:1])
+    assert torch.autograd.gradcheck(lambda *v: fn({**t, **dict(zip(names, v))}), args, fast_mode=True)

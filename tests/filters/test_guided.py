@@ -3,6 +3,7 @@ import math
 import pytest
 import torch
 
+from tests.helpers import rel_error
 from tests.helpers import rel_range as rel_err
 from torchgi import GBuffer, backends
 from torchgi.core import DeviceError, DTypeError, NonFiniteError, RangeError, ShapeError
@@ -19,7 +20,7 @@ def test_matches_float64_oracle(n, r):
     assert rel_err(guided(p, I, radius=r, eps=0.01), want) < 1e-5  # CPU compiled kernel, float32
     with backends.use("torch"):
         assert rel_err(guided(p, I, radius=r, eps=0.01), want) < 1e-5  # CPU torch fast path, float32
-    p64 = p.double().requires_grad_()  # autograd forces the box_pool (export) path
+    p64 = p.double().requires_grad_()  # autograd: GuidedFunction (its forward through the seam)
     assert rel_err(guided(p64, I.double(), radius=r, eps=0.01).detach(), want) < 1e-10
 
 
@@ -125,6 +126,50 @@ def test_gradcheck_src_guide_eps():
     assert torch.autograd.gradcheck(lambda a, b, e: guided(a, b, radius=1, eps=e), (p, I, eps))
 
 
+@pytest.mark.parametrize("n, C, r", [(1, 1, 2), (4, 3, 4), (3, 2, 9)])
+def test_float32_gradients_match_float64_oracle(n, C, r):
+    """The written-out backward (compiled forward and boxes for float32 on the CPU) against
+    autograd through the float64 oracle (torch.linalg.solve, cumulative-sum boxes), for src,
+    guide and a per-channel eps; the compiled kernels ran under autograd."""
+    p, I = scene(2, 23, 31, n, seed=n * r)
+    eps = torch.linspace(0.01, 0.03, n)
+    g = torch.randn(2, C, 23, 31, generator=torch.Generator().manual_seed(1))
+    p = p[:, :C]
+    want = torch.autograd.grad((guided_oracle(x := p.double().requires_grad_(), y := I.double().requires_grad_(), r,
+                                              e := eps.double().requires_grad_()) * g.double()).sum(), (x, y, e))
+    got = torch.autograd.grad((guided(x := p.clone().requires_grad_(), y := I.clone().requires_grad_(), radius=r,
+                                      eps=(e := eps.clone().requires_grad_())) * g).sum(), (x, y, e))
+    for a, b in zip(got, want):
+        assert rel_error(a, b) < 2e-4
+    if backends.status()["c"].startswith("compiled kernels in use"):
+        assert backends.status()["last"]["guided"]["ran"] == "c"
+        assert backends.status()["last"]["box"]["ran"] == "c"
+
+
+@pytest.mark.parametrize("channels", [1, 3])
+def test_eps_map_matches_float64_oracle(channels):
+    """A per-pixel ε map ``(B, 1 | G, H, W)`` (the torch code) against the float64 oracle with the
+    same map on the diagonal of each pixel's system; a constant map gives the scalar's output."""
+    p, I = scene(2, 19, 26, 3, seed=channels)
+    eps = 0.002 + 0.05 * torch.rand(2, channels, 19, 26, generator=torch.Generator().manual_seed(5))
+    assert rel_err(guided(p, I, radius=3, eps=eps), guided_oracle(p, I, 3, eps)) < 1e-5
+    flat = torch.full((2, channels, 19, 26), 0.01)
+    torch.testing.assert_close(guided(p, I, radius=3, eps=flat), guided(p, I, radius=3, eps=0.01), rtol=0, atol=2e-6)
+    torch.testing.assert_close(guided(p, I, radius=6, eps=flat, subsample=2),
+                               guided(p, I, radius=6, eps=0.01, subsample=2), rtol=0, atol=2e-6)
+
+
+def test_eps_map_gradients():
+    """float64 gradcheck with respect to an ε map; in float32 its gradient is finite and not 0."""
+    p, I = scene(1, 7, 8, 2)
+    e = (0.01 + 0.02 * torch.rand(1, 2, 7, 8, dtype=torch.float64)).requires_grad_()
+    assert torch.autograd.gradcheck(lambda m: guided(p.double(), I.double(), radius=1, eps=m), (e,))
+    p, I = scene(1, 64, 64, 4)
+    m = torch.full((1, 1, 64, 64), 0.01, requires_grad=True)
+    guided(p, I, radius=4, eps=m).square().sum().backward()
+    assert torch.isfinite(m.grad).all() and m.grad.abs().amax() > 0
+
+
 def test_no_nan_gradient_on_flat_guide_at_eps_zero():
     p = torch.rand(1, 3, 12, 12, requires_grad=True)
     I = torch.full((1, 4, 12, 12), 0.3, requires_grad=True)
@@ -149,7 +194,7 @@ def test_bad_inputs():
     for bad_eps in ([0.1, -0.1, 0.1, 0.1], [0.1, float("nan"), 0.1, 0.1], [float("inf")] * 4):
         with pytest.raises(RangeError, match="eps: expected finite values >= 0"):
             guided(p, I, eps=torch.tensor(bad_eps))
-    with pytest.raises(ShapeError, match=r"eps: expected a float, shape \(4,\) or \(1, 4\); got \(3,\)"):
+    with pytest.raises(ShapeError, match=r"eps: expected a float, shape \(4,\), \(1, 4\) or a map \(1, 1 or 4, 8, 8\); got \(3,\)"):
         guided(p, I, eps=torch.ones(3))
     bad = p.clone()
     bad[0, 0, 0, 0] = float("nan")

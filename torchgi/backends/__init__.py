@@ -21,6 +21,7 @@ Example:
     'torch'
 """
 
+from torchgi.backends.autograd_ops import BoxMean, box_mean, window_counts
 from torchgi.backends.base import (
     NAMES,
     ORDER,
@@ -52,7 +53,6 @@ from torchgi.backends.base import (
     RestoreOp,
     TraceSetup,
     UpsampleApplyOp,
-    box_mean,
     chunks,
     embree_started,
     enabled,
@@ -73,6 +73,7 @@ __all__ = [
     "AppliedMeansOp",
     "BackOffOp",
     "BlockMeanOp",
+    "BoxMean",
     "BoxOp",
     "ChangeOp",
     "Changed",
@@ -103,4 +104,5 @@ __all__ = [
     "select",
     "status",
     "use",
+    "window_counts",
 ]

@@ -28,7 +28,6 @@ from torchgi.backends.pyramid_ops import AppliedMeansOp, BlockMeanOp, FineBandOp
 from torchgi.backends.temporal_ops import LUMA, Accumulated, AccumulateOp, Changed, ChangeOp, HistoryOp
 from torchgi.backends.tracer_ops import GuideRaysOp, PathOp, TraceSetup, chunks, embree_started, mark_embree_started
 from torchgi.core.check import is_tracing
-from torchgi.core.dtypes import compute_dtype
 from torchgi.core.errors import OptionError
 
 __all__ = [
@@ -63,7 +62,6 @@ __all__ = [
     "RestoreOp",
     "TraceSetup",
     "UpsampleApplyOp",
-    "box_mean",
     "chunks",
     "eager",
     "embree_started",
@@ -102,7 +100,8 @@ class BoxOp:
 @dataclass(eq=False, slots=True)
 class GuidedOp:
     """The guided filter of ``src (B,Cs,H,W)`` by ``guide (B,n,H,W)`` (n <= 4, same float dtype),
-    both centred inside by ``mean_src`` / ``mean_guide`` ``(B,C,1,1)``; ``eps (B,n,1,1)`` >= 0.
+    both centred inside by ``mean_src`` / ``mean_guide`` ``(B,C,1,1)``; ``eps (B,n,1,1)`` or a
+    per-pixel ``(B,n,H,W)`` map, >= 0.
     Returns ``(B,Cs,H,W)`` (``mean_src`` added back) or, with ``coefficients_only``, the
     box-filtered coefficients ``(B,n+1,Cs,H,W)`` (``a_0..a_{n-1}, b``). ``workspace`` keeps a
     back end's buffers between calls of one size (the :class:`~torchgi.filters.Guided` module's);
@@ -446,7 +445,7 @@ def eager(desc: Op) -> str | None:
 def float32_eager(op: str, desc: Op, who: str) -> str | None:
     """Why the compiled kernels of ``who`` ("C", "Triton") cannot take ``desc`` beyond its
     device: a tensor that is not float32, a call that is traced or needs autograd (:func:`eager`),
-    an empty box input; None when none of these holds.
+    an empty box input, a per-pixel ``eps`` map of the guided filter; None when none of these holds.
 
     Example:
         >>> float32_eager("box", BoxOp(torch.ones(1, 1, 2, 2, dtype=torch.float64), 1), "C")
@@ -459,6 +458,8 @@ def float32_eager(op: str, desc: Op, who: str) -> str | None:
         return why
     if op == "box" and desc.x.numel() == 0:
         return "an empty tensor: nothing to compute"
+    if op == "guided" and desc.eps.shape[-2:] != (1, 1):
+        return f"the {who} guided kernels take one eps per image and guide channel, not a per-pixel map"
     return None
 
 
@@ -561,15 +562,3 @@ def status() -> dict[str, Any]:
             out[name] = _module(name).describe()
     out["last"] = {op: {"ran": ran, "skipped": dict(skipped)} for op, (ran, skipped) in sorted(_last.items())}
     return out
-
-
-def box_mean(x: torch.Tensor, radius: int) -> torch.Tensor:
-    """The ``(2r+1)²`` box mean of ``x (B,C,H,W)`` through the seam (:class:`BoxOp`), summed in the
-    compute dtype and cast back, without :func:`torchgi.filters.box`'s argument checks: what the
-    back ends hand :mod:`torchgi.light` as its box.
-
-    Example:
-        >>> box_mean(torch.arange(3.0).view(1, 1, 1, 3), 1)
-        tensor([[[[0.5000, 1.0000, 1.5000]]]])
-    """
-    return run(BoxOp(x.to(compute_dtype(x.dtype)), radius)).to(x.dtype)

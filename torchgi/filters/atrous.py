@@ -97,7 +97,8 @@ def atrous(
         iterations: N >= 1 levels; the footprint is ``4·2^N + 1`` pixels wide.
         sigma_color: σ_rt in colour units squared, float, ``(B,)`` or a ``(B, 1, H, W)`` map
             (per pixel: a pixel's own σ weighs its neighbours; gradients reach the map); None =
-            the paper's default, the image's maximum (per image). With ``variance`` it is the
+            the paper's default, the image's maximum (per image; differentiated too: its
+            gradient reaches the brightest pixel). With ``variance`` it is the
             number of standard deviations instead (None = 4, as SVGF).
         sigma_normal, sigma_position: σ_n (normal distance squared) and σ_x (scene units
             squared), float or ``(B,)``; None switches the weight off.
@@ -150,7 +151,7 @@ def atrous(
     if var is not None:  # variance-guided: σ_rt counts standard deviations
         inv_c = _inverse(4.0 if sigma_color is None else sigma_color, "sigma_color", B, c, power=2, per_pixel=True)
     elif sigma_color is None:  # the paper's default: the image's maximum
-        inv_c = 1.0 / c.detach().flatten(1).amax(1).clamp_min(torch.finfo(c.dtype).tiny).reshape(B, 1, 1, 1)
+        inv_c = 1.0 / c.flatten(1).amax(1).clamp_min(torch.finfo(c.dtype).tiny).reshape(B, 1, 1, 1)
     else:
         inv_c = _inverse(sigma_color, "sigma_color", B, c, per_pixel=True)
     op = backends.ATrousOp(

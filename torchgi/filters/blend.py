@@ -220,7 +220,7 @@ def _exponent_shift(x: torch.Tensor) -> int:
     else 0 (traced or exported graphs: 0)."""
     if is_recording() or x.numel() == 0:
         return 0
-    peak, mean = float(x.abs().amax()), float(x.mean())
+    peak, mean = float(x.detach().abs().amax()), float(x.detach().mean())  # (a scale choice, not differentiated)
     if not math.isfinite(peak):
         return 0
     if peak > _LARGEST:

@@ -48,24 +48,29 @@ __all__ = ["Guided", "depth_scales", "guide_from", "guide_from_gbuffer", "guided
 def _check_eps(
     eps: float | torch.Tensor, B: int, n: int, guide: torch.Tensor, dtype: torch.dtype
 ) -> tuple[torch.Tensor, Callable[[], None]]:
-    """ε as a ``(B, n, 1, 1)`` tensor of ``dtype`` on ``guide``'s device, and the check of a tensor ε's
-    values (finite, >= 0) to call just before the filter returns: its read back then waits for
-    nothing the GPU has not done anyway. A float is checked here."""
+    """ε as a ``(B, n, 1, 1)`` tensor (or a ``(B, n, H, W)`` map) of ``dtype`` on ``guide``'s device,
+    and the check of a tensor ε's values (finite, >= 0) to call just before the filter returns:
+    its read back then waits for nothing the GPU has not done anyway. A float is checked here."""
     if isinstance(eps, torch.Tensor):
         check_same_device({"eps": eps, "guide": guide})
         check_floating(eps, "eps")
-        if eps.shape not in ((), (n,), (B, n)):
-            raise ShapeError(f"eps: expected a float, shape ({n},) or ({B}, {n}); got {tuple(eps.shape)}")
-        e = eps.to(dtype)
+        H, W = guide.shape[-2:]
+        if eps.shape in ((B, 1, H, W), (B, n, H, W)):
+            e = eps.to(dtype).expand(B, n, H, W)
+        elif eps.shape in ((), (n,), (B, n)):
+            e = eps.to(dtype).expand(B, n).reshape(B, n, 1, 1)
+        else:
+            raise ShapeError(f"eps: expected a float, shape ({n},), ({B}, {n}) or a map ({B}, 1 or {n}, {H}, {W}); "
+                             f"got {tuple(eps.shape)}")
         if is_recording():
-            return e.expand(B, n).reshape(B, n, 1, 1), lambda: None
+            return e, lambda: None
         bad = (~torch.isfinite(eps) | (eps < 0)).any()  # one read back, later
 
         def check() -> None:
             if bool(bad):
                 raise RangeError(f"eps: expected finite values >= 0, got {eps.flatten().tolist()[:8]}")
 
-        return e.expand(B, n).reshape(B, n, 1, 1), check
+        return e, check
     if not isinstance(eps, (int, float)) or isinstance(eps, bool) or not eps >= 0 or eps == float("inf"):
         raise RangeError(f"eps: expected a finite float >= 0, got {eps!r}")
     return torch.full((), float(eps), dtype=dtype, device=guide.device).expand(B, n).reshape(B, n, 1, 1), lambda: None
@@ -111,10 +116,12 @@ def guided(
             normal (xyz mapped to [0, 1]) and depth (divided by the scene extent), see
             :func:`guide_from_gbuffer`. Values in guide units; any offset is fine.
         radius: window radius ``r >= 0`` in pixels (window ``(2r+1)²``, shrinking at borders).
-        eps: regulariser in guide units squared: a float, ``(G,)`` per guide channel or
-            ``(B, G)``; ``>= 0``. Per pixel it is raised to at least ``16 · finfo.eps ·
-            E[I²]`` (the rounding level of the variance), so ``eps=0`` and flat guides stay
-            finite.
+        eps: regulariser in guide units squared: a float, ``(G,)`` per guide channel,
+            ``(B, G)``, or a per-pixel map ``(B, 1, H, W)`` (all channels) or ``(B, G, H, W)``
+            (a pixel's ε enters the solve of the window centred on it; with ``subsample`` s > 1
+            the map is averaged over the s x s blocks); ``>= 0``. Per pixel it is raised to at
+            least ``16 · finfo.eps · E[I²]`` (the rounding level of the variance), so ``eps=0``
+            and flat guides stay finite. A map runs the torch code (no compiled kernel takes one).
         subsample: ``s >= 1``; above 1, the fast guided filter (He & Sun 2015): the
             coefficients are solved on ``s x s`` means of ``src`` and ``guide`` with radius
             ``round(r / s)``, upsampled bilinearly by the factor ``s`` and applied to the

@@ -7,15 +7,19 @@ one image at a time with the solve in row strips. :func:`guided_filter` composes
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 import torch.nn.functional as F
 
+from torchgi.backends.autograd_ops import box_mean, window_counts
 from torchgi.backends.base import (
     GuidedOp,
     UpsampleApplyOp,
     run,
 )
-from torchgi.backends.torch_code.filter_box import PlaneBoxer, block_mean, box_pool, in_place
+from torchgi.backends.torch_code.filter_box import PlaneBoxer, block_mean, in_place
+from torchgi.core.check import is_tracing
 from torchgi.core.dtypes import compute_dtype, variance_rounding
 
 
@@ -31,7 +35,7 @@ def solve(
     """Per-pixel ``a = (Σ + diag(ε))^-1 cov`` and ``b = mean(p) - aᵀ mean(I)``.
 
     ``mI[i]`` is ``(B,1,H,W)``, ``mp`` ``(B,Cs,H,W)``, ``mII[(i,j)]`` ``(B,1,H,W)`` for j <= i,
-    ``mIp[i]`` ``(B,Cs,H,W)``; ``eps`` is ``(B,n,1,1)``. Returns ``a`` as a list over guide
+    ``mIp[i]`` ``(B,Cs,H,W)``; ``eps`` is ``(B,n,1,1)`` or ``(B,n,H,W)``. Returns ``a`` as a list over guide
     channels of ``(B,Cs,H,W)`` and ``b (B,Cs,H,W)``, written into ``out`` (``n + 1`` tensors)
     when given. LDLᵀ (``E = L·D``), no square roots, no branches, elementwise ops only.
 
@@ -47,9 +51,24 @@ def solve(
         (0.5, 0.0)
     """
     n = len(mI)
-    unit = variance_rounding(mp.dtype)
-    eps = eps.clamp_min(torch.finfo(mp.dtype).tiny)
     outs: list[dict] = [{} if out is None else {"out": o} for o in (out or [None] * (n + 1))]
+    L, D, _ = _factor(mI, mII, eps)
+    cov = [torch.addcmul(mIp[i], mI[i], mp, value=-1) for i in range(n)]
+    a = _substitute(L, D, cov, outs[:n])
+    b = mp
+    for i in range(n):
+        b = torch.addcmul(b, a[i], mI[i], value=-1, **(outs[n] if i + 1 == n else {}))
+    return a, b
+
+
+def _factor(
+    mI: list[torch.Tensor], mII: dict[tuple[int, int], torch.Tensor], eps: torch.Tensor
+) -> tuple[dict[tuple[int, int], torch.Tensor], list[torch.Tensor], list[torch.Tensor]]:
+    """LDLᵀ of ``Σ + diag(ε_eff)`` (see :func:`solve`): ``L[(i, j)]`` (i > j), the pivots ``D`` and
+    the raised ``ε_eff`` per guide channel, all ``(B,1,H,W)``."""
+    n = len(mI)
+    unit = variance_rounding(mI[0].dtype)
+    eps = eps.clamp_min(torch.finfo(mI[0].dtype).tiny)
     A: dict[tuple[int, int], torch.Tensor] = {}
     eps_eff: list[torch.Tensor] = []
     for i, j in _pairs(n):
@@ -72,23 +91,31 @@ def solve(
                 v = torch.addcmul(v, L[(i, k)], E[(j, k)], value=-1)
             E[(i, j)] = v
             L[(i, j)] = v / D[j]
+    return L, D, eps_eff
+
+
+def _substitute(
+    L: dict[tuple[int, int], torch.Tensor], D: list[torch.Tensor], rhs: list[torch.Tensor],
+    outs: list[dict] | None = None,
+) -> list[torch.Tensor]:
+    """``x = (L D Lᵀ)^-1 rhs`` from :func:`_factor`'s ``L, D``; ``rhs`` a list over guide
+    channels of ``(B,Cs,H,W)``; ``outs[i]`` the ``out=`` keyword of ``x[i]``'s last op, if any."""
+    n = len(D)
+    outs = outs or [{}] * n
     y: list[torch.Tensor] = []
     for i in range(n):
-        v = torch.addcmul(mIp[i], mI[i], mp, value=-1)  # cov(I_i, p)
+        v = rhs[i]
         for k in range(i):
             v = torch.addcmul(v, L[(i, k)], y[k], value=-1)
         y.append(v)
-    a: list[torch.Tensor] = [mp] * n
+    x: list[torch.Tensor] = list(rhs)
     for i in reversed(range(n)):
         last = i + 1 == n
         v = torch.div(y[i], D[i], **(outs[i] if last else {}))
         for k in range(i + 1, n):
-            v = torch.addcmul(v, L[(k, i)], a[k], value=-1, **(outs[i] if k + 1 == n else {}))
-        a[i] = v
-    b = mp
-    for i in range(n):
-        b = torch.addcmul(b, a[i], mI[i], value=-1, **(outs[n] if i + 1 == n else {}))
-    return a, b
+            v = torch.addcmul(v, L[(k, i)], x[k], value=-1, **(outs[i] if k + 1 == n else {}))
+        x[i] = v
+    return x
 
 
 def _product_specs(n: int, Cs: int) -> list[tuple[str, int, str, int]]:
@@ -119,7 +146,8 @@ def _unpack(planes: list[torch.Tensor], n: int, Cs: int):
 def _guided_reference(
     I: torch.Tensor, p: torch.Tensor, r: int, eps: torch.Tensor, coefficients_only: bool = False
 ) -> torch.Tensor:
-    """Differentiable, traceable path: :func:`box_pool` over stacked planes. Returns the output
+    """Differentiable, traceable path: box means of stacked planes (:func:`~torchgi.backends.autograd_ops.box_mean`:
+    under autograd the compiled box forward and backward, traced :func:`box_pool`). Returns the output
     without ``mean(p)`` (centred inputs), or the box-filtered coefficients ``(B, n + 1, Cs, H, W)``
     (``a_0 .. a_{n-1}, b``)."""
     n, Cs = I.shape[1], p.shape[1]
@@ -128,12 +156,119 @@ def _guided_reference(
         tensors[a][:, i : i + 1] * (tensors[b][:, j : j + 1] if b else 1) if b else tensors[a][:, i : i + 1]
         for a, i, b, j in _product_specs(n, Cs)
     ]
-    m = box_pool(torch.cat(planes, 1), r)
+    m = box_mean(torch.cat(planes, 1), r)
     a, b = solve(*_unpack(list(m.split(1, 1)), n, Cs), eps)
-    coeffs = box_pool(torch.cat(a + [b], 1), r)
+    coeffs = box_mean(torch.cat(a + [b], 1), r)
     if coefficients_only:
         return coeffs.unflatten(1, (n + 1, Cs))
     return apply_coefficients(coeffs.unflatten(1, (n + 1, Cs)), I)
+
+
+def _box_means(I: torch.Tensor, p: torch.Tensor, r: int):
+    """The box means :func:`solve` takes (``mI, mp, mII, mIp``) of centred ``I (B,n,H,W)``,
+    ``p (B,Cs,H,W)``, in one box call."""
+    n, Cs = I.shape[1], p.shape[1]
+    planes = [I, p] + [I[:, i : i + 1] * I[:, j : j + 1] for i, j in _pairs(n)] + [I[:, i : i + 1] * p for i in range(n)]
+    return _unpack(list(box_mean(torch.cat(planes, 1), r).split(1, 1)), n, Cs)
+
+
+def _box_adjoint(x: torch.Tensor, r: int) -> torch.Tensor:
+    """The transpose of the count-normalised box mean applied to ``x (B,C,H,W)``, a stack the
+    caller no longer needs (it is overwritten): ``N · box(x / N)`` (:class:`~torchgi.backends.autograd_ops.BoxMean`'s backward)."""
+    n = window_counts(x.shape[-2], x.shape[-1], r, x)
+    return box_mean(x.div_(n), r).mul_(n)  # (x: a fresh stack, divided in place)
+
+
+class GuidedFunction(torch.autograd.Function):
+    """The guided filter of centred ``I (B,n,H,W)``, ``p (B,Cs,H,W)`` with ``eps`` ``(B|1,n,1,1)``
+    or ``(B|1,n,H,W)`` (the output without ``mean(p)``), whose backward is written out: the forward
+    is one :class:`~torchgi.backends.base.GuidedOp` through the seam (the compiled kernels for
+    float32) and saves only its inputs; the backward recomputes the box means and the solve,
+    then runs the adjoint of each step: the box's transpose through the seam, the solve's
+    through the same LDLᵀ (``∂L/∂cov = A^-1 ∂L/∂a``, ``∂L/∂A = -(A^-1 ∂L/∂a) aᵀ``; ``A`` is
+    symmetric). Where a pivot or ``Σ_ii`` is clamped (rounding level, flat guides) the gradient is
+    that of the unclamped formula, and ``ε`` below the rounding level gets none (it is not used).
+
+    Example:
+        >>> I = torch.rand(1, 2, 8, 8, dtype=torch.float64, requires_grad=True)
+        >>> p = torch.rand(1, 1, 8, 8, dtype=torch.float64, requires_grad=True)
+        >>> eps = torch.full((1, 2, 1, 1), 0.01, dtype=torch.float64)
+        >>> torch.autograd.gradcheck(lambda i, q: GuidedFunction.apply(i, q, eps, 1), (I, p))
+        True
+    """
+
+    @staticmethod
+    def forward(ctx: Any, I: torch.Tensor, p: torch.Tensor, eps: torch.Tensor, r: int) -> torch.Tensor:
+        ctx.save_for_backward(I, p, eps)
+        ctx.r = r
+        zero_I = torch.zeros(I.shape[0], I.shape[1], 1, 1, dtype=I.dtype, device=I.device)
+        zero_p = torch.zeros(p.shape[0], p.shape[1], 1, 1, dtype=p.dtype, device=p.device)
+        return run(GuidedOp(I, p, zero_I, zero_p, r, eps.expand(I.shape[0], -1, -1, -1)))
+
+    @staticmethod
+    def backward(ctx: Any, g: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
+        I, p, eps = ctx.saved_tensors
+        r = ctx.r
+        n, Cs = I.shape[1], p.shape[1]
+        Ii = I.split(1, 1)
+        mI, mp, mII, mIp = _box_means(I, p, r)
+        L, D, _ = _factor(mI, mII, eps)
+        cov = [torch.addcmul(mIp[i], mI[i], mp, value=-1) for i in range(n)]
+        a = _substitute(L, D, cov)
+        b = mp
+        for i in range(n):
+            b = torch.addcmul(b, a[i], mI[i], value=-1)
+        coeffs = box_mean(torch.cat(a + [b], 1), r).split(Cs, 1)  # ā_0 .. ā_{n-1}, b̄
+        # q = Σ_i ā_i I_i + b̄
+        dI = [(g * coeffs[i]).sum(1, keepdim=True) for i in range(n)]
+        adj = _box_adjoint(torch.cat([g * Ii[i] for i in range(n)] + [g], 1), r).split(Cs, 1)
+        db = adj[n]
+        # b = mp - Σ_i a_i mI_i ;  a = A^-1 cov
+        dmp = db
+        dmI = [-(db * a[i]).sum(1, keepdim=True) for i in range(n)]
+        z = _substitute(L, D, [torch.addcmul(adj[i], db, mI[i], value=-1) for i in range(n)])
+        dmIp = z
+        for i in range(n):
+            dmI[i] = dmI[i] - (z[i] * mp).sum(1, keepdim=True)
+            dmp = torch.addcmul(dmp, z[i], mI[i], value=-1)
+        dmII: dict[tuple[int, int], torch.Tensor] = {}
+        deps = []
+        unit = variance_rounding(I.dtype)
+        for i, j in _pairs(n):
+            if i != j:
+                d = -(z[i] * a[j] + z[j] * a[i]).sum(1, keepdim=True)
+                dmII[(i, j)] = d
+                dmI[i] = torch.addcmul(dmI[i], d, mI[j], value=-1)
+                dmI[j] = torch.addcmul(dmI[j], d, mI[i], value=-1)
+                continue
+            dA = -(z[i] * a[i]).sum(1, keepdim=True)
+            raw = (mII[(i, i)] - mI[i] * mI[i]) >= 0
+            from_eps = eps[:, i : i + 1] >= mII[(i, i)] * unit
+            dvar = torch.where(raw, dA, 0)
+            dmII[(i, i)] = dvar + torch.where(from_eps, 0, dA * unit)
+            dmI[i] = dmI[i] - 2 * mI[i] * dvar
+            deps.append(torch.where(from_eps, dA, 0))
+        pairs = _pairs(n)
+        T = _box_adjoint(torch.cat(dmI + [dmp] + [dmII[k] for k in pairs] + dmIp, 1), r)
+        TI, Tp = T[:, :n].split(1, 1), T[:, n : n + Cs]
+        TII = dict(zip(pairs, T[:, n + Cs : n + Cs + len(pairs)].split(1, 1)))
+        TIp = T[:, n + Cs + len(pairs) :].split(Cs, 1)
+        dp = Tp
+        for i in range(n):
+            dI[i] = dI[i] + TI[i] + (TIp[i] * p).sum(1, keepdim=True)
+            dp = torch.addcmul(dp, TIp[i], Ii[i])
+        for (i, j), t in TII.items():
+            if i == j:
+                dI[i] = dI[i] + 2 * t * Ii[i]
+            else:
+                dI[i] = torch.addcmul(dI[i], t, Ii[j])
+                dI[j] = torch.addcmul(dI[j], t, Ii[i])
+        d_eps = None
+        if ctx.needs_input_grad[2]:
+            d_eps = torch.cat(deps, 1)
+            d_eps = d_eps if eps.shape[-2:] == d_eps.shape[-2:] else d_eps.sum((2, 3), keepdim=True)
+            d_eps = d_eps.sum(0, keepdim=True) if eps.shape[0] == 1 < d_eps.shape[0] else d_eps
+        return torch.cat(dI, 1), dp, d_eps, None
 
 
 def upsample_apply(desc: UpsampleApplyOp) -> torch.Tensor:
@@ -267,8 +402,9 @@ def _guided_fast(
 
 
 def guided(desc: GuidedOp) -> torch.Tensor:
-    """:class:`~torchgi.backends.base.GuidedOp` in torch: the in-place CPU path eagerly on the
-    CPU, else the differentiable reference.
+    """:class:`~torchgi.backends.base.GuidedOp` in torch: under autograd (not traced)
+    :class:`GuidedFunction` (the compiled forward, the backward written out), the in-place CPU
+    path eagerly on the CPU, else the differentiable reference (traced and exported).
 
     Example:
         >>> p = torch.rand(1, 1, 6, 6); m = p.mean((2, 3), keepdim=True)
@@ -278,7 +414,10 @@ def guided(desc: GuidedOp) -> torch.Tensor:
         True
     """
     g, p, e = desc.guide, desc.src, desc.eps
-    if in_place(desc):
+    if not desc.coefficients_only and not is_tracing() and torch.is_grad_enabled() \
+            and any(t.requires_grad for t in desc.tensors()):
+        return GuidedFunction.apply(g - desc.mean_guide, p - desc.mean_src, e, desc.radius) + desc.mean_src
+    if in_place(desc) and e.shape[-2:] == (1, 1):
         return _guided_fast(g, p, desc.mean_guide, desc.mean_src, desc.radius, e, desc.workspace,
                             desc.coefficients_only)
     out = _guided_reference(g - desc.mean_guide, p - desc.mean_src, desc.radius, e, desc.coefficients_only)
@@ -296,7 +435,8 @@ def guided_filter(
     light and guide centred by their means, and at ``subsample`` s > 1 the fast guided filter (He &
     Sun 2015): coefficients from s x s means at radius ``round(radius / s)``, upsampled bilinearly
     by the factor s (the grid of pixel centres does not depend on the size: tiles agree) and
-    applied to the full-resolution guide. ``eps``: ``(B, G, 1, 1)`` in the compute dtype;
+    applied to the full-resolution guide. ``eps``: ``(B, G, 1, 1)`` or a ``(B, G, H, W)`` map
+    (averaged over the s x s blocks) in the compute dtype;
     ``workspace``: a dict the CPU path keeps its buffers in between calls, or None. Returns
     ``(B, C, H, W)`` in the dtype of ``src``.
 
@@ -316,6 +456,7 @@ def guided_filter(
     gc = g - mean_g
     low_g, low_p = block_mean(gc, subsample), block_mean(p - mean_p, subsample)
     zero_g, zero_p = torch.zeros_like(mean_g), torch.zeros_like(mean_p)  # low_g, low_p are centred
+    eps = eps if eps.shape[-2:] == (1, 1) else block_mean(eps, subsample)
     coeffs = run(GuidedOp(low_g, low_p, zero_g, zero_p, round(radius / subsample), eps, coefficients_only=True,
                           workspace=workspace))
     return (upsampled_apply(coeffs, gc, subsample) + mean_p).to(src.dtype)

@@ -10,6 +10,7 @@ import math
 import torch
 
 from torchgi import light
+from torchgi.backends.autograd_ops import box_mean
 from torchgi.backends.base import (
     BackOffOp,
     ChooseOp,
@@ -18,7 +19,6 @@ from torchgi.backends.base import (
     LightInOp,
     LightOutOp,
     RestoreOp,
-    box_mean,
 )
 from torchgi.backends.torch_code.filter_guided import guided_filter
 from torchgi.core.check import check_finite

@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import torch
 
-from torchgi.backends.base import RestoreOp, box_mean
+from torchgi.backends.autograd_ops import box_mean
+from torchgi.backends.base import RestoreOp
 from torchgi.backends.triton_kernels import filter_guided
 from torchgi.backends.triton_kernels.common import _cdiv, _scaled_to, tl, triton
 from torchgi.backends.triton_kernels.filter_guided import _box, _guided, _split

@@ -1,0 +1,73 @@
+"""The compiled kernels under autograd: ``torch.autograd.Function``s whose forward and backward
+each run through the seam (:func:`~torchgi.backends.base.run`), so a training step runs at the
+kernels' pace; traced and exported calls keep the torch code. The guided filter's is
+:class:`~torchgi.backends.torch_code.filter_guided.GuidedFunction` (beside the solve it reuses)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+
+from torchgi.backends.base import BoxOp, run
+from torchgi.core.check import is_tracing
+from torchgi.core.dtypes import compute_dtype
+
+__all__ = ["BoxMean", "box_mean", "window_counts"]
+
+
+def box_mean(x: torch.Tensor, radius: int) -> torch.Tensor:
+    """The ``(2r+1)²`` box mean of ``x (B,C,H,W)`` through the seam (:class:`BoxOp`), summed in the
+    compute dtype and cast back, without :func:`torchgi.filters.box`'s argument checks: what the
+    back ends hand :mod:`torchgi.light` as its box. Under autograd (not traced) it is
+    :class:`BoxMean`: forward and backward each one box through the seam, so the compiled kernels
+    run both.
+
+    Example:
+        >>> box_mean(torch.arange(3.0).view(1, 1, 1, 3), 1)
+        tensor([[[[0.5000, 1.0000, 1.5000]]]])
+    """
+    y = x.to(compute_dtype(x.dtype))
+    if torch.is_grad_enabled() and y.requires_grad and not is_tracing():
+        return BoxMean.apply(y, radius).to(x.dtype)
+    return run(BoxOp(y, radius)).to(x.dtype)
+
+
+def window_counts(H: int, W: int, radius: int, like: torch.Tensor) -> torch.Tensor:
+    """How many pixels the ``(2r+1)²`` window around each pixel of an ``H x W`` image holds
+    (it shrinks at the borders): ``(H, W)``, dtype and device of ``like``.
+
+    Example:
+        >>> window_counts(1, 3, 1, torch.ones(1)).tolist()
+        [[2.0, 3.0, 2.0]]
+    """
+    def axis(n: int) -> torch.Tensor:
+        j = torch.arange(n, device=like.device)
+        return ((j + radius).clamp(max=n - 1) - (j - radius).clamp(min=0) + 1).to(like.dtype)
+
+    return axis(H)[:, None] * axis(W)[None, :]
+
+
+class BoxMean(torch.autograd.Function):
+    """The count-normalised box mean as an autograd function whose backward is a box too:
+    ``y_i = (1 / N_i) Σ_{j ∈ w_i} x_j`` gives ``∂L/∂x_j = N_j · mean_{i ∈ w_j}(g_i / N_i)``
+    (windows are symmetric), ``N`` the :func:`window_counts`. Both passes go through
+    :func:`run` (the compiled kernels for float32), nothing is saved but the radius; the
+    backward is itself differentiable (it calls :func:`box_mean`).
+
+    Example:
+        >>> x = torch.arange(3.0).view(1, 1, 1, 3).requires_grad_()
+        >>> BoxMean.apply(x, 1).sum().backward()
+        >>> x.grad   # 1/2 + 1/3, 1/2 + 1/3 + 1/2, 1/3 + 1/2
+        tensor([[[[0.8333, 1.3333, 0.8333]]]])
+    """
+
+    @staticmethod
+    def forward(ctx: Any, x: torch.Tensor, radius: int) -> torch.Tensor:
+        ctx.radius = radius
+        return run(BoxOp(x, radius))
+
+    @staticmethod
+    def backward(ctx: Any, g: torch.Tensor) -> tuple[torch.Tensor, None]:
+        n = window_counts(g.shape[-2], g.shape[-1], ctx.radius, g)
+        return box_mean(g / n, ctx.radius) * n, None
