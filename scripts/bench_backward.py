@@ -7,9 +7,11 @@ with autograd, and the peak memory each adds, side by side in one run (issue 57)
 Cases at ``size``² (float32, 2 threads unless ``--threads``): the box filter (r 4, 3 channels),
 the guided filter (r 4, a 4-channel guide, 3-channel source; gradients to source and guide),
 kornia's ``guided_blur`` on the same inputs (its 9x9 window), À-Trous (5 iterations, normal
-and position weights; gradient to the colour). Memory: the peak resident size a call adds
+and position weights; gradient to the colour), ``apply_kernels`` at three scales (5 x 5
+normalised kernels at dilations 1, 2, 4; gradients to the image and the three weight tensors). Memory: the peak resident size a call adds
 above the resident size just before it, in a fresh process whose allocator returns freed
-blocks to the OS at once (``MALLOC_MMAP_THRESHOLD_``), read from ``VmHWM`` after resetting it.
+blocks to the OS at once (``MALLOC_MMAP_THRESHOLD_``), read from ``VmHWM`` after resetting it;
+"working" memory is a step's less the gradients it returns (as large as the differentiated inputs).
 Writes ``backward.csv`` / ``.json`` and ``backward.png`` under ``--out``.
 """
 
@@ -27,7 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from benchmark_utils import markdown_table, metadata, time_ms, write_results
 
-CASES = ("box", "guided", "kornia guided_blur", "atrous")
+CASES = ("box", "guided", "kornia guided_blur", "atrous", "apply_kernels")
 
 
 def inputs(case: str, size: int, grad: bool) -> tuple[torch.Tensor, ...]:
@@ -36,6 +38,9 @@ def inputs(case: str, size: int, grad: bool) -> tuple[torch.Tensor, ...]:
     color = torch.rand(1, 3, size, size, generator=g)
     if case == "box":
         return (color.requires_grad_(grad),)
+    if case == "apply_kernels":  # three scales of 5 x 5 kernels
+        weights = [torch.rand(1, 25, size, size, generator=g) + 0.01 for _ in range(3)]
+        return (color.requires_grad_(grad), *(w.requires_grad_(grad) for w in weights))
     if case == "atrous":
         normal = torch.nn.functional.normalize(torch.randn(1, 3, size, size, generator=g), dim=1)
         position = torch.rand(1, 3, size, size, generator=g)
@@ -48,7 +53,7 @@ def call(case: str, t: tuple[torch.Tensor, ...]) -> torch.Tensor:
     """One forward of ``case`` on ``t``."""
     from kornia.filters import guided_blur
 
-    from torchgi.filters import atrous, box, guided
+    from torchgi.filters import apply_kernels, atrous, box, guided
 
     if case == "box":
         return box(t[0], 4)
@@ -56,6 +61,11 @@ def call(case: str, t: tuple[torch.Tensor, ...]) -> torch.Tensor:
         return guided(t[0], t[1], radius=4, eps=0.01)
     if case == "kornia guided_blur":
         return guided_blur(t[1], t[0], 9, 0.01)
+    if case == "apply_kernels":
+        y = t[0]
+        for d, w in zip((1, 2, 4), t[1:]):
+            y = apply_kernels(y, w, dilation=d, normalize=True)
+        return y
     return atrous(t[0], t[1], t[2], iterations=5)
 
 
@@ -110,7 +120,7 @@ def main() -> None:
         t = inputs(case, args.size, False)
         with torch.no_grad():
             row["forward_ms"] = time_ms(lambda: call(case, t), min_run_time=args.min_time)["median_ms"]
-        op = {"box": "box", "guided": "guided", "atrous": "atrous"}.get(case)
+        op = {"box": "box", "guided": "guided", "atrous": "atrous", "apply_kernels": "apply_kernels"}.get(case)
         row["forward_ran"] = backends.status()["last"][op]["ran"] if op else "kornia"
         t = inputs(case, args.size, True)
         row["step_ms"] = time_ms(lambda: step(case, t), min_run_time=args.min_time)["median_ms"]
@@ -119,6 +129,10 @@ def main() -> None:
         row["forward_MB"] = peak_extra_mb(case, args.size, False, args.threads)
         row["step_MB"] = peak_extra_mb(case, args.size, True, args.threads)
         row["step_MB_over_forward"] = row["step_MB"] / max(row["forward_MB"], 1e-9)
+        # the gradients themselves (as large as the differentiated inputs) are the step's result:
+        # what it holds beyond them is its working memory
+        row["grads_MB"] = sum(x.numel() * x.element_size() for x in t if x.requires_grad) / 2**20
+        row["working_MB_over_forward"] = (row["step_MB"] - row["grads_MB"]) / max(row["forward_MB"], 1e-9)
         rows.append(row)
         print(row, flush=True)
     by_case = {r["case"]: r for r in rows}
@@ -127,7 +141,8 @@ def main() -> None:
     meta = metadata(args.threads) | {"command": " ".join([Path(sys.argv[0]).name] + sys.argv[1:])}
     write_results(rows, meta, args.out, "backward")
     print(markdown_table(rows, ["case", "forward_ms", "step_ms", "step_over_forward", "forward_MB", "step_MB",
-                                "step_MB_over_forward", "kornia_step_over_this"]))
+                                "grads_MB", "step_MB_over_forward", "working_MB_over_forward",
+                                "kornia_step_over_this"]))
     import matplotlib
 
     matplotlib.use("Agg")

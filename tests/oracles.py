@@ -339,3 +339,24 @@ def motion_oracle(now, before) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor
     moving = torch.zeros(W * H, dtype=torch.bool)
     moving[hit] = torch.isin(torch.from_numpy(a_now.mesh)[prim[hit]], torch.tensor(now.moving, dtype=torch.int64))
     return ref.reshape(2, H, W), visible.reshape(H, W), moving.reshape(H, W)
+
+
+def apply_kernels_oracle(x: torch.Tensor, w: torch.Tensor, d: int, normalize: bool) -> torch.Tensor:
+    """Per-pixel kernels in float64 by gathering: for each tap, the source coordinates of every
+    pixel computed and tested against the image bounds (no padding), out-of-image taps dropped
+    from the sum and from the weight sum. Differentiable (autograd through the gathers)."""
+    x, w = x.double(), w.double()
+    B, C, H, W = x.shape
+    k = round(w.shape[1] ** 0.5)
+    ys, xs = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
+    out = torch.zeros(B, C, H, W, dtype=torch.float64)
+    den = torch.zeros(B, 1, H, W, dtype=torch.float64)
+    for i in range(k):
+        for j in range(k):
+            sy, sx = ys + (i - k // 2) * d, xs + (j - k // 2) * d
+            inside = ((sy >= 0) & (sy < H) & (sx >= 0) & (sx < W)).double()
+            src = x[:, :, sy.clamp(0, H - 1), sx.clamp(0, W - 1)] * inside
+            wt = w[:, i * k + j : i * k + j + 1] * inside
+            out = out + wt * src
+            den = den + wt
+    return out / den if normalize else out

@@ -5,7 +5,7 @@ import torch
 
 from tests.helpers import rel_error as rel
 from torchgi.export import OrtSession, export_onnx
-from torchgi.filters import Box, Guided
+from torchgi.filters import ApplyKernels, Box, Guided
 
 pytest.importorskip("onnxruntime")
 pytest.importorskip("onnxscript")
@@ -18,6 +18,16 @@ def test_box_parity(tmp_path):
     for shape in [(1, 2, 16, 16), (3, 2, 45, 29), (1, 2, 5, 3)]:
         x = torch.rand(shape)
         assert rel(session(x=x), Box(3)(x)) < 1e-5, shape
+
+
+def test_apply_kernels_parity(tmp_path):
+    m = ApplyKernels(dilation=2, normalize=True)
+    path = export_onnx(m, [torch.rand(1, 3, 16, 20), torch.rand(1, 25, 16, 20)], tmp_path / "k.onnx",
+                       input_names=["x", "weights"])
+    session = OrtSession(path)
+    for B, H, W in [(1, 16, 16), (2, 37, 29), (1, 3, 5)]:
+        x, w = torch.rand(B, 3, H, W), torch.rand(B, 25, H, W) + 0.1
+        assert rel(session(x=x, weights=w), m(x, w)) < 1e-5, (B, H, W)
 
 
 @pytest.mark.parametrize("subsample", [1, 2])

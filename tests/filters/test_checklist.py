@@ -26,7 +26,8 @@ def _inputs(B: int = 1, H: int = 12, W: int = 10, dtype: torch.dtype = torch.flo
         return torch.rand(B, c, H, W, generator=g, dtype=torch.float64).to(dtype=dtype, device=device)
 
     normal = torch.nn.functional.normalize(r(3) - 0.5, dim=1)
-    return {"x": r(3) + 0.1, "guide": r(4), "normal": normal, "position": r(3), "depth": r(1) + 0.5}
+    return {"x": r(3) + 0.1, "guide": r(4), "normal": normal, "position": r(3), "depth": r(1) + 0.5,
+            "kernels": r(25) + 0.05}
 
 
 # name -> (function of the inputs, Module of the inputs, the input the gradient is checked for)
@@ -39,6 +40,8 @@ CASES: dict[str, tuple[Callable, Callable, str]] = {
     "cross_bilateral": (lambda t: filters.cross_bilateral(t["x"], [t["normal"]], radius=2, sigma_space=1.0,
                                                           sigma_color=1.0, sigma_guides=[0.3]),
                         lambda t: filters.CrossBilateral(2, 1.0, 1.0, [0.3])(t["x"], t["normal"]), "x"),
+    "apply_kernels": (lambda t: filters.apply_kernels(t["x"], t["kernels"], dilation=2, normalize=True),
+                      lambda t: filters.ApplyKernels(2, True)(t["x"], t["kernels"]), "x"),
     "blend": (lambda t: filters.blend(t["x"], t["guide"]), lambda t: filters.Blend()(t["x"], t["guide"]), "x"),
     "pyramid": (lambda t: filters.pyramid(t["x"], t["guide"]), lambda t: filters.Pyramid()(t["x"], t["guide"]), "x"),
 }
@@ -100,6 +103,7 @@ def test_the_gradient_matches_finite_differences(op):
 # every filter with its default arguments (the required ones only), every differentiable input
 DEFAULTS: dict[str, tuple[Callable, list[str]]] = {
     "box": (lambda t: filters.box(t["x"], 2), ["x"]),
+    "apply_kernels": (lambda t: filters.apply_kernels(t["x"], t["kernels"]), ["x", "kernels"]),
     "guided": (lambda t: filters.guided(t["x"], t["guide"]), ["x", "guide"]),
     "atrous": (lambda t: filters.atrous(t["x"], t["normal"], t["position"]), ["x", "normal", "position"]),
     "cross_bilateral": (lambda t: filters.cross_bilateral(t["x"], [t["normal"]], radius=2, sigma_space=1.0,

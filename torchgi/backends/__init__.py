@@ -1,6 +1,6 @@
 """Back ends: every kernel of torchgi chosen in one place.
 
-An op (box, guided, the upsampling and application of linear-model coefficients, atrous, importance, allocate, the Denoiser's guide statistics, edge share
+An op (box, guided, the upsampling and application of linear-model coefficients, atrous, per-pixel kernels and their gradients, importance, allocate, the Denoiser's guide statistics, edge share
 and restore pipeline, the pyramid's block means and mixes, the temporal accumulation, and a tile of the renderer's path tracer) is described by a small dataclass in one
 convention (:class:`BoxOp`, :class:`GuidedOp`, :class:`ATrousOp`, :class:`ImportanceOp`,
 :class:`AllocateOp`); :func:`run` hands it to the first back end that supports it, in the
@@ -21,7 +21,7 @@ Example:
     'torch'
 """
 
-from torchgi.backends.autograd_ops import BoxMean, box_mean, window_counts
+from torchgi.backends.autograd_ops import BoxMean, KernelApply, box_mean, window_counts
 from torchgi.backends.base import (
     NAMES,
     ORDER,
@@ -29,6 +29,8 @@ from torchgi.backends.base import (
     AccumulateOp,
     AllocateOp,
     AppliedMeansOp,
+    ApplyKernelsGradOp,
+    ApplyKernelsOp,
     ATrousOp,
     BackOffOp,
     BlockMeanOp,
@@ -71,6 +73,8 @@ __all__ = [
     "Accumulated",
     "AllocateOp",
     "AppliedMeansOp",
+    "ApplyKernelsGradOp",
+    "ApplyKernelsOp",
     "BackOffOp",
     "BlockMeanOp",
     "BoxMean",
@@ -87,6 +91,7 @@ __all__ = [
     "GuidedOp",
     "HistoryOp",
     "ImportanceOp",
+    "KernelApply",
     "LightInOp",
     "LightOutOp",
     "MixHalfOp",

@@ -9,11 +9,11 @@ from typing import Any
 
 import torch
 
-from torchgi.backends.base import BoxOp, run
+from torchgi.backends.base import ApplyKernelsGradOp, ApplyKernelsOp, BoxOp, run
 from torchgi.core.check import is_tracing
 from torchgi.core.dtypes import compute_dtype
 
-__all__ = ["BoxMean", "box_mean", "window_counts"]
+__all__ = ["BoxMean", "KernelApply", "box_mean", "window_counts"]
 
 
 def box_mean(x: torch.Tensor, radius: int) -> torch.Tensor:
@@ -71,3 +71,32 @@ class BoxMean(torch.autograd.Function):
     def backward(ctx: Any, g: torch.Tensor) -> tuple[torch.Tensor, None]:
         n = window_counts(g.shape[-2], g.shape[-1], ctx.radius, g)
         return box_mean(g / n, ctx.radius) * n, None
+
+
+class KernelApply(torch.autograd.Function):
+    """Per-pixel kernels applied to ``x`` (:class:`~torchgi.backends.base.ApplyKernelsOp`) as an
+    autograd function: the forward and the gradients
+    (:class:`~torchgi.backends.base.ApplyKernelsGradOp`) each one op through the seam (the compiled
+    kernels for float32 on the CPU); saved: the inputs, the output and the weight sums.
+
+    Example:
+        >>> x = torch.rand(1, 2, 5, 5, requires_grad=True)
+        >>> w = torch.rand(1, 9, 5, 5, requires_grad=True)
+        >>> KernelApply.apply(x, w, 1, True).sum().backward()
+        >>> x.grad.shape, w.grad.shape
+        (torch.Size([1, 2, 5, 5]), torch.Size([1, 9, 5, 5]))
+    """
+
+    @staticmethod
+    def forward(ctx: Any, x: torch.Tensor, weights: torch.Tensor, dilation: int, normalize: bool) -> torch.Tensor:
+        out, den = run(ApplyKernelsOp(x, weights, dilation, normalize))
+        ctx.save_for_backward(x, weights, out, den)
+        ctx.dilation = dilation
+        return out
+
+    @staticmethod
+    def backward(ctx: Any, g: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
+        x, w, out, den = ctx.saved_tensors
+        dx, dw = run(ApplyKernelsGradOp(x, w, out, den, g.contiguous(), ctx.dilation, ctx.needs_input_grad[0],
+                                        ctx.needs_input_grad[1]))
+        return dx, dw, None, None

@@ -5,7 +5,8 @@ from torchgi.filters.bilateral import CrossBilateral, cross_bilateral
 from torchgi.filters.blend import Blend, blend
 from torchgi.filters.box import Box, box
 from torchgi.filters.guided import Guided, guide_from, guide_from_gbuffer, guided
+from torchgi.filters.kernels import ApplyKernels, apply_kernels
 from torchgi.filters.pyramid import Pyramid, pyramid
 
-__all__ = ["ATrous", "Blend", "Box", "CrossBilateral", "Guided", "Pyramid", "atrous", "blend", "box", "cross_bilateral",
+__all__ = ["ATrous", "ApplyKernels", "Blend", "Box", "CrossBilateral", "Guided", "Pyramid", "apply_kernels", "atrous", "blend", "box", "cross_bilateral",
            "guide_from", "guide_from_gbuffer", "guided", "pyramid"]

@@ -1,8 +1,8 @@
 """The C back end: compiled CPU kernels of the filters (one À-Trous level, the guided filter and
-the box filter it is built from), the Denoiser's guided pipeline, the sampling importance map and
+the box filter it is built from, per-pixel kernels and their gradients), the Denoiser's guided pipeline, the sampling importance map and
 the sample allocation, the temporal ops and the path tracer, float32.
 
-One file per op family, in Python and in C: :mod:`.filters` (``atrous.c``, ``guided.c``),
+One file per op family, in Python and in C: :mod:`.filters` (``atrous.c``, ``guided.c``), :mod:`.kernels` (``kernels.c``),
 :mod:`.pipeline` (``pipeline.c``), :mod:`.pyramid` (``pyramid.c``), :mod:`.sampling` (``importance.c``, ``allocate.c``),
 :mod:`.accumulation` (``accumulate.c``), :mod:`.tracer` (``tracer.c``, embree 4 through
 :mod:`.embree`); :mod:`.build` compiles and loads the library (``native.c`` includes the family
@@ -60,6 +60,7 @@ from torchgi.backends.c_kernels import build
 from torchgi.backends.c_kernels.accumulation import accumulate, change, history
 from torchgi.backends.c_kernels.build import describe, library
 from torchgi.backends.c_kernels.filters import atrous, box, guided, upsample_apply
+from torchgi.backends.c_kernels.kernels import apply_kernels, apply_kernels_grad
 from torchgi.backends.c_kernels.pipeline import back_off, choose, edge_share, guide_stats, light_in, light_out, restore
 from torchgi.backends.c_kernels.pyramid import applied_means, block_means, fine_band, mix_half, model_residual
 from torchgi.backends.c_kernels.runtime import empty_planes, padded
@@ -67,7 +68,7 @@ from torchgi.backends.c_kernels.sampling import allocate, importance
 from torchgi.backends.c_kernels.tracer import _path_support, guide_rays, path
 
 __all__ = [
-    "NAME", "accumulate", "allocate", "applied_means", "atrous", "back_off", "block_means", "box", "change", "choose", "describe", "edge_share",
+    "NAME", "accumulate", "allocate", "applied_means", "apply_kernels", "apply_kernels_grad", "atrous", "back_off", "block_means", "box", "change", "choose", "describe", "edge_share",
     "empty_planes", "fine_band", "guide_rays", "guide_stats", "guided", "history", "importance", "library", "light_in", "light_out",
     "mix_half", "model_residual", "padded", "path", "restore", "supports",
     "upsample_apply",
@@ -76,7 +77,7 @@ __all__ = [
 NAME = "c"
 # the image tensor of the ops whose kernels walk one image of fewer than 2^31 pixels per call
 _IMAGE = {"accumulate": "x", "change": "x", "history": "out", "restore": "color", "light_in": "color", "light_out": "color", "model_residual": "x",
-          "fine_band": "model", "block_means": "x", "applied_means": "guide"}
+          "fine_band": "model", "block_means": "x", "applied_means": "guide", "apply_kernels": "x", "apply_kernels_grad": "x"}
 
 
 def supports(op: str, desc: BoxOp | GuidedOp | ATrousOp | ImportanceOp | AllocateOp | GuideStatsOp | EdgeShareOp |

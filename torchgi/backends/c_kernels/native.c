@@ -1,4 +1,5 @@
-/* The CPU kernels of torchgi, float32, one image per call: the filters (box, guided, À-Trous),
+/* The CPU kernels of torchgi, float32, one image per call: the filters (box, guided, À-Trous,
+ * per-pixel kernels and their gradients),
  * the Denoiser's guided pipeline, the sampling importance and allocation, the temporal
  * ops; the path tracer is tracer.c.
  *
@@ -10,7 +11,7 @@
  */
 #include "common.h"
 
-int torchgi_native_version(void) { return 14; }
+int torchgi_native_version(void) { return 15; }
 
 float torchgi_exp_neg(float d) { return exp_neg(d); }
 
@@ -34,3 +35,4 @@ int torchgi_openmp(void) {
 #include "pyramid.c"
 #include "allocate.c"
 #include "accumulate.c"
+#include "kernels.c"
