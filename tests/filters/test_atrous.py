@@ -174,6 +174,65 @@ def test_gradcheck():
         lambda a, b, p, s: atrous(a, b, p, iterations=2, sigma_color=s), (c, n, x, sig))
 
 
+@pytest.mark.parametrize("case", ["scalar", "map", "colour only", "geometry only", "one channel"])
+@pytest.mark.parametrize("backend", ["c", "torch"])
+def test_level_gradients_match_autograd_through_the_torch_levels(case, backend, monkeypatch):
+    """The written-out level gradients (ATrousLevel: compiled forward and backward for float32 on
+    the CPU, or the torch written-out form) against autograd through the torch code's levels in
+    float64, for the colour, the guides and a σ_rt (scalar or map) at once, 4 levels."""
+    from torchgi.backends.torch_code import filter_atrous
+
+    c, n, x = buffers(B=2, H=21, W=26, seed=7)
+    if case == "one channel":
+        c = c[:, :1]
+    sig = 0.3 + torch.rand(2, 1, 21, 26) if case == "map" else torch.tensor([0.4, 0.7])
+    kw = {"colour only": {"sigma_normal": None, "sigma_position": None},
+          "geometry only": {"color_weight": False}}.get(case, {})
+    g = torch.randn(c.shape, generator=torch.Generator().manual_seed(2))
+
+    def grads(dtype, by_level):
+        ts = [t.to(dtype).requires_grad_() for t in (c, n, x, sig)]
+        monkeypatch.setattr(filter_atrous, "level_backward", lambda desc: by_level)
+        out = atrous(*ts[:3], iterations=4, sigma_color=ts[3], **kw)
+        monkeypatch.undo()
+        got = torch.autograd.grad((out * g.to(dtype)).sum(), ts, allow_unused=True)
+        return [torch.zeros_like(t) if d is None else d for t, d in zip(ts, got)]
+
+    want = grads(torch.float64, False)
+    with backends.use(backend):
+        got = grads(torch.float32, True)
+    if backend == "c":
+        assert backends.status()["last"]["atrous_level_grad"]["ran"] == (
+            "c" if backends.status()["c"].startswith("compiled kernels in use") else "torch")
+    for a, b in zip(got, want):
+        assert float((a.double() - b).abs().max()) <= 1e-4 * max(1.0, float(b.abs().max()))
+
+
+def test_learnable_module_gradients_match_autograd_through_the_torch_levels(monkeypatch):
+    """ATrous(learnable=True): the gradients of its three σ's (through the levels' guide multipliers
+    and colour scales) by the level functions in float32 against autograd through the torch levels."""
+    from torchgi.backends.torch_code import filter_atrous
+
+    c, n, x = buffers(B=2, H=19, W=24, seed=5)
+
+    def grads(dtype, by_level):
+        f = ATrous(3, sigma_color=0.5, sigma_normal=0.2, sigma_position=0.3, learnable=True).to(dtype)
+        monkeypatch.setattr(filter_atrous, "level_backward", lambda desc: by_level)
+        out = f(c.to(dtype), n.to(dtype), x.to(dtype))
+        monkeypatch.undo()
+        return torch.autograd.grad(out.square().sum(), list(f.parameters()))
+
+    for a, b in zip(grads(torch.float32, True), grads(torch.float64, False)):
+        assert float((a.double() - b).abs().max()) <= 1e-4 * max(1.0, float(b.abs().max()))
+
+
+def test_level_gradcheck_float64():
+    """float64 gradcheck of the written-out level gradients (the torch form), all inputs at once."""
+    c, n, x = (t[:, :, :6, :7].double().requires_grad_() for t in buffers(seed=3))
+    sig = (0.3 + torch.rand(1, 1, 6, 7, dtype=torch.float64)).requires_grad_()
+    assert torch.autograd.gradcheck(lambda a, b, p, s: atrous(a, b, p, iterations=2, sigma_color=s), (c, n, x, sig))
+
+
 def test_bad_inputs():
     c, n, x = buffers()
     with pytest.raises(ShapeError, match=r"normal: expected shape \(B, 3, H, W\)"):

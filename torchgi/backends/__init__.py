@@ -31,6 +31,8 @@ from torchgi.backends.base import (
     AppliedMeansOp,
     ApplyKernelsGradOp,
     ApplyKernelsOp,
+    ATrousLevelGradOp,
+    ATrousLevelOp,
     ATrousOp,
     BackOffOp,
     BlockMeanOp,
@@ -68,6 +70,8 @@ from torchgi.backends.base import (
 __all__ = [
     "NAMES",
     "ORDER",
+    "ATrousLevelGradOp",
+    "ATrousLevelOp",
     "ATrousOp",
     "AccumulateOp",
     "Accumulated",

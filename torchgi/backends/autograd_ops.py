@@ -9,11 +9,11 @@ from typing import Any
 
 import torch
 
-from torchgi.backends.base import ApplyKernelsGradOp, ApplyKernelsOp, BoxOp, run
+from torchgi.backends.base import ApplyKernelsGradOp, ApplyKernelsOp, ATrousLevelGradOp, ATrousLevelOp, BoxOp, run
 from torchgi.core.check import is_tracing
 from torchgi.core.dtypes import compute_dtype
 
-__all__ = ["BoxMean", "KernelApply", "box_mean", "window_counts"]
+__all__ = ["ATrousLevel", "BoxMean", "KernelApply", "box_mean", "window_counts"]
 
 
 def box_mean(x: torch.Tensor, radius: int) -> torch.Tensor:
@@ -100,3 +100,48 @@ class KernelApply(torch.autograd.Function):
         dx, dw = run(ApplyKernelsGradOp(x, w, out, den, g.contiguous(), ctx.dilation, ctx.needs_input_grad[0],
                                         ctx.needs_input_grad[1]))
         return dx, dw, None, None
+
+
+class ATrousLevel(torch.autograd.Function):
+    """One À-Trous level (:class:`~torchgi.backends.base.ATrousLevelOp`) as an autograd function:
+    the forward and the written-out gradients (:class:`~torchgi.backends.base.ATrousLevelGradOp`)
+    each one op through the seam (the compiled kernels for float32 on the CPU). The guides come
+    unscaled, ``feat (B, 3G, H, W)`` shared by every level, with the level's multiplier of each
+    group ``mult (B, G, 1, 1)`` (the level's ``feat * mult`` is a temporary of the forward and of
+    the backward, not kept); saved: the inputs, the output and the weight sums.
+
+    Example:
+        >>> c = torch.rand(1, 3, 8, 8, requires_grad=True)
+        >>> ATrousLevel.apply(c, None, None, torch.ones(1, 1, 1, 1), 1).sum().backward()
+        >>> c.grad.shape
+        torch.Size([1, 3, 8, 8])
+    """
+
+    @staticmethod
+    def _scaled(feat: torch.Tensor | None, mult: torch.Tensor | None) -> torch.Tensor | None:
+        return None if feat is None else feat * mult.repeat_interleave(3, dim=1)
+
+    @staticmethod
+    def forward(ctx: Any, color: torch.Tensor, feat: torch.Tensor | None, mult: torch.Tensor | None,
+                scale: torch.Tensor | None, step: int) -> torch.Tensor:
+        out, den = run(ATrousLevelOp(color, ATrousLevel._scaled(feat, mult), scale, step))
+        ctx.save_for_backward(color, feat, mult, scale, out, den)
+        ctx.step = step
+        return out
+
+    @staticmethod
+    def backward(ctx: Any, g: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
+        color, feat, mult, scale, out, den = ctx.saved_tensors
+        need_feat = feat is not None and (ctx.needs_input_grad[1] or ctx.needs_input_grad[2])
+        need_scale = scale is not None and ctx.needs_input_grad[3]
+        dc, df, ds = run(ATrousLevelGradOp(color, ATrousLevel._scaled(feat, mult), scale, out, g / den, ctx.step,
+                                           need_feat, need_scale))
+        if ds is not None and scale.shape[-2:] == (1, 1):
+            ds = ds.sum((2, 3), keepdim=True)
+        dfeat = dmult = None
+        if df is not None:  # feat * mult: each factor's gradient from the other
+            dfeat = df * mult.repeat_interleave(3, dim=1) if ctx.needs_input_grad[1] else None
+            if ctx.needs_input_grad[2]:
+                dmult = (df * feat).sum((2, 3), keepdim=True).unflatten(1, (-1, 3)).sum(2)
+                dmult = dmult.sum(0, keepdim=True) if mult.shape[0] == 1 < dmult.shape[0] else dmult
+        return dc, dfeat, dmult, ds, None

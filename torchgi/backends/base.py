@@ -24,7 +24,7 @@ from typing import Any
 
 import torch
 
-from torchgi.backends.kernel_ops import ApplyKernelsGradOp, ApplyKernelsOp
+from torchgi.backends.kernel_ops import ApplyKernelsGradOp, ApplyKernelsOp, ATrousLevelGradOp, ATrousLevelOp
 from torchgi.backends.pyramid_ops import AppliedMeansOp, BlockMeanOp, FineBandOp, MixHalfOp, ModelResidualOp
 from torchgi.backends.temporal_ops import LUMA, Accumulated, AccumulateOp, Changed, ChangeOp, HistoryOp
 from torchgi.backends.tracer_ops import GuideRaysOp, PathOp, TraceSetup, chunks, embree_started, mark_embree_started
@@ -35,6 +35,8 @@ __all__ = [
     "LUMA",
     "NAMES",
     "ORDER",
+    "ATrousLevelGradOp",
+    "ATrousLevelOp",
     "ATrousOp",
     "AccumulateOp",
     "Accumulated",
@@ -422,13 +424,14 @@ class ChooseOp:
 
 Op = BoxOp | GuidedOp | ATrousOp | ImportanceOp | AllocateOp | GuideStatsOp | EdgeShareOp | RestoreOp | LightInOp | \
     LightOutOp | MixHalfOp | ModelResidualOp | FineBandOp | BlockMeanOp | AppliedMeansOp | BackOffOp | ChooseOp | AccumulateOp | ChangeOp | HistoryOp | PathOp | \
-    GuideRaysOp | ApplyKernelsOp | ApplyKernelsGradOp
+    GuideRaysOp | ApplyKernelsOp | ApplyKernelsGradOp | ATrousLevelOp | ATrousLevelGradOp
 _OPS = {BoxOp: "box", GuidedOp: "guided", UpsampleApplyOp: "upsample_apply", ATrousOp: "atrous", ImportanceOp: "importance", AllocateOp: "allocate",
         GuideStatsOp: "guide_stats", EdgeShareOp: "edge_share", RestoreOp: "restore", LightInOp: "light_in",
         LightOutOp: "light_out", MixHalfOp: "mix_half", ModelResidualOp: "model_residual", FineBandOp: "fine_band", BlockMeanOp: "block_means", AppliedMeansOp: "applied_means", BackOffOp: "back_off",
         ChooseOp: "choose",
         AccumulateOp: "accumulate", ChangeOp: "change", HistoryOp: "history", PathOp: "path", GuideRaysOp: "guide_rays",
-        ApplyKernelsOp: "apply_kernels", ApplyKernelsGradOp: "apply_kernels_grad"}
+        ApplyKernelsOp: "apply_kernels", ApplyKernelsGradOp: "apply_kernels_grad", ATrousLevelOp: "atrous_level",
+        ATrousLevelGradOp: "atrous_level_grad"}
 
 
 def eager(desc: Op) -> str | None:

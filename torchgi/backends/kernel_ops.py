@@ -1,6 +1,8 @@
-"""Per-pixel kernels applied to an image at the back-end seam (:func:`torchgi.filters.apply_kernels`):
-the forward (:class:`ApplyKernelsOp`) and its gradients (:class:`ApplyKernelsGradOp`), the
-building block of kernel-predicting denoisers. Re-exported by :mod:`torchgi.backends.base`.
+"""Per-pixel kernels at the back-end seam: kernels given (:func:`torchgi.filters.apply_kernels`:
+the forward :class:`ApplyKernelsOp` and its gradients :class:`ApplyKernelsGradOp`, the building
+block of kernel-predicting denoisers) and the edge-avoiding kernel of one À-Trous level
+(:class:`ATrousLevelOp`, :class:`ATrousLevelGradOp`: what :func:`torchgi.filters.atrous` runs per
+level under autograd). Re-exported by :mod:`torchgi.backends.base`.
 
 Tap ``t = i k + j`` of a ``k x k`` kernel at dilation ``d`` reads the pixel ``(y + (i - k//2) d,
 x + (j - k//2) d)``; taps outside the image are left out of the sum (and, normalised, of the
@@ -12,7 +14,7 @@ from dataclasses import dataclass
 
 import torch
 
-__all__ = ["ApplyKernelsGradOp", "ApplyKernelsOp"]
+__all__ = ["ATrousLevelGradOp", "ATrousLevelOp", "ApplyKernelsGradOp", "ApplyKernelsOp"]
 
 
 @dataclass(eq=False, slots=True)
@@ -49,3 +51,41 @@ class ApplyKernelsGradOp:
 
     def tensors(self) -> tuple[torch.Tensor | None, ...]:
         return (self.x, self.weights, self.out, self.den, self.grad)
+
+
+@dataclass(eq=False, slots=True)
+class ATrousLevelOp:
+    """One À-Trous level without variance or holes: ``out_p = Σ_q w_pq c_q / den_p`` over the 25
+    taps at ``step`` inside the image, ``w_pq = h_t exp(-(s_p |c_p - c_q|² + |f_p - f_q|²))``, for
+    ``color (B,C,H,W)``, the scaled guides ``feat (B,F,H,W)`` (F a multiple of 3; None: no geometry
+    weight) and the colour scale ``scale`` ``(B,1,1,1)`` or a ``(B,1,H,W)`` map (None: no colour
+    weight). Returns ``(out, den)``, ``den (B,1,H,W)``."""
+
+    color: torch.Tensor
+    feat: torch.Tensor | None
+    scale: torch.Tensor | None
+    step: int
+
+    def tensors(self) -> tuple[torch.Tensor | None, ...]:
+        return (self.color, self.feat, self.scale)
+
+
+@dataclass(eq=False, slots=True)
+class ATrousLevelGradOp:
+    """The gradients of :class:`ATrousLevelOp` given its inputs, its ``out`` and ``gp = grad / den``
+    ``(B,C,H,W)``: with ``E_pq = -w_pq Σ_k gp_pk (c_qk - out_pk)``, ``dcolor`` (the value path
+    ``Σ_p w_pq gp_p`` and the colour distance's), ``dfeat`` (None where ``feat`` is None or
+    ``need_feat`` is False) and ``dscale (B,1,H,W)`` per pixel (None without a colour weight or
+    ``need_scale``). Returns ``(dcolor, dfeat, dscale)``."""
+
+    color: torch.Tensor
+    feat: torch.Tensor | None
+    scale: torch.Tensor | None
+    out: torch.Tensor
+    gp: torch.Tensor
+    step: int
+    need_feat: bool = True
+    need_scale: bool = True
+
+    def tensors(self) -> tuple[torch.Tensor | None, ...]:
+        return (self.color, self.feat, self.scale, self.out, self.gp)

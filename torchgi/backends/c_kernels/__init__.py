@@ -59,7 +59,7 @@ from torchgi.backends.base import (
 from torchgi.backends.c_kernels import build
 from torchgi.backends.c_kernels.accumulation import accumulate, change, history
 from torchgi.backends.c_kernels.build import describe, library
-from torchgi.backends.c_kernels.filters import atrous, box, guided, upsample_apply
+from torchgi.backends.c_kernels.filters import atrous, atrous_level, atrous_level_grad, box, guided, upsample_apply
 from torchgi.backends.c_kernels.kernels import apply_kernels, apply_kernels_grad
 from torchgi.backends.c_kernels.pipeline import back_off, choose, edge_share, guide_stats, light_in, light_out, restore
 from torchgi.backends.c_kernels.pyramid import applied_means, block_means, fine_band, mix_half, model_residual
@@ -68,7 +68,7 @@ from torchgi.backends.c_kernels.sampling import allocate, importance
 from torchgi.backends.c_kernels.tracer import _path_support, guide_rays, path
 
 __all__ = [
-    "NAME", "accumulate", "allocate", "applied_means", "apply_kernels", "apply_kernels_grad", "atrous", "back_off", "block_means", "box", "change", "choose", "describe", "edge_share",
+    "NAME", "accumulate", "allocate", "applied_means", "apply_kernels", "apply_kernels_grad", "atrous", "atrous_level", "atrous_level_grad", "back_off", "block_means", "box", "change", "choose", "describe", "edge_share",
     "empty_planes", "fine_band", "guide_rays", "guide_stats", "guided", "history", "importance", "library", "light_in", "light_out",
     "mix_half", "model_residual", "padded", "path", "restore", "supports",
     "upsample_apply",
@@ -77,7 +77,8 @@ __all__ = [
 NAME = "c"
 # the image tensor of the ops whose kernels walk one image of fewer than 2^31 pixels per call
 _IMAGE = {"accumulate": "x", "change": "x", "history": "out", "restore": "color", "light_in": "color", "light_out": "color", "model_residual": "x",
-          "fine_band": "model", "block_means": "x", "applied_means": "guide", "apply_kernels": "x", "apply_kernels_grad": "x"}
+          "fine_band": "model", "block_means": "x", "applied_means": "guide", "apply_kernels": "x", "apply_kernels_grad": "x",
+          "atrous_level": "color", "atrous_level_grad": "color"}
 
 
 def supports(op: str, desc: BoxOp | GuidedOp | ATrousOp | ImportanceOp | AllocateOp | GuideStatsOp | EdgeShareOp |
@@ -106,8 +107,19 @@ def supports(op: str, desc: BoxOp | GuidedOp | ATrousOp | ImportanceOp | Allocat
     if image is not None and (getattr(desc, image).numel() == 0 or math.prod(getattr(desc, image).shape[-2:]) >= 2**31
                               or (surface is not None and surface.dtype != torch.bool)):
         return f"the C {op} takes non-empty images of fewer than 2^31 pixels (and a bool surface mask)"
+    why = _shape_limits(op, desc)
+    if why is not None:
+        return why
+    return None if build.library() is not None else build._status
+
+
+def _shape_limits(op: str, desc: object) -> str | None:
+    """Why the C kernel of ``op`` cannot take the shapes (or per-pixel inputs) of ``desc``, or None."""
     if op in ("model_residual", "mix_half") and not 1 <= len(desc.ys if op == "model_residual" else desc.fines) <= 4:
         return f"the C {op} takes 1 to 4 candidates"
+    if op in ("atrous_level", "atrous_level_grad") and (desc.color.shape[1] not in (1, 3) or (
+            desc.feat is not None and desc.feat.shape[1] not in (3, 6))):
+        return f"the C {op} takes 1 or 3 colour channels and 0, 3 or 6 guide planes"
     if op == "upsample_apply":
         C, (n, H, W) = desc.coeffs.shape[2], desc.guide.shape[1:]
         if n > 4 or C > 64 or H * W == 0 or H * W >= 2**31:
@@ -121,4 +133,4 @@ def supports(op: str, desc: BoxOp | GuidedOp | ATrousOp | ImportanceOp | Allocat
         o = desc.outs[0]
         if not 2 <= len(desc.outs) <= 4 or o.numel() == 0 or o.shape[1] != 3 or desc.variance.shape[1] not in (1, 3):
             return "the C choice takes 2 to 4 non-empty 3-channel images with 1 or 3 variance planes"
-    return None if build.library() is not None else build._status
+    return None

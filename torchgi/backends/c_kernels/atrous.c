@@ -182,3 +182,115 @@ void torchgi_atrous_level(const float *c, int C, const float *f, int F, const fl
     OVER_BANDS(H, atrous_rows(c, C, f, F, fs, var, valid, cs, cs_plane, H, W, rs, ps, step, h25, out, var_out, den_out,
                               y0, y1, (float *)scr));
 }
+
+/* ------------------------------------------------------------------------------------------
+ * The gradients of one À-Trous level without variance or holes (backends.base.ATrousLevelGradOp;
+ * torch_code.filter_atrous.level_grad is the same in torch), for rows [y0, y1) of one image.
+ *
+ * out_p = Σ_q w_pq c_q / D_p, w_pq = h_t exp(-(s_p |c_p - c_q|² + |f_p - f_q|²)). With gp = g / D
+ * (given), G_pq = Σ_k gp_pk (c_qk - out_pk) and E_pq = -w_pq G_pq:
+ *   dc_p += Σ_q E_pq 2 s_p (c_p - c_q)          ds_p += Σ_q E_pq |c_p - c_q|²
+ *   df_p += Σ_q E_pq 2 (f_p - f_q)
+ * as the centre, and as the neighbour q of p = q - o_t:
+ *   dc_q += w_pq gp_p - E_pq 2 s_p (c_p - c_q)   df_q -= E_pq 2 (f_p - f_q).
+ * Each row gathers both (no two bands write one pixel); taps outside the image are left out as in
+ * the forward. Plain contiguous planes of H x W; s: NULL (no colour weight), one value or a plane
+ * (CSM 0, 1, 2); f, df NULL when F = 0; ds NULL when not wanted.
+ */
+INLINE void grad_pairs(const int C, const int F, const int CSM, const float *restrict c, const float *restrict f,
+                       const float *restrict s, const float *restrict out, const float *restrict gp, size_t HW,
+                       float h, size_t p0, size_t q0, int xa, int xb, int centre, float *restrict dc,
+                       float *restrict df, float *restrict ds) {
+    int x = xa;
+    for (; x + VL <= xb; x += VL) { /* VL pixels at a time, the same sums on vectors */
+        const size_t p = p0 + x, q = q0 + x;
+        vf dcol = vsplat(0.0f), dfe = vsplat(0.0f), u[8], v[8], G = vsplat(0.0f);
+        FOR8(k, C, { u[k] = vload(c + k * HW + p) - vload(c + k * HW + q); dcol += u[k] * u[k]; });
+        FOR8(k, F, { v[k] = vload(f + k * HW + p) - vload(f + k * HW + q); dfe += v[k] * v[k]; });
+        const vf sp = CSM == 2 ? vload(s + p) : vsplat(CSM == 1 ? s[0] : 0.0f);
+        const vf w = vsplat(h) * vexp_neg(sp * dcol + dfe);
+        FOR8(k, C, G += vload(gp + k * HW + p) * (vload(c + k * HW + q) - vload(out + k * HW + p)));
+        const vf E = -w * G, E2s = 2.0f * E * sp;
+        if (centre) {
+            FOR8(k, C, vstore(dc + k * HW + p, vload(dc + k * HW + p) + E2s * u[k]));
+            FOR8(k, F, vstore(df + k * HW + p, vload(df + k * HW + p) + 2.0f * E * v[k]));
+            if (CSM && ds) vstore(ds + p, vload(ds + p) + E * dcol);
+        } else {
+            FOR8(k, C, vstore(dc + k * HW + q, vload(dc + k * HW + q) + w * vload(gp + k * HW + p) - E2s * u[k]));
+            FOR8(k, F, vstore(df + k * HW + q, vload(df + k * HW + q) - 2.0f * E * v[k]));
+        }
+    }
+    for (; x < xb; ++x) {
+        const size_t p = p0 + x, q = q0 + x;
+        float dcol = 0.0f, dfe = 0.0f, u[8], v[8];
+        FOR8(k, C, { u[k] = c[k * HW + p] - c[k * HW + q]; dcol += u[k] * u[k]; });
+        FOR8(k, F, { v[k] = f[k * HW + p] - f[k * HW + q]; dfe += v[k] * v[k]; });
+        const float sp = CSM == 2 ? s[p] : CSM == 1 ? s[0] : 0.0f;
+        const float w = h * exp_neg(sp * dcol + dfe);
+        float G = 0.0f;
+        FOR8(k, C, G += gp[k * HW + p] * (c[k * HW + q] - out[k * HW + p]));
+        const float E = -w * G, E2s = 2.0f * E * sp;
+        if (centre) {
+            FOR8(k, C, dc[k * HW + p] += E2s * u[k]);
+            FOR8(k, F, df[k * HW + p] += 2.0f * E * v[k]);
+            if (CSM && ds) ds[p] += E * dcol;
+        } else {
+            FOR8(k, C, dc[k * HW + q] += w * gp[k * HW + p] - E2s * u[k]);
+            FOR8(k, F, df[k * HW + q] -= 2.0f * E * v[k]);
+        }
+    }
+}
+
+typedef void (*pairs_fn)(const float *, const float *, const float *, const float *, const float *, size_t, float,
+                         size_t, size_t, int, int, int, float *, float *, float *);
+#define PAIRS(C, F, CSM)                                                                                     \
+    static void pairs_##C##_##F##_##CSM(const float *c, const float *f, const float *s, const float *out,   \
+                                        const float *gp, size_t HW, float h, size_t p0, size_t q0, int xa,   \
+                                        int xb, int centre, float *dc, float *df, float *ds) {               \
+        grad_pairs(C, F, CSM, c, f, s, out, gp, HW, h, p0, q0, xa, xb, centre, dc, df, ds);                  \
+    }
+#define PAIRS_C(C) PAIRS(C, 0, 0) PAIRS(C, 0, 1) PAIRS(C, 0, 2) PAIRS(C, 3, 0) PAIRS(C, 3, 1) PAIRS(C, 3, 2) \
+    PAIRS(C, 6, 0) PAIRS(C, 6, 1) PAIRS(C, 6, 2)
+PAIRS_C(1) PAIRS_C(3)
+
+static pairs_fn pick_pairs(int C, int F, int CSM) {
+#define PICKP(c, fe) \
+    if (C == c && F == fe) return CSM == 0 ? pairs_##c##_##fe##_0 : CSM == 1 ? pairs_##c##_##fe##_1 : pairs_##c##_##fe##_2;
+    PICKP(1, 0) PICKP(1, 3) PICKP(1, 6) PICKP(3, 0) PICKP(3, 3) PICKP(3, 6)
+#undef PICKP
+    return NULL;
+}
+
+static void atrous_grad_rows(const float *c, int C, const float *f, int F, const float *s, int CSM, const float *out,
+                             const float *gp, int H, int W, int step, const float *h25, float *dc, float *df,
+                             float *ds, int y0, int y1) {
+    const unsigned csr = ftz_begin();
+    const size_t HW = (size_t)H * W;
+    const pairs_fn pairs = pick_pairs(C, F, CSM);
+    for (int y = y0; y < y1; ++y) {
+        const size_t row = (size_t)y * W;
+        for (int k = 0; k < C; ++k) memset(dc + k * HW + row, 0, sizeof(float) * W);
+        for (int k = 0; k < F; ++k) memset(df + k * HW + row, 0, sizeof(float) * W);
+        if (ds) memset(ds + row, 0, sizeof(float) * W);
+        for (int t = 0; t < 25; ++t) {
+            const int oy = (t / 5 - 2) * step, ox = (t % 5 - 2) * step;
+            for (int centre = 1; centre >= 0; --centre) {
+                const int yo = centre ? y + oy : y - oy; /* the other pixel's row */
+                if (yo < 0 || yo >= H) continue;
+                const int sx = centre ? ox : -ox;        /* the other pixel's column offset */
+                const int xa = sx < 0 ? -sx : 0, xb = sx > 0 ? W - sx : W;
+                if (xa >= xb) continue;
+                /* p: the centre of the pair, q: its neighbour */
+                const size_t p0 = centre ? row : (size_t)yo * W - ox, q0 = centre ? (size_t)yo * W + ox : row;
+                pairs(c, f, s, out, gp, HW, h25[t], p0, q0, xa, xb, centre, dc, df, ds);
+            }
+        }
+    }
+    ftz_end(csr);
+}
+
+void torchgi_atrous_level_grad(const float *c, int C, const float *f, int F, const float *s, int CSM,
+                               const float *out, const float *gp, int H, int W, int step, const float *h25,
+                               float *dc, float *df, float *ds, int nt, void *scratch, long long stride) {
+    OVER_BANDS(H, atrous_grad_rows(c, C, f, F, s, CSM, out, gp, H, W, step, h25, dc, df, ds, y0, y1));
+}

@@ -70,6 +70,7 @@ _SIGNATURES = {
     "torchgi_render_pixels": ([_P, _P, _L, _P, _L, _P, _P, _I], None),
     "torchgi_render_guides": ([_P, _P, _L, _P, _I], None),
     "torchgi_upsample_apply": ([_P, _I, _I, _P, _P, _P, _P, _I, _I, _P, *_BANDS], None),
+    "torchgi_atrous_level_grad": ([_P, _I, _P, _I, _P, _I, _P, _P, _I, _I, _I, _P, _P, _P, _P, *_BANDS], None),
     "torchgi_apply_kernels": ([_P, _P, _I, _I, _I, _I, _I, _P, _P, *_BANDS], None),
     "torchgi_apply_kernels_grad": ([_P, _P, _P, _P, _I, _I, _I, _I, _I, _I, _P, _P, *_BANDS], None),
     "torchgi_guided_finish": ([_P, _I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _I, _I, _I, _I, _P, _P, _P, _P, _P, _P, _F,

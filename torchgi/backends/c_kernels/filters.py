@@ -6,6 +6,8 @@ from __future__ import annotations
 import torch
 
 from torchgi.backends.base import (
+    ATrousLevelGradOp,
+    ATrousLevelOp,
     ATrousOp,
     BoxOp,
     GuidedOp,
@@ -193,3 +195,46 @@ def atrous(desc: ATrousOp) -> tuple[torch.Tensor, list[torch.Tensor]]:
     return iterate_levels(desc, level)
 
 
+
+
+def atrous_level(desc: ATrousLevelOp) -> tuple[torch.Tensor, torch.Tensor]:
+    """:class:`~torchgi.backends.base.ATrousLevelOp` in one kernel call per image (the guides
+    already scaled for the level); the output copied out of the padded layout.
+
+    Example:
+        >>> c = torch.full((1, 3, 8, 8), 0.5)
+        >>> build.library() is None or torch.equal(atrous_level(ATrousLevelOp(c, None, torch.ones(1, 1, 1, 1), 2))[0], c)
+        True
+    """
+    groups = 0 if desc.feat is None else desc.feat.shape[1] // 3
+    out, _, den = _atrous_level(desc.color, desc.feat, [1.0] * groups, None, None, desc.step, desc.scale)
+    return out.contiguous(), den
+
+
+def atrous_level_grad(desc: ATrousLevelGradOp) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
+    """:class:`~torchgi.backends.base.ATrousLevelGradOp` in one kernel call per image (plain planes).
+
+    Example:
+        >>> c = torch.rand(1, 3, 6, 6); s = torch.ones(1, 1, 1, 1)
+        >>> out, den = atrous_level(ATrousLevelOp(c, None, s, 1)) if build.library() else (c, None)
+        >>> g = build.library() and atrous_level_grad(ATrousLevelGradOp(c, None, s, out, torch.ones_like(c) / den, 1))
+        >>> g is None or round(float(g[0].sum()), 3) == 108.0   # a constant shift of c moves every output
+        True
+    """
+    lib = build.library()
+    c, out, gp = desc.color.contiguous(), desc.out.contiguous(), desc.gp.contiguous()
+    B, C, H, W = c.shape
+    f = None if desc.feat is None else desc.feat.contiguous()
+    F = 0 if f is None else f.shape[1]
+    s = desc.scale
+    csm = 0 if s is None else 1 if s.shape[-2:] == (1, 1) else 2
+    s = None if s is None else (s.reshape(B, 1).contiguous() if csm == 1 else s.expand(B, 1, H, W).contiguous())
+    dc = torch.empty_like(c)
+    df = None if f is None else torch.empty_like(f)  # (the kernel writes it; returned when asked)
+    ds = None if s is None else torch.empty(B, 1, H, W, dtype=torch.float32)
+    for b in range(B):
+        _run(lib.torchgi_atrous_level_grad, H, W, c[b].data_ptr(), C, _ptr(None if f is None else f[b]), F,
+             _ptr(None if s is None else s[b]), csm, out[b].data_ptr(), gp[b].data_ptr(), H, W, desc.step,
+             _taps().data_ptr(), dc[b].data_ptr(), _ptr(None if df is None else df[b]),
+             _ptr(None if ds is None else ds[b]), 0)
+    return dc, df if desc.need_feat else None, ds if desc.need_scale else None

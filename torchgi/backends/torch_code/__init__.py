@@ -12,7 +12,13 @@ per op name of :mod:`torchgi.backends.base`.
 from __future__ import annotations
 
 from torchgi.backends.torch_code.accumulation import accumulate, change, history
-from torchgi.backends.torch_code.filter_atrous import atrous, channel_planes, squared_distance
+from torchgi.backends.torch_code.filter_atrous import (
+    atrous,
+    atrous_level,
+    atrous_level_grad,
+    channel_planes,
+    squared_distance,
+)
 from torchgi.backends.torch_code.filter_box import PlaneBoxer, block_mean, block_means, box, box_pool, in_place
 from torchgi.backends.torch_code.filter_guided import apply_coefficients, guided, guided_filter, solve, upsample_apply
 from torchgi.backends.torch_code.filter_kernels import apply_kernels, apply_kernels_grad
@@ -22,7 +28,7 @@ from torchgi.backends.torch_code.sampling import allocate, importance
 from torchgi.backends.torch_code.tracer import guide_rays, path
 
 __all__ = [
-    "NAME", "PlaneBoxer", "accumulate", "allocate", "applied_means", "apply_coefficients", "apply_kernels", "apply_kernels_grad", "atrous", "back_off", "block_mean", "block_means", "box", "box_pool",
+    "NAME", "PlaneBoxer", "accumulate", "allocate", "applied_means", "apply_coefficients", "apply_kernels", "apply_kernels_grad", "atrous", "atrous_level", "atrous_level_grad", "back_off", "block_mean", "block_means", "box", "box_pool",
     "change", "channel_planes", "choose", "describe", "edge_share", "fine_band", "guide_rays", "guide_stats", "guided", "guided_filter",
     "history", "importance", "in_place", "light_in", "light_out", "mix_half", "model_residual", "path", "restore", "solve", "squared_distance",
     "supports", "up2", "upsample_apply",

@@ -7,10 +7,10 @@ import functools
 
 import torch
 
-from torchgi.backends.base import (
-    ATrousOp,
-)
+from torchgi.backends.autograd_ops import ATrousLevel
+from torchgi.backends.base import ATrousLevelGradOp, ATrousLevelOp, ATrousOp
 from torchgi.backends.levels import colour_scale, iterate_levels, scaled_guides
+from torchgi.core.check import is_tracing
 from torchgi.core.taps import Padded, kernel_5x5
 
 _TAPS = kernel_5x5()
@@ -113,13 +113,95 @@ def atrous(desc: ATrousOp) -> tuple[torch.Tensor, list[torch.Tensor]]:
     """
     guides = scaled_guides(desc)
     level_fn = _compiled_iteration() if desc.fused else _iteration
+    by_level = level_backward(desc)
+    base = torch.cat([g for g, _, _ in guides], 1) if by_level and guides else None  # saved once for all levels
 
     def level(c, var, valid, i):
         step = 2**i
         scale = colour_scale(desc, i, var)
+        if by_level:
+            mult = torch.cat([s / step if per_step else s for _, s, per_step in guides], 1) if guides else None
+            return ATrousLevel.apply(c, base, mult, scale, step), None, None
         feat = torch.cat([g * (s / step if per_step else s) for g, s, per_step in guides], 1) if guides else None
         return level_fn(c, feat, var, valid, step, scale, desc.fused)
 
     return iterate_levels(desc, level)
+
+
+def level_backward(desc: ATrousOp) -> bool:
+    """Whether ``desc`` runs its levels as :class:`~torchgi.backends.autograd_ops.ATrousLevel`
+    (forward and written-out gradients each through the seam): under autograd, not traced, without
+    a variance or sub-sampling holes, not ``fused``.
+
+    Example:
+        >>> c = torch.ones(1, 3, 4, 4, requires_grad=True)
+        >>> level_backward(ATrousOp(c, None, None, None, None, torch.ones(1, 1, 1, 1), None, None, iterations=1))
+        True
+    """
+    return (torch.is_grad_enabled() and not is_tracing() and desc.variance is None and desc.valid is None
+            and not desc.fused and any(t is not None and t.requires_grad for t in desc.tensors()))
+
+
+def atrous_level(desc: ATrousLevelOp) -> tuple[torch.Tensor, torch.Tensor]:
+    """:class:`~torchgi.backends.base.ATrousLevelOp` in torch: :func:`_iteration`.
+
+    Example:
+        >>> c = torch.full((1, 3, 8, 8), 0.5)
+        >>> out, den = atrous_level(ATrousLevelOp(c, None, torch.ones(1, 1, 1, 1), 2))
+        >>> torch.equal(out, c)
+        True
+    """
+    out, _, den = _iteration(desc.color, desc.feat, None, None, desc.step, desc.scale)
+    return out, den
+
+
+def atrous_level_grad(desc: ATrousLevelGradOp) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
+    """:class:`~torchgi.backends.base.ATrousLevelGradOp` written out in torch (no autograd): per
+    tap, each pixel as the centre of a pair and as the neighbour of the pixel ``o_t`` before it.
+
+    Example:
+        >>> c = torch.rand(1, 3, 6, 6); s = torch.ones(1, 1, 1, 1)
+        >>> out, den = atrous_level(ATrousLevelOp(c, None, s, 1))
+        >>> dc, _, ds = atrous_level_grad(ATrousLevelGradOp(c, None, s, out, torch.ones_like(c) / den, 1))
+        >>> round(float(dc.sum()), 4) == 6 * 6 * 3   # the sum of the outputs moves with a constant shift of c
+        True
+    """
+    c, f, s, out, gp, step = desc.color, desc.feat, desc.scale, desc.out, desc.gp, desc.step
+    pad = 2 * step
+    pc, pgp, pout = Padded(c, pad), Padded(gp, pad), Padded(out, pad)
+    pf = Padded(f, pad) if f is not None else None
+    inside = Padded(torch.ones_like(c[:, :1]), pad)
+    ps = Padded(s, pad) if s is not None and s.shape[-2:] != (1, 1) else None
+    dc = torch.zeros_like(c)
+    df = torch.zeros_like(f) if f is not None and desc.need_feat else None
+    ds = torch.zeros_like(c[:, :1]) if s is not None and desc.need_scale else None
+    for dy, dx, h in _TAPS:
+        oy, ox = dy * step, dx * step
+        for centre in (True, False):
+            sy, sx = (oy, ox) if centre else (-oy, -ox)  # the other pixel of the pair
+            cp, cq = (c, pc.at(sy, sx)) if centre else (pc.at(sy, sx), c)
+            u = cp - cq
+            dcol = u.square().sum(1, keepdim=True)
+            sp = None if s is None else (s if centre or ps is None else ps.at(sy, sx))
+            d = torch.zeros_like(dcol) if s is None else sp * dcol
+            v = None
+            if f is not None:
+                v = f - pf.at(sy, sx) if centre else pf.at(sy, sx) - f
+                d = d + v.square().sum(1, keepdim=True)
+            w = h * torch.exp(-d) * inside.at(sy, sx)
+            gpp, outp = (gp, out) if centre else (pgp.at(sy, sx), pout.at(sy, sx))
+            E = -w * (gpp * (cq - outp)).sum(1, keepdim=True)
+            E2s = 0 if s is None else 2 * E * sp
+            if centre:
+                dc = dc + E2s * u
+                if df is not None:
+                    df = df + 2 * E * v
+                if ds is not None:
+                    ds = ds + E * dcol
+            else:
+                dc = dc + w * gpp - E2s * u
+                if df is not None:
+                    df = df - 2 * E * v
+    return dc, df, ds
 
 

@@ -1,25 +1,21 @@
 """The torch code of per-pixel kernel application (:class:`~torchgi.backends.kernel_ops.ApplyKernelsOp`
-and its gradients): the input zero-padded once by ``d (k // 2)``, each tap a shifted view of it
-(never a ``(B, k² C, H, W)`` unfold), the mask of taps inside the image a shifted view of a padded
-plane of ones. Differentiable, traced and exported as pads, slices and products."""
+and its gradients): the input zero-padded once by ``d (k // 2)`` (:class:`~torchgi.core.taps.Padded`),
+each tap a shifted view of it (never a ``(B, k² C, H, W)`` unfold), the mask of taps inside the
+image a shifted view of a padded plane of ones. Differentiable, traced and exported as pads,
+slices and products."""
 
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 
 from torchgi.backends.kernel_ops import ApplyKernelsGradOp, ApplyKernelsOp
+from torchgi.core.taps import Padded
 
 
 def _taps(k: int, d: int) -> list[tuple[int, int]]:
     """The ``(dy, dx)`` offset of each tap ``t = i k + j``."""
     h = k // 2
     return [((i - h) * d, (j - h) * d) for i in range(k) for j in range(k)]
-
-
-def _shifted(padded: torch.Tensor, R: int, dy: int, dx: int, H: int, W: int) -> torch.Tensor:
-    """The view of ``padded`` (padded by ``R`` on each side) at ``(y + dy, x + dx)``."""
-    return padded[..., R + dy : R + dy + H, R + dx : R + dx + W]
 
 
 def kernel_apply(x: torch.Tensor, weights: torch.Tensor, dilation: int, normalize: bool
@@ -32,20 +28,19 @@ def kernel_apply(x: torch.Tensor, weights: torch.Tensor, dilation: int, normaliz
         >>> kernel_apply(x, w, 1, False)[0].flatten().tolist()
         [1.0, 2.0, 0.0]
     """
-    H, W = x.shape[-2:]
     k = round(weights.shape[1] ** 0.5)
     R = dilation * (k // 2)
-    xp = F.pad(x, (R, R, R, R))
+    xp = Padded(x, R)
     out = None
     for t, (dy, dx) in enumerate(_taps(k, dilation)):
-        term = weights[:, t : t + 1] * _shifted(xp, R, dy, dx, H, W)
+        term = weights[:, t : t + 1] * xp.at(dy, dx)
         out = term if out is None else out + term
     if not normalize:
         return out, None
-    inside = F.pad(torch.ones(1, 1, H, W, dtype=x.dtype, device=x.device), (R, R, R, R))
+    inside = Padded(torch.ones_like(x[:1, :1]), R)
     den = None
     for t, (dy, dx) in enumerate(_taps(k, dilation)):
-        term = weights[:, t : t + 1] * _shifted(inside, R, dy, dx, H, W)
+        term = weights[:, t : t + 1] * inside.at(dy, dx)
         den = term if den is None else den + term
     return out / den, den
 
@@ -72,26 +67,22 @@ def apply_kernels_grad(desc: ApplyKernelsGradOp) -> tuple[torch.Tensor | None, t
         [1.0, 2.0, 3.0]
     """
     x, w, d = desc.x, desc.weights, desc.dilation
-    H, W = x.shape[-2:]
     k = round(w.shape[1] ** 0.5)
     R = d * (k // 2)
     gp = desc.grad if desc.den is None else desc.grad / desc.den
     dx = dw = None
     if desc.need_weights:
-        xp = F.pad(x, (R, R, R, R))
-        inside = None if desc.den is None else F.pad(torch.ones(1, 1, H, W, dtype=x.dtype, device=x.device),
-                                                     (R, R, R, R))
+        xp = Padded(x, R)
+        inside = None if desc.den is None else Padded(torch.ones_like(x[:1, :1]), R)
         planes = []
         for dy, dx_ in _taps(k, d):
             if inside is None:
-                planes.append((gp * _shifted(xp, R, dy, dx_, H, W)).sum(1, keepdim=True))
+                planes.append((gp * xp.at(dy, dx_)).sum(1, keepdim=True))
             else:
-                diff = _shifted(xp, R, dy, dx_, H, W) - desc.out
-                planes.append((gp * diff).sum(1, keepdim=True) * _shifted(inside, R, dy, dx_, H, W))
+                planes.append((gp * (xp.at(dy, dx_) - desc.out)).sum(1, keepdim=True) * inside.at(dy, dx_))
         dw = torch.cat(planes, 1)
     if desc.need_x:
         for t, (dy, dx_) in enumerate(_taps(k, d)):
-            spread = F.pad(w[:, t : t + 1] * gp, (R, R, R, R))
-            term = _shifted(spread, R, -dy, -dx_, H, W)
+            term = Padded(w[:, t : t + 1] * gp, R).at(-dy, -dx_)
             dx = term if dx is None else dx + term
     return dx, dw
