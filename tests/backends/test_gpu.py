@@ -22,6 +22,7 @@ from torchgi.backends import triton_kernels as gpu
 from torchgi.backends.triton_kernels import accumulation as accumulation_kernels
 from torchgi.backends.triton_kernels import filter_atrous as atrous_kernels
 from torchgi.backends.triton_kernels import filter_guided as guided_kernels
+from torchgi.backends.triton_kernels import filter_kernels as kernel_kernels
 from torchgi.filters import atrous, box, guided
 
 
@@ -186,6 +187,37 @@ def test_triton_guided_and_box_match_oracle_in_the_interpreter():
     assert guided_err < 2e-6 and box_err < 1e-6
 
 
+_INTERPRETED_KERNELS = """
+import sys, torch
+sys.path.insert(0, {root!r})
+from tests.oracles import apply_kernels_oracle
+from torchgi import backends
+from torchgi.filters import apply_kernels
+worst = 0.0
+for k, d, normalize in ((3, 1, False), (5, 2, True), (3, 5, True)):
+    g = torch.Generator().manual_seed(k + d)
+    x, w = torch.rand(2, 3, 11, 14, generator=g), torch.rand(2, k * k, 11, 14, generator=g) + 0.05
+    gr = torch.randn(2, 3, 11, 14, generator=g)
+    x64, w64 = x.double().requires_grad_(), w.double().requires_grad_()
+    want = apply_kernels_oracle(x64, w64, d, normalize)
+    wg = torch.autograd.grad((want * gr.double()).sum(), (x64, w64))
+    xs, ws = x.clone().requires_grad_(), w.clone().requires_grad_()
+    with backends.use("triton"):
+        out = apply_kernels(xs, ws, dilation=d, normalize=normalize)
+        got = torch.autograd.grad((out * gr).sum(), (xs, ws))
+    assert backends.status()["last"]["apply_kernels_grad"]["ran"] == "triton"
+    for a, b in [(out, want.detach())] + list(zip(got, wg)):
+        worst = max(worst, float((a.double() - b).abs().max()) / max(1.0, float(b.abs().max())))
+print(worst)
+"""
+
+
+def test_triton_apply_kernels_match_oracle_in_the_interpreter():
+    """The Triton forward and gradients of apply_kernels against autograd through the float64 oracle."""
+    (worst,) = _interpret(_INTERPRETED_KERNELS)
+    assert worst < 1e-5
+
+
 def test_triton_accumulation_matches_float64_torch_code_on_cuda(device):
     """The accumulation kernel on the GPU against the float64 torch code: random history, normals
     and motion (taps off the image, rejected and kept), fireflies at a bound."""
@@ -249,7 +281,9 @@ def _variants():
         (guided_kernels._column_sums, {"CENTRE": False, "BW": guided_kernels._COL_BW, "UNROLL": guided_kernels._COL_UNROLL}, guided_kernels._COL_WARPS),
         (guided_kernels._row_means, {"BH": guided_kernels._ROW_BH, "BW": guided_kernels._ROW_BW}, 4),
     ] + [(k, {"N": n, "BLOCK": guided_kernels._PIX}, 4) for k in (guided_kernels._solve, guided_kernels._apply) for n in (1, 2, 3, 4)
-         ] + [(accumulation_kernels._accumulate, {"BLOCK": accumulation_kernels._BLOCK}, 4)]
+         ] + [(accumulation_kernels._accumulate, {"BLOCK": accumulation_kernels._BLOCK}, 4)] + [
+        (kernel_kernels._forward, {"NORMALIZE": True, "BLOCK": kernel_kernels._BLOCK}, 4),
+        (kernel_kernels._gradients, {"NORMALIZE": True, "DX": True, "DW": True, "BLOCK": kernel_kernels._BLOCK}, 4)]
 
 
 def test_kernels_compile_for_a_gpu_without_register_spills():

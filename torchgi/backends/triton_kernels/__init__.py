@@ -1,8 +1,8 @@
 """The Triton back end, for CUDA tensors (float32, without autograd or tracing): an À-Trous level,
-the guided filter (with the box filter it is built from), the Denoiser's guided pipeline and the
-temporal accumulation.
+the guided filter (with the box filter it is built from), the Denoiser's guided pipeline, the
+temporal accumulation, and per-pixel kernels with their gradients.
 
-One file per op family: :mod:`.filter_atrous`, :mod:`.filter_guided` (and the box filter),
+One file per op family: :mod:`.filter_atrous`, :mod:`.filter_guided` (and the box filter), :mod:`.filter_kernels`,
 :mod:`.pipeline`, :mod:`.accumulation` (one launch per frame);
 :mod:`.common` holds Triton itself and what the kernels share. This module is the back end's
 registry: :func:`supports`, :func:`describe` and one function per op.
@@ -37,9 +37,10 @@ from torchgi.backends.triton_kernels.accumulation import accumulate
 from torchgi.backends.triton_kernels.common import _INTERPRET, triton
 from torchgi.backends.triton_kernels.filter_atrous import MAX_CHANNELS, atrous
 from torchgi.backends.triton_kernels.filter_guided import box, guided
+from torchgi.backends.triton_kernels.filter_kernels import apply_kernels, apply_kernels_grad
 from torchgi.backends.triton_kernels.pipeline import restore
 
-__all__ = ["MAX_CHANNELS", "NAME", "accumulate", "atrous", "box", "describe", "guided", "restore", "supports"]
+__all__ = ["MAX_CHANNELS", "NAME", "accumulate", "apply_kernels", "apply_kernels_grad", "atrous", "box", "describe", "guided", "restore", "supports"]
 
 NAME = "triton"
 
@@ -59,14 +60,14 @@ def describe() -> str:
 
 def supports(op: str, desc: BoxOp | GuidedOp | ATrousOp | RestoreOp | AccumulateOp) -> str | None:
     """None when the kernels take ``desc``: an À-Trous level, the guided or box filter, the
-    guided pipeline or the temporal accumulation of eager float32 CUDA tensors (CPU ones under the
+    guided pipeline, the temporal accumulation or per-pixel kernels and their gradients of eager float32 CUDA tensors (CPU ones under the
     interpreter), at most 4 À-Trous colour channels; else why not.
 
     Example:
         >>> supports("importance", None)   # no Triton kernel of the importance map
         'no Triton kernel for importance'
     """
-    if op not in ("box", "guided", "atrous", "restore", "accumulate"):
+    if op not in ("box", "guided", "atrous", "restore", "accumulate", "apply_kernels", "apply_kernels_grad"):
         return f"no Triton kernel for {op}"
     if triton is None:
         return "Triton not installed"
