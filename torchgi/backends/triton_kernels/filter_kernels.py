@@ -26,14 +26,14 @@ if triton is not None:
         h = k // 2
         den = tl.zeros([BLOCK], dtype=tl.float32)
         if NORMALIZE:
-            for t in range(0, k * k):
+            for t in range(k * k):
                 sy, sx = y + (t // k - h) * d, x + (t % k - h) * d
                 inside = live & (sy >= 0) & (sy < H) & (sx >= 0) & (sx < W)
                 den += tl.load(w_ptr + (b * k * k + t) * HW + i, mask=inside, other=0.0)
             tl.store(den_ptr + b * HW + i, den, mask=live)
-        for c in range(0, C):
+        for c in range(C):
             acc = tl.zeros([BLOCK], dtype=tl.float32)
-            for t in range(0, k * k):
+            for t in range(k * k):
                 sy, sx = y + (t // k - h) * d, x + (t % k - h) * d
                 inside = live & (sy >= 0) & (sy < H) & (sx >= 0) & (sx < W)
                 wt = tl.load(w_ptr + (b * k * k + t) * HW + i, mask=inside, other=0.0)
@@ -54,11 +54,11 @@ if triton is not None:
         y, x = i // W, i % W
         h = k // 2
         if DW:
-            for t in range(0, k * k):
+            for t in range(k * k):
                 sy, sx = y + (t // k - h) * d, x + (t % k - h) * d
                 inside = live & (sy >= 0) & (sy < H) & (sx >= 0) & (sx < W)
                 acc = tl.zeros([BLOCK], dtype=tl.float32)
-                for c in range(0, C):
+                for c in range(C):
                     g = tl.load(gp_ptr + (b * C + c) * HW + i, mask=live, other=0.0)
                     xq = tl.load(x_ptr + (b * C + c) * HW + sy * W + sx, mask=inside, other=0.0)
                     if NORMALIZE:
@@ -66,9 +66,9 @@ if triton is not None:
                     acc += g * xq
                 tl.store(dw_ptr + (b * k * k + t) * HW + i, tl.where(inside, acc, 0.0), mask=live)
         if DX:
-            for c in range(0, C):
+            for c in range(C):
                 acc = tl.zeros([BLOCK], dtype=tl.float32)
-                for t in range(0, k * k):
+                for t in range(k * k):
                     py, px = y - (t // k - h) * d, x - (t % k - h) * d
                     inside = live & (py >= 0) & (py < H) & (px >= 0) & (px < W)
                     p = py * W + px
