@@ -212,6 +212,43 @@ print(worst)
 """
 
 
+_INTERPRETED_LEVELS = """
+import sys, torch
+sys.path.insert(0, {root!r})
+from torchgi import backends
+from torchgi.filters import atrous
+from torchgi.backends.torch_code import filter_atrous
+worst = 0.0
+g = torch.Generator().manual_seed(3)
+c, x = torch.rand(2, 3, 5, 7, generator=g), torch.rand(2, 3, 5, 7, generator=g)
+n = torch.nn.functional.normalize(torch.randn(2, 3, 5, 7, generator=g), dim=1)
+gr = torch.randn(2, 3, 5, 7, generator=g)
+for sig, kw in ((torch.tensor([0.4, 0.7]), {{"sigma_position": None}}), (0.3 + torch.rand(2, 1, 5, 7, generator=g), {{}})):
+    def grads(dtype, by_level, backend):
+        ts = [t.to(dtype).requires_grad_() for t in (c, n, x, sig)]
+        filter_atrous.level_backward, keep = (lambda desc: by_level), filter_atrous.level_backward
+        with backends.use(backend):
+            out = atrous(*ts[:3], iterations=2, sigma_color=ts[3], **kw)
+            got = torch.autograd.grad((out * gr.to(dtype)).sum(), ts, allow_unused=True)
+        filter_atrous.level_backward = keep
+        return [torch.zeros_like(t) if d is None else d for t, d in zip(ts, got)]
+    want = grads(torch.float64, False, "torch")
+    got = grads(torch.float32, True, "triton")
+    assert backends.status()["last"]["atrous_level_grad"]["ran"] == "triton"
+    assert backends.status()["last"]["atrous_level"]["ran"] == "triton"
+    for a, b in zip(got, want):
+        worst = max(worst, float((a.double() - b).abs().max()) / max(1.0, float(b.abs().max())))
+print(worst)
+"""
+
+
+def test_triton_atrous_level_gradients_match_autograd_in_the_interpreter():
+    """The Triton À-Trous level and its gradients (colour, guides, σ_rt value or map) against
+    autograd through the torch levels in float64."""
+    (worst,) = _interpret(_INTERPRETED_LEVELS)
+    assert worst < 1e-4
+
+
 def test_triton_apply_kernels_match_oracle_in_the_interpreter():
     """The Triton forward and gradients of apply_kernels against autograd through the float64 oracle."""
     (worst,) = _interpret(_INTERPRETED_KERNELS)
@@ -283,7 +320,9 @@ def _variants():
     ] + [(k, {"N": n, "BLOCK": guided_kernels._PIX}, 4) for k in (guided_kernels._solve, guided_kernels._apply) for n in (1, 2, 3, 4)
          ] + [(accumulation_kernels._accumulate, {"BLOCK": accumulation_kernels._BLOCK}, 4)] + [
         (kernel_kernels._forward, {"NORMALIZE": True, "BLOCK": kernel_kernels._BLOCK}, 4),
-        (kernel_kernels._gradients, {"NORMALIZE": True, "DX": True, "DW": True, "BLOCK": kernel_kernels._BLOCK}, 4)]
+        (kernel_kernels._gradients, {"NORMALIZE": True, "DX": True, "DW": True, "BLOCK": kernel_kernels._BLOCK}, 4),
+        (atrous_kernels._level_grad, {"C": 3, "F": 6, "CS": 2, "DF": True, "DS": True,
+                                      "BLOCK": atrous_kernels._GRAD_BLOCK}, 4)]
 
 
 def test_kernels_compile_for_a_gpu_without_register_spills():

@@ -35,12 +35,13 @@ from __future__ import annotations
 from torchgi.backends.base import AccumulateOp, ATrousOp, BoxOp, GuidedOp, RestoreOp, float32_eager
 from torchgi.backends.triton_kernels.accumulation import accumulate
 from torchgi.backends.triton_kernels.common import _INTERPRET, triton
-from torchgi.backends.triton_kernels.filter_atrous import MAX_CHANNELS, atrous
+from torchgi.backends.triton_kernels.filter_atrous import MAX_CHANNELS, atrous, atrous_level, atrous_level_grad
 from torchgi.backends.triton_kernels.filter_guided import box, guided
 from torchgi.backends.triton_kernels.filter_kernels import apply_kernels, apply_kernels_grad
 from torchgi.backends.triton_kernels.pipeline import restore
 
-__all__ = ["MAX_CHANNELS", "NAME", "accumulate", "apply_kernels", "apply_kernels_grad", "atrous", "box", "describe", "guided", "restore", "supports"]
+__all__ = ["MAX_CHANNELS", "NAME", "accumulate", "apply_kernels", "apply_kernels_grad", "atrous", "atrous_level",
+           "atrous_level_grad", "box", "describe", "guided", "restore", "supports"]
 
 NAME = "triton"
 
@@ -67,7 +68,8 @@ def supports(op: str, desc: BoxOp | GuidedOp | ATrousOp | RestoreOp | Accumulate
         >>> supports("importance", None)   # no Triton kernel of the importance map
         'no Triton kernel for importance'
     """
-    if op not in ("box", "guided", "atrous", "restore", "accumulate", "apply_kernels", "apply_kernels_grad"):
+    if op not in ("box", "guided", "atrous", "restore", "accumulate", "apply_kernels", "apply_kernels_grad",
+                  "atrous_level", "atrous_level_grad"):
         return f"no Triton kernel for {op}"
     if triton is None:
         return "Triton not installed"
@@ -81,6 +83,9 @@ def supports(op: str, desc: BoxOp | GuidedOp | ATrousOp | RestoreOp | Accumulate
         return "the Triton accumulation takes images of fewer than 2^31 pixels"
     if op == "atrous" and desc.color.shape[1] > MAX_CHANNELS:
         return f"the À-Trous kernel takes at most {MAX_CHANNELS} colour channels"
+    if op in ("atrous_level", "atrous_level_grad") and (desc.color.shape[1] > MAX_CHANNELS or (
+            desc.feat is not None and desc.feat.shape[1] not in (3, 6))):
+        return f"the Triton {op} takes at most {MAX_CHANNELS} colour channels and 0, 3 or 6 guide planes"
     if op == "atrous" and desc.inv_color.shape[-2:] != (1, 1):
         return "a per-pixel sigma_color map: the torch code"
     return None

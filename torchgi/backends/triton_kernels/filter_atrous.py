@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import torch
 
-from torchgi.backends.base import ATrousOp
+from torchgi.backends.base import ATrousLevelGradOp, ATrousLevelOp, ATrousOp
 from torchgi.backends.levels import colour_scale, iterate_levels
 from torchgi.backends.triton_kernels.common import _cdiv, _taps, tl, triton
 
@@ -232,3 +232,141 @@ def atrous(desc: ATrousOp) -> tuple[torch.Tensor, list[torch.Tensor]]:
     return iterate_levels(desc, level)
 
 
+
+
+def atrous_level(desc: ATrousLevelOp) -> tuple[torch.Tensor, torch.Tensor]:
+    """:class:`~torchgi.backends.base.ATrousLevelOp` by the level kernel: the scaled guides' groups
+    enter as its normal and position with unit inverse σ's (the normal's times ``step²``, which
+    the kernel divides by), the colour scale as its σ (a value) or plane (a map).
+
+    Example:
+        >>> c = torch.full((1, 3, 8, 8), 0.5, device="cuda")                                        # doctest: +SKIP
+        >>> torch.equal(atrous_level(ATrousLevelOp(c, None, torch.ones(1, 1, 1, 1, device="cuda"), 2))[0], c)  # doctest: +SKIP
+        True
+    """
+    c, f, s, step = desc.color, desc.feat, desc.scale, desc.step
+    B = c.shape[0]
+    one = torch.ones(B, dtype=c.dtype, device=c.device)
+    scalar = s is not None and s.shape[-2:] == (1, 1)
+    inv = torch.stack([s.reshape(B) if scalar else one, one * step * step, one], 1)
+    groups = [None, None] if f is None else [f[:, :3], f[:, 3:6] if f.shape[1] == 6 else None]
+    colour = None if s is None else 1.0 if scalar else s
+    out, _, den = _atrous_level(c, groups[0], groups[1], inv, None, None, step, colour)
+    return out, den
+
+
+if triton is not None:
+
+    @triton.jit
+    def _pair(c_ptr, f_ptr, s_ptr, out_ptr, gp_ptr, p, q, ok, hw, h, sv, C: tl.constexpr, F: tl.constexpr,
+              CS: tl.constexpr):
+        # the pair (p centre, q neighbour) of one tap: w, E = -w Σ_k gp_pk (c_qk - out_pk), s_p and
+        # the colour distance (the channel loop over at most 4 colour and 6 guide planes)
+        dcol = tl.zeros_like(h)
+        G = tl.zeros_like(h)
+        for k in tl.static_range(C):
+            u = tl.load(c_ptr + k * hw + p, mask=ok, other=0.0) - tl.load(c_ptr + k * hw + q, mask=ok, other=0.0)
+            dcol += u * u
+        dfe = tl.zeros_like(h)
+        for k in tl.static_range(F):
+            v = tl.load(f_ptr + k * hw + p, mask=ok, other=0.0) - tl.load(f_ptr + k * hw + q, mask=ok, other=0.0)
+            dfe += v * v
+        sp = tl.zeros_like(h)
+        if CS == 1:
+            sp += sv
+        if CS == 2:
+            sp = tl.load(s_ptr + p, mask=ok, other=0.0)
+        w = tl.where(ok, h * tl.exp(-(sp * dcol + dfe)), 0.0)
+        for k in tl.static_range(C):
+            G += tl.load(gp_ptr + k * hw + p, mask=ok, other=0.0) * (
+                tl.load(c_ptr + k * hw + q, mask=ok, other=0.0) - tl.load(out_ptr + k * hw + p, mask=ok, other=0.0))
+        return w, -w * G, sp, dcol
+
+    @triton.jit
+    def _level_grad(c_ptr, f_ptr, s_ptr, out_ptr, gp_ptr, taps_ptr, dc_ptr, df_ptr, ds_ptr, H, W, step,
+                    C: tl.constexpr, F: tl.constexpr, CS: tl.constexpr, DF: tl.constexpr, DS: tl.constexpr,
+                    BLOCK: tl.constexpr):
+        # kernels.c's atrous_grad_rows (the same sums): each pixel gathers its gradients as the
+        # centre of its 25 pairs and as the neighbour of the 25 pixels whose taps read it
+        b = tl.program_id(1).to(tl.int64)
+        hw = H * W
+        i = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+        live = i < hw
+        y, x = i // W, i % W
+        c_ptr += b * C * hw
+        f_ptr += b * F * hw
+        out_ptr += b * C * hw
+        gp_ptr += b * C * hw
+        sv = 0.0
+        if CS == 1:
+            sv = tl.load(s_ptr + b)
+        if CS == 2:
+            s_ptr += b * hw
+        for k in tl.static_range(C):
+            tl.store(dc_ptr + b * C * hw + k * hw + i, tl.zeros([BLOCK], dtype=tl.float32), mask=live)
+        for t in range(25):
+            oy = (t // 5 - 2) * step
+            ox = (t % 5 - 2) * step
+            h = tl.zeros([BLOCK], dtype=tl.float32) + tl.load(taps_ptr + t)
+            # as the centre: q = i + o
+            ok = live & (y + oy >= 0) & (y + oy < H) & (x + ox >= 0) & (x + ox < W)
+            q = i + oy * W + ox
+            w, E, sp, dcol = _pair(c_ptr, f_ptr, s_ptr, out_ptr, gp_ptr, i, q, ok, hw, h, sv, C, F, CS)
+            for k in tl.static_range(C):
+                u = tl.load(c_ptr + k * hw + i, mask=ok, other=0.0) - tl.load(c_ptr + k * hw + q, mask=ok, other=0.0)
+                a = dc_ptr + b * C * hw + k * hw + i
+                tl.store(a, tl.load(a, mask=live, other=0.0) + 2.0 * E * sp * u, mask=live)
+            if DF:
+                for k in tl.static_range(F):
+                    v = tl.load(f_ptr + k * hw + i, mask=ok, other=0.0) - tl.load(f_ptr + k * hw + q, mask=ok, other=0.0)
+                    a = df_ptr + b * F * hw + k * hw + i
+                    prev = tl.where(t == 0, 0.0, tl.load(a, mask=live, other=0.0))
+                    tl.store(a, prev + 2.0 * E * v, mask=live)
+            if DS:
+                a = ds_ptr + b * hw + i
+                prev = tl.where(t == 0, 0.0, tl.load(a, mask=live, other=0.0))
+                tl.store(a, prev + E * dcol, mask=live)
+            # as the neighbour: p = i - o
+            ok = live & (y - oy >= 0) & (y - oy < H) & (x - ox >= 0) & (x - ox < W)
+            p = i - oy * W - ox
+            w, E, sp, dcol = _pair(c_ptr, f_ptr, s_ptr, out_ptr, gp_ptr, p, i, ok, hw, h, sv, C, F, CS)
+            for k in tl.static_range(C):
+                u = tl.load(c_ptr + k * hw + p, mask=ok, other=0.0) - tl.load(c_ptr + k * hw + i, mask=ok, other=0.0)
+                a = dc_ptr + b * C * hw + k * hw + i
+                g = tl.load(gp_ptr + k * hw + p, mask=ok, other=0.0)
+                tl.store(a, tl.load(a, mask=live, other=0.0) + w * g - 2.0 * E * sp * u, mask=live)
+            if DF:
+                for k in tl.static_range(F):
+                    v = tl.load(f_ptr + k * hw + p, mask=ok, other=0.0) - tl.load(f_ptr + k * hw + i, mask=ok, other=0.0)
+                    a = df_ptr + b * F * hw + k * hw + i
+                    tl.store(a, tl.load(a, mask=live, other=0.0) - 2.0 * E * v, mask=live)
+
+
+def atrous_level_grad(desc: ATrousLevelGradOp) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
+    """:class:`~torchgi.backends.base.ATrousLevelGradOp` in one launch.
+
+    Example:
+        >>> c = torch.rand(1, 3, 6, 6, device="cuda"); s = torch.ones(1, 1, 1, 1, device="cuda")  # doctest: +SKIP
+        >>> out, den = atrous_level(ATrousLevelOp(c, None, s, 1))                                  # doctest: +SKIP
+        >>> dc, _, ds = atrous_level_grad(ATrousLevelGradOp(c, None, s, out, torch.ones_like(c) / den, 1))  # doctest: +SKIP
+        >>> round(float(dc.sum()), 3)                                                             # doctest: +SKIP
+        108.0
+    """
+    c, out, gp = desc.color.contiguous(), desc.out.contiguous(), desc.gp.contiguous()
+    B, C, H, W = c.shape
+    f = None if desc.feat is None else desc.feat.contiguous()
+    F = 0 if f is None else f.shape[1]
+    s = desc.scale
+    cs = 0 if s is None else 1 if s.shape[-2:] == (1, 1) else 2
+    s = None if s is None else (s.reshape(B).contiguous() if cs == 1 else s.expand(B, 1, H, W).contiguous())
+    dc = torch.empty_like(c)
+    need_f, need_s = f is not None and desc.need_feat, s is not None and desc.need_scale
+    df = torch.empty_like(f) if need_f else dc
+    ds = torch.empty(B, 1, H, W, dtype=c.dtype, device=c.device) if need_s else dc
+    _level_grad[(_cdiv(H * W, _GRAD_BLOCK), B)](
+        c, dc if f is None else f, dc if s is None else s, out, gp, _taps(c.device), dc, df, ds, H, W, desc.step,
+        C=C, F=F, CS=cs, DF=need_f, DS=need_s, BLOCK=_GRAD_BLOCK)
+    return dc, df if need_f else None, ds if need_s else None
+
+
+_GRAD_BLOCK = 128  # pixels per program of the level's gradients
