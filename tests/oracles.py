@@ -222,7 +222,8 @@ def atrous_error(out: torch.Tensor, c, n, x, kw) -> float:
 
 
 def bilateral_oracle(color, guides, *, radius, sigma_space, sigma_color, sigma_guides):
-    """Joint bilateral pixel by pixel in float64 numpy (one image ``(C, H, W)``)."""
+    """Joint bilateral pixel by pixel in float64 numpy (one image ``(C, H, W)``); a σ may be an
+    ``(H, W)`` map (the centre pixel's σ)."""
     import math
 
     import numpy as np
@@ -230,17 +231,21 @@ def bilateral_oracle(color, guides, *, radius, sigma_space, sigma_color, sigma_g
     c = color.detach().double().numpy()
     gs = [g.detach().double().numpy() for g in guides]
     C, H, W = c.shape
+
+    def at(s, y, x):
+        return float(s[y, x]) if torch.is_tensor(s) else s
+
     out = np.empty_like(c)
     for py in range(H):
         for px in range(W):
             num, den = np.zeros(C), 0.0
             for qy in range(max(py - radius, 0), min(py + radius, H - 1) + 1):
                 for qx in range(max(px - radius, 0), min(px + radius, W - 1) + 1):
-                    e = ((qy - py) ** 2 + (qx - px) ** 2) / (2 * sigma_space**2)
+                    e = ((qy - py) ** 2 + (qx - px) ** 2) / (2 * at(sigma_space, py, px) ** 2)
                     if sigma_color is not None:
-                        e += ((c[:, py, px] - c[:, qy, qx]) ** 2).sum() / (2 * sigma_color**2)
+                        e += ((c[:, py, px] - c[:, qy, qx]) ** 2).sum() / (2 * at(sigma_color, py, px) ** 2)
                     for g, s in zip(gs, sigma_guides):
-                        e += ((g[:, py, px] - g[:, qy, qx]) ** 2).sum() / (2 * s**2)
+                        e += ((g[:, py, px] - g[:, qy, qx]) ** 2).sum() / (2 * at(s, py, px) ** 2)
                     w = math.exp(-e)
                     num += w * c[:, qy, qx]
                     den += w

@@ -2,7 +2,7 @@ import pytest
 import torch
 
 from tests.helpers import rel_error as rel
-from torchgi.core import DTypeError, NonFiniteError, RangeError
+from torchgi.core import DTypeError, NonFiniteError, RangeError, ShapeError
 from torchgi.filters import CrossBilateral, cross_bilateral
 
 from ..oracles import bilateral_oracle
@@ -49,11 +49,34 @@ def test_gradcheck():
         lambda a, b: cross_bilateral(a, [b], radius=1, sigma_space=1.0, sigma_color=0.5, sigma_guides=[0.5]), (c, n))
 
 
+def test_sigma_maps_match_the_per_pixel_oracle():
+    """σ_s, σ_c and a guide's σ as per-pixel maps (the centre pixel's σ) against the float64
+    oracle; maps that are constant give the floats' output; gradients reach the maps."""
+    c, n, _ = data()
+    H, W = c.shape[-2:]
+    g = torch.Generator().manual_seed(8)
+    maps = [0.5 + torch.rand(1, 1, H, W, generator=g) for _ in range(3)]
+    out = cross_bilateral(c, [n], radius=2, sigma_space=maps[0], sigma_color=maps[1], sigma_guides=[maps[2]])
+    want = bilateral_oracle(c[0], [n[0]], radius=2, sigma_space=maps[0][0, 0], sigma_color=maps[1][0, 0],
+                            sigma_guides=[maps[2][0, 0]])
+    assert rel(out[0], want) < 1e-5
+    flat = [torch.full((1, 1, H, W), v) for v in (1.0, 0.3, 0.2)]
+    torch.testing.assert_close(
+        cross_bilateral(c, [n], radius=2, sigma_space=flat[0], sigma_color=flat[1], sigma_guides=[flat[2]]),
+        cross_bilateral(c, [n], radius=2, sigma_space=1.0, sigma_color=0.3, sigma_guides=[0.2]))
+    c64, n64 = (t[:, :, :5, :6].double() for t in (c, n))
+    m = (0.4 + torch.rand(1, 1, 5, 6, dtype=torch.float64, generator=g)).requires_grad_()
+    assert torch.autograd.gradcheck(
+        lambda v: cross_bilateral(c64, [n64], radius=1, sigma_space=v, sigma_color=v, sigma_guides=[v]), (m,))
+    with pytest.raises(ShapeError, match="sigma_color"):
+        cross_bilateral(c, radius=1, sigma_space=1.0, sigma_color=torch.ones(1, 1, H, W + 1))
+
+
 def test_bad_inputs():
     c, n, d = data()
     with pytest.raises(ValueError, match="sigma_guides: expected one σ per guide"):
         cross_bilateral(c, [n, d], radius=1, sigma_space=1.0, sigma_color=0.1, sigma_guides=[0.1])
-    with pytest.raises(RangeError, match="sigma_space: expected a finite float > 0"):
+    with pytest.raises(RangeError, match="sigma_space: expected finite values > 0"):
         cross_bilateral(c, radius=1, sigma_space=0.0, sigma_color=0.1)
     with pytest.raises(DTypeError, match=r"guides\[0\] is torch.float64"):
         cross_bilateral(c, [n.double()], radius=1, sigma_space=1.0, sigma_color=0.1, sigma_guides=[0.1])

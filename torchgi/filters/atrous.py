@@ -25,7 +25,6 @@ from torch import nn
 
 from torchgi import backends
 from torchgi.core.check import (
-    check_floating,
     check_int,
     check_positive,
     check_range,
@@ -33,42 +32,14 @@ from torchgi.core.check import (
     check_same_floating,
     check_shape,
     finite_or_sanitized_later,
-    is_recording,
 )
 from torchgi.core.dtypes import compute_dtype
 from torchgi.core.errors import RangeError, ShapeError
-from torchgi.filters.learned import register_positive
+from torchgi.filters.learned import inverse_power, register_positive
 
 __all__ = ["ATrous", "atrous"]
 
 MAX_ITERATIONS = 30  # level i steps 2^(i-1) px: past 30 levels the steps pass any image
-
-
-def _inverse(value: float | torch.Tensor | None, name: str, B: int, like: torch.Tensor, power: int = 1,
-             per_pixel: bool = False) -> torch.Tensor | None:
-    """``value^-power`` of a float or ``(B,)`` tensor parameter as ``(B, 1, 1, 1)`` in ``like``'s
-    dtype/device; with ``per_pixel`` also a ``(B, 1, H, W)`` map of ``like``'s size, returned as
-    such. A float is checked and inverted on the host and filled in on the device (one launch,
-    no synchronisation)."""
-    if value is None:
-        return None
-    if isinstance(value, torch.Tensor):
-        check_same_device({name: value, "color": like})
-        check_floating(value, name)
-        plane = (B, 1, *like.shape[-2:])
-        if value.shape not in ((), (1,), (B,)) and not (per_pixel and tuple(value.shape) == plane):
-            raise ShapeError(f"{name}: expected a float or shape ({B},)"
-                             + (f" or a {plane} map" if per_pixel else "") + f", got {tuple(value.shape)}")
-        t = value.to(like.dtype)
-        if not is_recording() and bool((~torch.isfinite(t) | (t <= 0)).any()):
-            raise RangeError(f"{name}: expected finite values > 0 (a float or a ({B},) tensor), got "
-                             f"{t.flatten().tolist()[:4]}")
-        if t.dim() == 4:
-            return t.pow(-power)
-        return t.pow(-power).reshape(-1, 1, 1, 1).expand(B, 1, 1, 1)
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < math.inf:
-        raise RangeError(f"{name}: expected finite values > 0 (a float or a ({B},) tensor), got {value!r}")
-    return torch.full((B, 1, 1, 1), float(value) ** -power, dtype=like.dtype, device=like.device)
 
 
 def atrous(
@@ -149,15 +120,15 @@ def atrous(
         valid = (ys[:, None] & xs[None, :]).expand(B, 1, H, W)
         c = c * valid.to(c.dtype)
     if var is not None:  # variance-guided: σ_rt counts standard deviations
-        inv_c = _inverse(4.0 if sigma_color is None else sigma_color, "sigma_color", B, c, power=2, per_pixel=True)
+        inv_c = inverse_power(4.0 if sigma_color is None else sigma_color, "sigma_color", B, c, power=2, per_pixel=True)
     elif sigma_color is None:  # the paper's default: the image's maximum
         inv_c = 1.0 / c.flatten(1).amax(1).clamp_min(torch.finfo(c.dtype).tiny).reshape(B, 1, 1, 1)
     else:
-        inv_c = _inverse(sigma_color, "sigma_color", B, c, per_pixel=True)
+        inv_c = inverse_power(sigma_color, "sigma_color", B, c, per_pixel=True)
     op = backends.ATrousOp(
         c, n, x, var, valid, inv_c,
-        _inverse(sigma_normal, "sigma_normal", B, c) if n is not None else None,
-        _inverse(sigma_position, "sigma_position", B, c) if x is not None else None,
+        inverse_power(sigma_normal, "sigma_normal", B, c) if n is not None else None,
+        inverse_power(sigma_position, "sigma_position", B, c) if x is not None else None,
         iterations, fill=int(math.log2(subsample)), color_weight=color_weight, return_details=return_details,
         fused=fused)
     total_in = c.sum(dim=(2, 3), keepdim=True) if energy else None

@@ -19,6 +19,7 @@ from torchgi.core.check import (
 )
 from torchgi.core.dtypes import compute_dtype
 from torchgi.core.taps import Padded
+from torchgi.filters.learned import inverse_power
 
 __all__ = ["CrossBilateral", "cross_bilateral"]
 
@@ -28,15 +29,18 @@ def cross_bilateral(
     guides: Sequence[torch.Tensor] = (),
     *,
     radius: int,
-    sigma_space: float,
-    sigma_color: float | None,
-    sigma_guides: Sequence[float] = (),
+    sigma_space: float | torch.Tensor,
+    sigma_color: float | torch.Tensor | None,
+    sigma_guides: Sequence[float | torch.Tensor] = (),
     sanitize: bool = False,
 ) -> torch.Tensor:
     """Joint bilateral filter over a ``(2r+1)²`` window with colour and guide range kernels.
 
     ``w(p,q) = exp(-|p-q|²/2σ_s²) · exp(-|c_p-c_q|²/2σ_c²) · Π_g exp(-|g_p-g_q|²/2σ_g²)``,
     ``out(p) = Σ w c_q / Σ w`` over the taps inside the image (the centre always counts).
+
+    Every σ is a float, a ``(B,)`` tensor (one per image) or a per-pixel ``(B, 1, H, W)`` map
+    (the centre pixel's σ weighs its neighbours); tensors are differentiable.
 
     Args:
         color: ``(B, C, H, W)`` image to filter.
@@ -65,9 +69,13 @@ def cross_bilateral(
         check_shape(g, "B G H W", f"guides[{k}]", {"B": sizes["B"], "H": sizes["H"], "W": sizes["W"]})
     check_same_device(named)
     check_same_floating(named)
-    _check_numbers(radius, sigma_space, sigma_color, sigma_guides)
+    check_int(radius, "radius")
     ct = compute_dtype(color.dtype)
     c, *gs = (t.to(ct) for t in finite_or_sanitized_all(named, sanitize))
+    B = c.shape[0]
+    half_inv = [None if v is None else 0.5 * inverse_power(v, name, B, c, power=2, per_pixel=True)
+                for name, v in [("sigma_space", sigma_space), ("sigma_color", sigma_color)]
+                + [(f"sigma_guides[{k}]", v) for k, v in enumerate(sigma_guides)]]  # 1 / 2σ²
     pc = Padded(c, radius)
     pv = Padded(torch.ones_like(c[:, :1]), radius)
     pg = [Padded(g, radius) for g in gs]
@@ -77,12 +85,11 @@ def cross_bilateral(
     for oy in range(-radius, radius + 1):
         for ox in range(-radius, radius + 1):
             cq = channel_planes(pc.at(oy, ox), False)
-            d = (oy * oy + ox * ox) / (2 * sigma_space**2)
-            expo = torch.full_like(den, -d)
-            if sigma_color is not None:
-                expo = expo - squared_distance(cc, cq) * (0.5 / sigma_color**2)
-            for g, p, s in zip(gg, pg, sigma_guides):
-                expo = expo - squared_distance(g, channel_planes(p.at(oy, ox), False)) * (0.5 / s**2)
+            expo = (-(oy * oy + ox * ox) * half_inv[0]).expand_as(den)
+            if half_inv[1] is not None:
+                expo = expo - squared_distance(cc, cq) * half_inv[1]
+            for g, p, h in zip(gg, pg, half_inv[2:]):
+                expo = expo - squared_distance(g, channel_planes(p.at(oy, ox), False)) * h
             w = pv.at(oy, ox) * torch.exp(expo)
             num = [w * q for q in cq] if not num else [a + w * q for a, q in zip(num, cq)]
             den = den + w
@@ -90,7 +97,7 @@ def cross_bilateral(
 
 
 def _check_numbers(radius: int, sigma_space: float, sigma_color: float | None, sigma_guides: Sequence[float]) -> None:
-    """The radius an int >= 0, every σ given a finite float > 0 (each named)."""
+    """The Module's settings: the radius an int >= 0, every σ given a finite float > 0 (each named)."""
     check_int(radius, "radius")
     for name, v in [("sigma_space", sigma_space), ("sigma_color", sigma_color)] + [
         (f"sigma_guides[{k}]", v) for k, v in enumerate(sigma_guides)

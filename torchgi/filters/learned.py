@@ -1,11 +1,13 @@
 """What the learned filters share: their networks' weights as JSON (no pickle) with the
-provenance of their training, the shipped network read once per process, and the learnable
-parameters of the filter Modules that stay in range (:func:`register_positive`)."""
+provenance of their training, the shipped network read once per process, the learnable
+parameters of the filter Modules that stay in range (:func:`register_positive`) and the σ-like
+parameters as floats, per-image tensors or per-pixel maps (:func:`inverse_power`)."""
 
 from __future__ import annotations
 
 import copy
 import json
+import math
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -14,7 +16,10 @@ import torch.nn.utils.parametrize
 from torch import nn
 from typing_extensions import Self
 
-__all__ = ["Positive", "SavedNet", "register_positive", "shipped"]
+from torchgi.core.check import check_floating, check_same_device, is_recording
+from torchgi.core.errors import RangeError, ShapeError
+
+__all__ = ["Positive", "SavedNet", "inverse_power", "register_positive", "shipped"]
 
 N = TypeVar("N", bound="SavedNet")
 
@@ -113,3 +118,37 @@ def register_positive(module: nn.Module, name: str, value: torch.Tensor) -> None
                          f"got {value.tolist()}")
     module.register_parameter(name, nn.Parameter(value.clone()))
     torch.nn.utils.parametrize.register_parametrization(module, name, Positive())
+
+
+def inverse_power(value: float | torch.Tensor | None, name: str, B: int, like: torch.Tensor, power: int = 1,
+             per_pixel: bool = False) -> torch.Tensor | None:
+    """``value^-power`` of a filter's σ-like parameter (a float or a ``(B,)`` tensor, > 0) as
+    ``(B, 1, 1, 1)`` in ``like``'s dtype/device; with ``per_pixel`` also a ``(B, 1, H, W)`` map of
+    ``like``'s size, returned as such; None stays None. A float is checked and inverted on the
+    host and filled in on the device (one launch, no synchronisation); a tensor is differentiable.
+
+    Example:
+        >>> inverse_power(2.0, "sigma", 1, torch.zeros(1, 3, 4, 4), power=2).flatten().tolist()
+        [0.25]
+        >>> inverse_power(torch.full((1, 1, 4, 4), 0.5), "sigma", 1, torch.zeros(1, 3, 4, 4), per_pixel=True).shape
+        torch.Size([1, 1, 4, 4])
+    """
+    if value is None:
+        return None
+    if isinstance(value, torch.Tensor):
+        check_same_device({name: value, "color": like})
+        check_floating(value, name)
+        plane = (B, 1, *like.shape[-2:])
+        if value.shape not in ((), (1,), (B,)) and not (per_pixel and tuple(value.shape) == plane):
+            raise ShapeError(f"{name}: expected a float or shape ({B},)"
+                             + (f" or a {plane} map" if per_pixel else "") + f", got {tuple(value.shape)}")
+        t = value.to(like.dtype)
+        if not is_recording() and bool((~torch.isfinite(t) | (t <= 0)).any()):
+            raise RangeError(f"{name}: expected finite values > 0 (a float or a ({B},) tensor), got "
+                             f"{t.flatten().tolist()[:4]}")
+        if t.dim() == 4:
+            return t.pow(-power)
+        return t.pow(-power).reshape(-1, 1, 1, 1).expand(B, 1, 1, 1)
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < math.inf:
+        raise RangeError(f"{name}: expected finite values > 0 (a float or a ({B},) tensor), got {value!r}")
+    return torch.full((B, 1, 1, 1), float(value) ** -power, dtype=like.dtype, device=like.device)
