@@ -213,24 +213,27 @@ class GuidedFunction(torch.autograd.Function):
         Ii = I.split(1, 1)
         mI, mp, mII, mIp = _box_means(I, p, r)
         L, D, _ = _factor(mI, mII, eps)
-        cov = [torch.addcmul(mIp[i], mI[i], mp, value=-1) for i in range(n)]
-        a = _substitute(L, D, cov)
+        a = _substitute(L, D, [torch.addcmul(mIp[i], mI[i], mp, value=-1) for i in range(n)])
         b = mp
         for i in range(n):
             b = torch.addcmul(b, a[i], mI[i], value=-1)
         coeffs = box_mean(torch.cat(a + [b], 1), r).split(Cs, 1)  # ā_0 .. ā_{n-1}, b̄
+        del b  # (each intermediate is dropped once used: the backward's peak memory)
         # q = Σ_i ā_i I_i + b̄
         dI = [(g * coeffs[i]).sum(1, keepdim=True) for i in range(n)]
+        del coeffs
         adj = _box_adjoint(torch.cat([g * Ii[i] for i in range(n)] + [g], 1), r).split(Cs, 1)
         db = adj[n]
         # b = mp - Σ_i a_i mI_i ;  a = A^-1 cov
         dmp = db
         dmI = [-(db * a[i]).sum(1, keepdim=True) for i in range(n)]
         z = _substitute(L, D, [torch.addcmul(adj[i], db, mI[i], value=-1) for i in range(n)])
+        del L, D, adj
         dmIp = z
         for i in range(n):
             dmI[i] = dmI[i] - (z[i] * mp).sum(1, keepdim=True)
             dmp = torch.addcmul(dmp, z[i], mI[i], value=-1)
+        del db
         dmII: dict[tuple[int, int], torch.Tensor] = {}
         deps = []
         unit = variance_rounding(I.dtype)
@@ -249,7 +252,10 @@ class GuidedFunction(torch.autograd.Function):
             dmI[i] = dmI[i] - 2 * mI[i] * dvar
             deps.append(torch.where(from_eps, dA, 0))
         pairs = _pairs(n)
-        T = _box_adjoint(torch.cat(dmI + [dmp] + [dmII[k] for k in pairs] + dmIp, 1), r)
+        stack = torch.cat(dmI + [dmp] + [dmII[k] for k in pairs] + dmIp, 1)
+        del a, z, dmI, dmp, dmII, dmIp, mI, mp, mII, mIp
+        T = _box_adjoint(stack, r)
+        del stack
         TI, Tp = T[:, :n].split(1, 1), T[:, n : n + Cs]
         TII = dict(zip(pairs, T[:, n + Cs : n + Cs + len(pairs)].split(1, 1)))
         TIp = T[:, n + Cs + len(pairs) :].split(Cs, 1)
