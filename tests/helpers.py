@@ -16,7 +16,7 @@ from torchgi import backends
 def rel_error(out: torch.Tensor, ref: torch.Tensor | np.ndarray, scale: str = "max") -> float:
     """``max |out - ref|`` over ``max |ref|`` (``scale="max"``) or over ``max ref - min ref``
     (``"range"``: for outputs whose offset is arbitrary, like a guided filter of offset guides)."""
-    ref = torch.as_tensor(np.asarray(ref) if not torch.is_tensor(ref) else ref).double().cpu()
+    ref = torch.as_tensor(np.asarray(ref) if not torch.is_tensor(ref) else ref.detach()).double().cpu()
     diff = float((out.detach().double().cpu() - ref).abs().max())
     return diff / float(ref.abs().max() if scale == "max" else ref.max() - ref.min())
 

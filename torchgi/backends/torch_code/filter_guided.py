@@ -413,6 +413,7 @@ def guided(desc: GuidedOp) -> torch.Tensor:
     path eagerly on the CPU, else the differentiable reference (traced and exported).
 
     Example:
+        >>> from torchgi.backends.torch_code.filter_box import box_pool
         >>> p = torch.rand(1, 1, 6, 6); m = p.mean((2, 3), keepdim=True)
         >>> flat = torch.ones(1, 1, 6, 6)   # a constant guide: the box mean of the box mean
         >>> out = guided(GuidedOp(flat, p, torch.ones(1, 1, 1, 1), m, 1, torch.zeros(1, 1, 1, 1)))
