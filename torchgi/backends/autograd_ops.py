@@ -13,7 +13,7 @@ from torchgi.backends.base import ApplyKernelsGradOp, ApplyKernelsOp, ATrousLeve
 from torchgi.core.check import is_tracing
 from torchgi.core.dtypes import compute_dtype
 
-__all__ = ["ATrousLevel", "BoxMean", "KernelApply", "box_mean", "window_counts"]
+__all__ = ["ATrousLevel", "BoxMean", "KernelApply", "box_adjoint", "box_mean", "window_counts"]
 
 
 def box_mean(x: torch.Tensor, radius: int) -> torch.Tensor:
@@ -69,8 +69,22 @@ class BoxMean(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx: Any, g: torch.Tensor) -> tuple[torch.Tensor, None]:
-        n = window_counts(g.shape[-2], g.shape[-1], ctx.radius, g)
-        return box_mean(g / n, ctx.radius) * n, None
+        return box_adjoint(g, ctx.radius), None
+
+
+def box_adjoint(x: torch.Tensor, radius: int, overwrite: bool = False) -> torch.Tensor:
+    """The transpose of the count-normalised box mean applied to ``x (B,C,H,W)``: ``N · box(x / N)``
+    (:class:`BoxMean`'s backward); ``overwrite``: ``x`` is a stack the caller no longer needs, divided
+    in place.
+
+    Example:
+        >>> box_adjoint(torch.ones(1, 1, 1, 3), 1).tolist()   # 1/2 + 1/3, 1/2 + 1/3 + 1/2, 1/3 + 1/2
+        [[[[0.8333333730697632, 1.3333333730697632, 0.8333333730697632]]]]
+    """
+    n = window_counts(x.shape[-2], x.shape[-1], radius, x)
+    if overwrite:
+        return box_mean(x.div_(n), radius).mul_(n)
+    return box_mean(x / n, radius) * n
 
 
 class KernelApply(torch.autograd.Function):

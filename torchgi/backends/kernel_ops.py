@@ -52,6 +52,10 @@ class ApplyKernelsGradOp:
     def tensors(self) -> tuple[torch.Tensor | None, ...]:
         return (self.x, self.weights, self.out, self.den, self.grad)
 
+    def scaled_grad(self) -> torch.Tensor:
+        """``gp``: ``grad / den``, or ``grad`` without ``normalize``; contiguous."""
+        return (self.grad if self.den is None else self.grad / self.den).contiguous()
+
 
 @dataclass(eq=False, slots=True)
 class ATrousLevelOp:
@@ -89,3 +93,14 @@ class ATrousLevelGradOp:
 
     def tensors(self) -> tuple[torch.Tensor | None, ...]:
         return (self.color, self.feat, self.scale, self.out, self.gp)
+
+    def scale_operand(self) -> tuple[int, torch.Tensor | None]:
+        """How a kernel reads ``scale``: 0 and None (no colour weight), 1 and its ``(B,)`` values,
+        or 2 and a contiguous ``(B, 1, H, W)`` plane (a map)."""
+        s = self.scale
+        if s is None:
+            return 0, None
+        B, _, H, W = self.color.shape
+        if s.shape[-2:] == (1, 1):
+            return 1, s.reshape(B).contiguous()
+        return 2, s.expand(B, 1, H, W).contiguous()

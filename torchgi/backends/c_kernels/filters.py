@@ -226,9 +226,7 @@ def atrous_level_grad(desc: ATrousLevelGradOp) -> tuple[torch.Tensor, torch.Tens
     B, C, H, W = c.shape
     f = None if desc.feat is None else desc.feat.contiguous()
     F = 0 if f is None else f.shape[1]
-    s = desc.scale
-    csm = 0 if s is None else 1 if s.shape[-2:] == (1, 1) else 2
-    s = None if s is None else (s.reshape(B, 1).contiguous() if csm == 1 else s.expand(B, 1, H, W).contiguous())
+    csm, s = desc.scale_operand()
     dc = torch.empty_like(c)
     df = None if f is None else torch.empty_like(f)  # (the kernel writes it; returned when asked)
     ds = None if s is None else torch.empty(B, 1, H, W, dtype=torch.float32)

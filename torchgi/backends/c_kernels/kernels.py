@@ -42,7 +42,7 @@ def apply_kernels_grad(desc: ApplyKernelsGradOp) -> tuple[torch.Tensor | None, t
     """
     lib = build.library()
     x, w, out = desc.x.contiguous(), desc.weights.contiguous(), desc.out.contiguous()
-    gp = (desc.grad if desc.den is None else desc.grad / desc.den).contiguous()
+    gp = desc.scaled_grad()
     B, C, H, W = x.shape
     k = round(w.shape[1] ** 0.5)
     dx = torch.empty_like(x) if desc.need_x else None

@@ -12,7 +12,7 @@ from typing import Any
 import torch
 import torch.nn.functional as F
 
-from torchgi.backends.autograd_ops import box_mean, window_counts
+from torchgi.backends.autograd_ops import box_adjoint, box_mean
 from torchgi.backends.base import (
     GuidedOp,
     UpsampleApplyOp,
@@ -118,20 +118,8 @@ def _substitute(
     return x
 
 
-def _product_specs(n: int, Cs: int) -> list[tuple[str, int, str, int]]:
-    """The planes whose box means the solve needs, in a fixed order:
-    ``I_i``, ``p_c``, ``I_i I_j (j <= i)``, ``I_i p_c`` as (tensor, index, tensor, index);
-    an empty second name means the plane itself."""
-    return (
-        [("I", i, "", 0) for i in range(n)]
-        + [("p", c, "", 0) for c in range(Cs)]
-        + [("I", i, "I", j) for i, j in _pairs(n)]
-        + [("I", i, "p", c) for i in range(n) for c in range(Cs)]
-    )
-
-
 def _unpack(planes: list[torch.Tensor], n: int, Cs: int):
-    """Split box means ordered as :func:`_product_specs` (``(B,1,H,W)`` each) into the
+    """Split box means of ``I_i``, ``p_c``, ``I_i I_j (j <= i)``, ``I_i p_c`` in that order (``(B,1,H,W)`` each) into the
     ``mI, mp, mII, mIp`` arguments of :func:`solve`."""
     pairs = _pairs(n)
     mI = planes[:n]
@@ -151,13 +139,7 @@ def _guided_reference(
     without ``mean(p)`` (centred inputs), or the box-filtered coefficients ``(B, n + 1, Cs, H, W)``
     (``a_0 .. a_{n-1}, b``)."""
     n, Cs = I.shape[1], p.shape[1]
-    tensors = {"I": I, "p": p}
-    planes = [
-        tensors[a][:, i : i + 1] * (tensors[b][:, j : j + 1] if b else 1) if b else tensors[a][:, i : i + 1]
-        for a, i, b, j in _product_specs(n, Cs)
-    ]
-    m = box_mean(torch.cat(planes, 1), r)
-    a, b = solve(*_unpack(list(m.split(1, 1)), n, Cs), eps)
+    a, b = solve(*_box_means(I, p, r), eps)
     coeffs = box_mean(torch.cat(a + [b], 1), r)
     if coefficients_only:
         return coeffs.unflatten(1, (n + 1, Cs))
@@ -170,13 +152,6 @@ def _box_means(I: torch.Tensor, p: torch.Tensor, r: int):
     n, Cs = I.shape[1], p.shape[1]
     planes = [I, p] + [I[:, i : i + 1] * I[:, j : j + 1] for i, j in _pairs(n)] + [I[:, i : i + 1] * p for i in range(n)]
     return _unpack(list(box_mean(torch.cat(planes, 1), r).split(1, 1)), n, Cs)
-
-
-def _box_adjoint(x: torch.Tensor, r: int) -> torch.Tensor:
-    """The transpose of the count-normalised box mean applied to ``x (B,C,H,W)``, a stack the
-    caller no longer needs (it is overwritten): ``N · box(x / N)`` (:class:`~torchgi.backends.autograd_ops.BoxMean`'s backward)."""
-    n = window_counts(x.shape[-2], x.shape[-1], r, x)
-    return box_mean(x.div_(n), r).mul_(n)  # (x: a fresh stack, divided in place)
 
 
 class GuidedFunction(torch.autograd.Function):
@@ -222,7 +197,7 @@ class GuidedFunction(torch.autograd.Function):
         # q = Σ_i ā_i I_i + b̄
         dI = [(g * coeffs[i]).sum(1, keepdim=True) for i in range(n)]
         del coeffs
-        adj = _box_adjoint(torch.cat([g * Ii[i] for i in range(n)] + [g], 1), r).split(Cs, 1)
+        adj = box_adjoint(torch.cat([g * Ii[i] for i in range(n)] + [g], 1), r, overwrite=True).split(Cs, 1)
         db = adj[n]
         # b = mp - Σ_i a_i mI_i ;  a = A^-1 cov
         dmp = db
@@ -254,7 +229,7 @@ class GuidedFunction(torch.autograd.Function):
         pairs = _pairs(n)
         stack = torch.cat(dmI + [dmp] + [dmII[k] for k in pairs] + dmIp, 1)
         del a, z, dmI, dmp, dmII, dmIp, mI, mp, mII, mIp
-        T = _box_adjoint(stack, r)
+        T = box_adjoint(stack, r, overwrite=True)
         del stack
         TI, Tp = T[:, :n].split(1, 1), T[:, n : n + Cs]
         TII = dict(zip(pairs, T[:, n + Cs : n + Cs + len(pairs)].split(1, 1)))

@@ -69,7 +69,7 @@ def apply_kernels_grad(desc: ApplyKernelsGradOp) -> tuple[torch.Tensor | None, t
     x, w, d = desc.x, desc.weights, desc.dilation
     k = round(w.shape[1] ** 0.5)
     R = d * (k // 2)
-    gp = desc.grad if desc.den is None else desc.grad / desc.den
+    gp = desc.scaled_grad()
     dx = dw = None
     if desc.need_weights:
         xp = Padded(x, R)

@@ -356,9 +356,7 @@ def atrous_level_grad(desc: ATrousLevelGradOp) -> tuple[torch.Tensor, torch.Tens
     B, C, H, W = c.shape
     f = None if desc.feat is None else desc.feat.contiguous()
     F = 0 if f is None else f.shape[1]
-    s = desc.scale
-    cs = 0 if s is None else 1 if s.shape[-2:] == (1, 1) else 2
-    s = None if s is None else (s.reshape(B).contiguous() if cs == 1 else s.expand(B, 1, H, W).contiguous())
+    cs, s = desc.scale_operand()
     dc = torch.empty_like(c)
     need_f, need_s = f is not None and desc.need_feat, s is not None and desc.need_scale
     df = torch.empty_like(f) if need_f else dc

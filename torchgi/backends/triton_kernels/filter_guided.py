@@ -294,7 +294,7 @@ def _guided(
     I, p = I.contiguous(), p.contiguous()
     mean_I, mean_p = mean_I.reshape(B, n).to(torch.float32).contiguous(), mean_p.reshape(B, Cs).to(torch.float32).contiguous()
     pairs = [(i, -1) for i in range(n + Cs)] + [(i, j) for i in range(n) for j in range(i + 1)] + \
-        [(i, n + c) for i in range(n) for c in range(Cs)]  # the order of torch_code.filter_guided._product_specs
+        [(i, n + c) for i in range(n) for c in range(Cs)]  # the order of torch_code.filter_guided._box_means
     means = _box_products(I, p, mean_I, mean_p, pairs, r)  # of the guide and source centred
     Q, HW = (n + 1) * Cs, H * W
     coef = torch.empty(B, Q, H, W, dtype=torch.float32, device=I.device)

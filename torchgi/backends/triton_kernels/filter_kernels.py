@@ -16,6 +16,13 @@ _BLOCK = 256  # pixels per program
 if triton is not None:
 
     @triton.jit
+    def _source(y, x, t, k, d, H, W, live):
+        # the pixel tap t of (y, x) reads, (sy, sx), and whether it lies inside the image
+        sy = y + (t // k - k // 2) * d
+        sx = x + (t % k - k // 2) * d
+        return sy, sx, live & (sy >= 0) & (sy < H) & (sx >= 0) & (sx < W)
+
+    @triton.jit
     def _forward(x_ptr, w_ptr, out_ptr, den_ptr, C, H, W, k, d, NORMALIZE: tl.constexpr, BLOCK: tl.constexpr):
         # out = Σ_t w_t x(· + o_t) over the taps inside the image, divided by their weight sum
         b = tl.program_id(1)
@@ -23,19 +30,16 @@ if triton is not None:
         i = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
         live = i < HW
         y, x = i // W, i % W
-        h = k // 2
         den = tl.zeros([BLOCK], dtype=tl.float32)
         if NORMALIZE:
             for t in range(k * k):
-                sy, sx = y + (t // k - h) * d, x + (t % k - h) * d
-                inside = live & (sy >= 0) & (sy < H) & (sx >= 0) & (sx < W)
+                sy, sx, inside = _source(y, x, t, k, d, H, W, live)
                 den += tl.load(w_ptr + (b * k * k + t) * HW + i, mask=inside, other=0.0)
             tl.store(den_ptr + b * HW + i, den, mask=live)
         for c in range(C):
             acc = tl.zeros([BLOCK], dtype=tl.float32)
             for t in range(k * k):
-                sy, sx = y + (t // k - h) * d, x + (t % k - h) * d
-                inside = live & (sy >= 0) & (sy < H) & (sx >= 0) & (sx < W)
+                sy, sx, inside = _source(y, x, t, k, d, H, W, live)
                 wt = tl.load(w_ptr + (b * k * k + t) * HW + i, mask=inside, other=0.0)
                 acc += wt * tl.load(x_ptr + (b * C + c) * HW + sy * W + sx, mask=inside, other=0.0)
             if NORMALIZE:
@@ -52,11 +56,9 @@ if triton is not None:
         i = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
         live = i < HW
         y, x = i // W, i % W
-        h = k // 2
         if DW:
             for t in range(k * k):
-                sy, sx = y + (t // k - h) * d, x + (t % k - h) * d
-                inside = live & (sy >= 0) & (sy < H) & (sx >= 0) & (sx < W)
+                sy, sx, inside = _source(y, x, t, k, d, H, W, live)
                 acc = tl.zeros([BLOCK], dtype=tl.float32)
                 for c in range(C):
                     g = tl.load(gp_ptr + (b * C + c) * HW + i, mask=live, other=0.0)
@@ -69,8 +71,7 @@ if triton is not None:
             for c in range(C):
                 acc = tl.zeros([BLOCK], dtype=tl.float32)
                 for t in range(k * k):
-                    py, px = y - (t // k - h) * d, x - (t % k - h) * d
-                    inside = live & (py >= 0) & (py < H) & (px >= 0) & (px < W)
+                    py, px, inside = _source(y, x, t, k, -d, H, W, live)  # the pixel whose tap t reads (y, x)
                     p = py * W + px
                     wt = tl.load(w_ptr + (b * k * k + t) * HW + p, mask=inside, other=0.0)
                     acc += wt * tl.load(gp_ptr + (b * C + c) * HW + p, mask=inside, other=0.0)
@@ -105,7 +106,7 @@ def apply_kernels_grad(desc: ApplyKernelsGradOp) -> tuple[torch.Tensor | None, t
         [1.0, 2.0, 3.0]
     """
     x, w, out = desc.x.contiguous(), desc.weights.contiguous(), desc.out.contiguous()
-    gp = (desc.grad if desc.den is None else desc.grad / desc.den).contiguous()
+    gp = desc.scaled_grad()
     B, C, H, W = x.shape
     k = round(w.shape[1] ** 0.5)
     dx = torch.empty_like(x) if desc.need_x else x
