@@ -355,3 +355,27 @@ def test_a_missing_output_folder_is_named_as_the_flag(tmp_path, capsys):
     err = capsys.readouterr().err
     assert f"--out: folder {missing.parent} does not exist (create it first)" in err
     assert not missing.parent.exists()
+
+
+def test_render_command_renders_to_a_time_budget_or_a_target(tmp_path, capsys):
+    # --seconds / --target: render_to's rounds, per-pixel counts in the EXR's spp layer (the same
+    # as the function's for a target and a seed); refused with --spp, together, or over a file.
+    pytest.importorskip("embreex")
+    pytest.importorskip("OpenEXR")
+    import torchgi
+    from torchgi.sampling import render_to
+
+    out = tmp_path / "sky.exr"
+    base = ["render", "sky", "--resolution", "16", "12", "--seed", "2", "--no-progress"]
+    assert main(base + ["--target", "0.05", "--out", str(out)]) == 0
+    gb = torchgi.GBuffer.from_exr(out, required=("color", "spp"))
+    want = render_to(torchgi.scenes.sky(16).with_resolution(16, 12), target=0.05, bounces=1, seed=2, progress=False)
+    assert torch.equal(gb.spp, want.spp) and torch.equal(gb.color, want.color)
+    assert "spp (mean; per-pixel counts" in capsys.readouterr().out
+    assert main(base + ["--seconds", "0.2", "--out", str(tmp_path / "t.exr")]) == 0
+    assert int(torchgi.GBuffer.from_exr(tmp_path / "t.exr", required=("spp",)).spp.min()) >= 2
+    for extra, words in ((["--seconds", "1", "--spp", "4"], "--seconds: not with --spp"),
+                         (["--seconds", "1", "--target", "0.1"], "give one of them"),
+                         (["--target", "0.1"], "exists")):
+        assert main(base + extra + ["--out", str(out)]) == 2
+        assert words in capsys.readouterr().err

@@ -424,6 +424,10 @@ def _noise_free(gb: GBuffer) -> bool:
     return int(gb.spp.min()) >= 2 and not bool(gb.variance.any())
 
 
-def mean_spp(spp: torch.Tensor) -> float:
-    """The mean of a ``(B,1,H,W)`` sample-count plane (0 for an empty one)."""
+def mean_spp(spp: torch.Tensor, where: torch.Tensor | None = None) -> float:
+    """The mean of a ``(B,1,H,W)`` sample-count plane (0 for an empty one); with ``where`` ``(B,1,H,W)``
+    bool, over those pixels (the surfaces a Denoiser filters: an adaptive render's background has
+    few samples and no noise), or over all where none is True."""
+    if where is not None and bool(where.any()):
+        return float(torch.where(where, spp, 0).sum()) / int(where.sum())
     return float(spp.sum()) / max(spp.numel(), 1)

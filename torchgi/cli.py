@@ -105,9 +105,23 @@ def cmd_render(args: argparse.Namespace) -> int:
         raise ValueError(f"--frames: scene {scene.name!r} has no camera, mesh or light path over time, so every "
                          "frame would be the same still view; render it without --frames, or give it a "
                          "camera.path (see configs/scenes/sequences)")
+    budget = {k: v for k, v in (("seconds", args.seconds), ("target", args.target)) if v is not None}
+    if budget and (args.frames is not None or args.mirror_guides is not None or args.spp is not None):
+        raise ValueError(f"--{next(iter(budget))}: not with --spp, --frames or --mirror-guides (it decides the samples "
+                         "of a still render itself)")
+    if len(budget) > 1:
+        raise ValueError("--seconds, --target: give one of them")
+    if args.frames is None and not args.overwrite and os.path.exists(args.out):  # (before the render, not after)
+        raise FileExistsError(f"--out: {args.out} exists; pass --overwrite")
     t0 = time.perf_counter()
-    if args.frames is None:
-        gb = torchgi.render(scene, spp=args.spp, bounces=args.bounces, seed=args.seed,
+    if budget:
+        from torchgi.sampling import render_to
+
+        gb = render_to(scene, bounces=args.bounces, seed=args.seed, workers=args.workers, progress=args.progress,
+                       **budget)
+        written = gb.to_exr(args.out, overwrite=args.overwrite)
+    elif args.frames is None:
+        gb = torchgi.render(scene, spp=args.spp or 16, bounces=args.bounces, seed=args.seed,
                             mirror_guides=args.mirror_guides, **kwargs)
         written = gb.to_exr(args.out, overwrite=args.overwrite)
     else:  # <out>_<frame:04d>.exr, each with a motion layer; every name is checked before any render
@@ -116,14 +130,15 @@ def cmd_render(args: argparse.Namespace) -> int:
         existing = [p for p in paths if os.path.exists(p)]
         if existing and not args.overwrite:
             raise FileExistsError(f"--out: {existing[0]} exists (and {len(existing) - 1} more); pass --overwrite")
-        frames = torchgi.render_sequence(scene, args.frames, spp=args.spp, bounces=args.bounces, seed=args.seed,
-                                         **kwargs)
+        frames = torchgi.render_sequence(scene, args.frames, spp=args.spp or 16, bounces=args.bounces,
+                                         seed=args.seed, **kwargs)
         written = [w for gb, path in zip(frames, paths) for w in gb.to_exr(path, overwrite=args.overwrite)]
     seconds = time.perf_counter() - t0
     width, height = scene.camera.resolution
-    samples = width * height * args.spp * (args.frames or 1)
-    print(f"rendered {scene.name} {width}x{height} at {args.spp} spp, {args.bounces} bounces in {seconds:.2f} s "
-          f"({samples / seconds / 1e6:.2f} M samples/s); wrote {', '.join(written)}")
+    samples = width * height * (args.spp or 16) * (args.frames or 1) if not budget else int(gb.spp.sum())
+    print(f"rendered {scene.name} {width}x{height} at {samples / (width * height * (args.frames or 1)):.4g} spp"
+          f"{' (mean; per-pixel counts in the spp layer)' if budget else ''}, {args.bounces} bounces in "
+          f"{seconds:.2f} s ({samples / seconds / 1e6:.2f} M samples/s); wrote {', '.join(written)}")
     return 0
 
 
@@ -398,7 +413,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("render", help="path-trace a scene into a multi-layer EXR (needs the render and exr extras)")
     p.add_argument("scene", help="scene YAML, or a built-in: cornell, cornell_glossy, sky, grass")
-    p.add_argument("--spp", type=_positive_int, default=16, help="samples per pixel (default 16)")
+    p.add_argument("--spp", type=_positive_int, default=None, help="samples per pixel (default 16)")
+    p.add_argument("--seconds", type=float, default=None,
+                   help="render in rounds for this many seconds (render and denoise), samples placed for the Denoiser")
+    p.add_argument("--target", type=float, default=None,
+                   help="render in rounds until the Denoiser's estimated relMSE is at most this")
     p.add_argument("--bounces", type=int, default=1, help="indirect bounces, 0 = direct light only (default 1)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--resolution", type=_positive_int, nargs=2, metavar=("W", "H"), help="override the camera's")

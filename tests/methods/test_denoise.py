@@ -309,6 +309,19 @@ def test_the_sample_count_of_an_outside_render_as_a_call_argument(cornell):
     assert torch.equal(den(noisy, spp=1), den(noisy))
 
 
+def test_an_adaptive_renders_background_counts_do_not_set_the_noise():
+    """Where an adaptive render gives the (noise-free) background one sample and the surfaces
+    16, the Denoiser reads 16 spp: the surfaces' mean count, the same output as 16 everywhere
+    (the mean over all pixels would read the render as noisier, and widen the filter)."""
+    pytest.importorskip("embreex", reason="the render extra is not installed")
+    gb = torchgi.render(torchgi.scenes.sky(32), spp=16, bounces=1, seed=1).replace(variance=None)
+    assert 0.2 < float((~gb.hit).float().mean()) < 0.8
+    adaptive = gb.replace(spp=torch.where(gb.hit, gb.spp, 1))
+    for method in ("guided", "pyramid"):
+        assert torch.equal(Denoiser(method)(adaptive), Denoiser(method)(gb)), method
+    assert not torch.equal(Denoiser("guided")(gb.replace(spp=torch.full_like(gb.spp, 2))), Denoiser("guided")(gb))
+
+
 def test_normals_stored_as_a_colour_warn():
     """A normal map stored as a colour ((n + 1) / 2, in [0, 1]) is named with the range expected;
     signed unit normals - all in one octant too, a wall facing +z - are not."""

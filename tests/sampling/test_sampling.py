@@ -184,7 +184,7 @@ def test_importance_fused_matches_eager():
 
 
 def test_renderer_traces_exactly_the_allocated_samples(monkeypatch):
-    # The renderer's sample-to-pixel map: every pixel's indirect samples are traced exactly
+    # The renderer's sample-to-pixel map: every pixel's samples are traced exactly
     # counts[p] times with sample indices 0..counts[p]-1 (a chi-square statistic of 0).
     pytest.importorskip("embreex")
     import torchgi
@@ -194,7 +194,7 @@ def test_renderer_traces_exactly_the_allocated_samples(monkeypatch):
     real = engine.INTEGRATORS["path"]
 
     def spy(ctx, pixel, sample, *, stream=0, record="all"):
-        if record == "indirect":
+        if record == "all":
             traced.append((pixel.clone(), sample.clone()))
         return real(ctx, pixel, sample, stream=stream, record=record)
 
@@ -225,9 +225,36 @@ def test_adaptive_render_spends_the_exact_budget():
         hit = gb.hit
         assert int(counts.sum()) == round(3.0 * int(hit.sum()))
         assert int(counts[hit].min()) >= 1 and int(counts[~hit].sum()) == 0
-        assert torch.equal(gb.spp, counts)
+        assert torch.equal(gb.spp, counts.clamp_min(1))  # a pixel given none: one sample of what a miss shows
         assert bool(torch.isfinite(gb.indirect).all()) and float(gb.variance.min()) >= 0
     with pytest.raises(RangeError, match="variance_share"):
         adaptive_render(scene, rate=3.0, variance_share=1.0)
     with pytest.raises(RangeError, match="rate"):
         adaptive_render(scene, rate=0.0)
+
+
+def test_merged_rounds_hold_the_pooled_mean_and_variance_of_their_samples():
+    # Against float64 numpy on the two rounds' samples put together: counts 1 (no variance of its
+    # own), 0 (a round that holds nothing there) and several.
+    from torchgi.buffers import GBuffer
+    from torchgi.sampling import merge_rounds
+
+    g = np.random.default_rng(3)
+    counts = [(1, 1), (1, 4), (3, 0), (0, 2), (5, 7), (2, 1)]
+    samples = [[g.random((3, n)) * 4 for n in pair] for pair in counts]  # per pixel, per round (3, n)
+    rounds = []
+    for r in range(2):
+        light = np.array([s[r].mean(1) if s[r].size else np.zeros(3) for s in samples]).T  # (3, pixels)
+        var = np.array([s[r].var(1, ddof=1) / s[r].shape[1] if s[r].shape[1] > 1 else np.zeros(3)
+                        for s in samples]).T
+        t = lambda a: torch.tensor(a, dtype=torch.float32).view(1, 3, 1, -1)
+        zero = torch.zeros(1, 3, 1, len(counts))
+        n = torch.tensor([pair[r] for pair in counts]).view(1, 1, 1, -1)
+        rounds += [GBuffer(emission=zero, direct=zero, indirect=t(light), variance=t(var), spp=n.clamp_min(1)), n]
+    m = merge_rounds(*rounds)
+    for p, s in enumerate(samples):
+        x = np.concatenate(s, 1)
+        np.testing.assert_allclose(m.color[0, :, 0, p].numpy(), x.mean(1), rtol=1e-5)
+        want = x.var(1, ddof=1) / x.shape[1] if x.shape[1] > 1 else np.zeros(3)
+        np.testing.assert_allclose(m.variance[0, :, 0, p].numpy(), want, rtol=1e-4, atol=1e-7)
+        assert int(m.spp[0, 0, 0, p]) == x.shape[1]

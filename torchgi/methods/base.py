@@ -157,7 +157,7 @@ def noise_spp(gb: GBuffer, surface: torch.Tensor, settings: Settings) -> float:
     """
     if gb.spp is None:
         return 1.0
-    spp = max(mean_spp(gb.spp), 1.0)
+    spp = max(mean_spp(gb.spp, surface), 1.0)
     if gb.variance is None or gb.color is None:
         return spp
     if int(gb.spp.min()) < 2 and bool(((gb.spp < 2) & surface).any()):

@@ -51,8 +51,8 @@ class Guided(Method):
         H, W = gb.color.shape[-2:]
         level = light.level(gb.color, gb.emission, kept, gb.albedo, surface)
         radius = self.radius(noise_spp(gb, surface, self.settings), g.radius)
-        s = self.subsample(spec, H, W, gb.spp)
-        radii = self.radii(radius, s, gb)
+        s = self.subsample(spec, H, W, gb.spp, surface)
+        radii = self.radii(radius, s, gb, surface)
         eps = self.params.get("eps", g.eps)
 
         def op(rows: slice = slice(None), cols: slice = slice(None), workspace: dict | None = None) -> torch.Tensor:
@@ -79,7 +79,7 @@ class Guided(Method):
         g = self.settings.guided
         spec = guide_spec(gb)[0]  # the workspace of the CPU path is kept between calls
         return guided(x, spec.build(), radius=self.radius(noise_spp(gb, surface, self.settings), g.radius),
-                      eps=self.params.get("eps", g.eps), subsample=self.subsample(spec, *x.shape[-2:], gb.spp),
+                      eps=self.params.get("eps", g.eps), subsample=self.subsample(spec, *x.shape[-2:], gb.spp, surface),
                       workspace=workspace), None
 
     def deploy(self, spp: float, samples: float | None, frame: GBuffer | None, variance: bool,
@@ -90,7 +90,8 @@ class Guided(Method):
         subsample = self.params.get("subsample", 1)
         if frame is not None:
             spec, _ = guide_spec(frame)
-            subsample = self.subsample(spec, *frame.color.shape[-2:], frame.spp)
+            subsample = self.subsample(spec, *frame.color.shape[-2:], frame.spp,
+                                       light.surface_mask(frame.hit, frame.albedo))
         if subsample > 1:
             params["subsample"] = subsample
         elif (variance and "radius" not in self.params and samples >= g.choose_from_spp
@@ -105,26 +106,28 @@ class Guided(Method):
         return guided(x, guide_from(normal, geometry, depth_scale="image"), radius=radius or params["radius"],
                       eps=params["eps"], subsample=params.get("subsample", 1))
 
-    def radii(self, radius: int, s: int, gb: GBuffer) -> tuple[int, ...]:
+    def radii(self, radius: int, s: int, gb: GBuffer, surface: torch.Tensor) -> tuple[int, ...]:
         """``(radius,)``, or :func:`choice_radii` for :func:`torchgi.light.choose` where the radius
-        is not given, the filter runs at full resolution, the back-off is on and every pixel has
-        a variance from 2 samples or more, ``guided.choose_from_spp`` on average."""
+        is not given, the filter runs at full resolution, the back-off is on and every surface pixel
+        has a variance from 2 samples or more, ``guided.choose_from_spp`` on average on surfaces."""
         if ("radius" in self.params or s > 1 or gb.variance is None or gb.spp is None or not self.settings.pipeline.back_off
-                or float(gb.spp.min()) < 2 or mean_spp(gb.spp) < self.settings.guided.choose_from_spp):
+                or bool(((gb.spp < 2) & surface).any())
+                or mean_spp(gb.spp, surface) < self.settings.guided.choose_from_spp):
             return (radius,)
         return choice_radii(radius)
 
-    def subsample(self, spec: backends.GuideSpec, H: int, W: int, spp: torch.Tensor | None) -> int:
+    def subsample(self, spec: backends.GuideSpec, H: int, W: int, spp: torch.Tensor | None,
+                  surface: torch.Tensor | None = None) -> int:
         """Given, or 2 where half resolution is worth its bias, else 1. Half resolution needs
         ``guided.subsample_from`` px on the short side, fewer than ``guided.full_from_spp`` samples
-        per pixel on average (``spp``; None: 1), quality "fast"/"balanced", and a guide that is
+        per pixel on average on ``surface`` (``spp``; None: 1), quality "fast"/"balanced", and a guide that is
         smooth at the pixel scale: fewer than ``guided.edge_share`` of (every other row's)
         horizontal neighbours differing by more than ``guided.edge`` in the guide (the
         measurements behind it in docs/calibration.md)."""
         if "subsample" in self.params:
             return self.params["subsample"]
         g = self.settings.guided
-        mean = 1.0 if spp is None else mean_spp(spp)
+        mean = 1.0 if spp is None else mean_spp(spp, surface)
         if min(H, W) < g.subsample_from or self.quality == "high" or mean >= g.full_from_spp:
             return 1
         return 2 if backends.run(backends.EdgeShareOp(spec, g.edge)) < g.edge_share else 1

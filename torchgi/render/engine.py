@@ -329,14 +329,20 @@ def render(
     progress: bool | None = None,
     skip_unneeded: bool | Collection[str] = True,
     mirror_guides: float | None = None,
+    fill_empty: bool = True,
+    guides: bool = True,
 ) -> GBuffer:
     """Path-trace a scene into a :class:`~torchgi.GBuffer` (CPU, float32).
 
     Args:
         scene: a :class:`Scene`, a YAML path or a built-in name ("cornell", ...).
         spp: samples per pixel, an int > 0; or a per-pixel ``(B, 1, H, W)`` int tensor >= 0
-            (adaptive sampling): then indirect light gets those samples and emission + direct
-            light one sample per pixel (docs/design.md, Sampling); B > 1 renders B independent images.
+            (adaptive sampling): each pixel's whole light (emission, direct and indirect) gets
+            its count of samples; a pixel given 0 gets one sample of emission and direct light
+            and no indirect light (what a background pixel shows), and counts as 1 in the
+            returned ``spp`` (with ``fill_empty=False`` it stays 0, ``spp`` 0: a round that
+            :func:`~torchgi.sampling.merge_rounds` adds to another); B > 1 renders B
+            independent images.
         bounces: indirect bounces >= 0 (0 = direct light only; Mitsuba's ``max_depth`` is
             ``bounces + 2``).
         seed: in [0, 2^32); the same seed gives the same image, bit for bit.
@@ -357,13 +363,16 @@ def render(
             those of the first hit the mirror reflection meets that is not one (up to 4
             reflections; a mirror that shows the background keeps its own), as Intel Open Image
             Denoise asks of its guides; ``position``, ``depth`` and ``hit`` stay the first hit's.
+        fill_empty: see ``spp``.
+        guides: False: no guide rays; ``albedo``, ``normal``, ``position``, ``depth`` and ``hit``
+            are None (a later round merged into one that has them).
 
     Returns:
         GBuffer with ``color = emission + direct + indirect``, ``emission``, ``direct``,
         ``indirect`` ``(B,3,H,W)`` radiance; ``albedo``, ``normal`` (facing the camera),
         ``position``, ``depth (B,1,H,W)`` and ``hit`` from a ray through each pixel centre
-        (0 on background); ``variance (B,3,H,W)``, the variance of the colour estimate (with a
-        per-pixel ``spp``: of the indirect estimate; 0 where fewer than 2 samples); ``spp``.
+        (0 on background); ``variance (B,3,H,W)``, the variance of the colour estimate (of the
+        mean; 0 where fewer than 2 samples); ``spp (B,1,H,W)`` int64, the samples of each pixel.
 
     Example:
         >>> from torchgi.render import scenes
@@ -380,36 +389,29 @@ def render(
     counts = _counts(spp, camera)
     batch = counts.shape[0]
     flat = counts.reshape(-1)
-    if isinstance(spp, torch.Tensor):
-        passes = [(_Pass(1, "direct"), torch.ones_like(flat))]
-        if bounces > 0:
-            passes.append((_Pass(2, "indirect"), flat))
-    else:
-        passes = [(_Pass(0, "all"), flat)]
+    passes = [(_Pass(0, "all"), flat)]
+    if fill_empty and isinstance(spp, torch.Tensor) and bool((flat == 0).any()):  # one sample of what a miss shows
+        passes.append((_Pass(1, "direct"), (flat == 0).to(flat.dtype)))
     total = sum(int(c.sum()) for _, c in passes)
     allowed = tuple(name for name in backends.NAMES if backends.enabled(name))
     jobs = functools.partial(_Job, scene.arrays(), camera, integrator, bounces, seed)
     with _progress_bar(total, progress, f"render {scene.name}") as bar:
         rows = _trace(jobs, passes, skips, chunk_size, workers, total, allowed, bar)
-    g = _guides(scene, chunk_size, workers or torch.get_num_threads(), mirror_guides)
+    g = _guides(scene, chunk_size, workers or torch.get_num_threads(), mirror_guides) if guides else None
 
     def image(x: torch.Tensor) -> torch.Tensor:  # (C, B*H*W) -> (B, C, H, W)
         return x.reshape(x.shape[0], batch, height, width).permute(1, 0, 2, 3).contiguous()
 
-    def guide(x: torch.Tensor) -> torch.Tensor:  # (1, C, H, W), the same for every image
-        return x.expand(batch, -1, -1, -1).contiguous()
+    def guide(x: torch.Tensor | None) -> torch.Tensor | None:  # (1, C, H, W), the same for every image
+        return None if x is None else x.expand(batch, -1, -1, -1).contiguous()
 
     return GBuffer(
         emission=image(rows[0:3]),
         direct=image(rows[3:6]),
         indirect=image(rows[6:9]),
-        albedo=guide(g.albedo),
-        normal=guide(g.normal),
-        position=guide(g.position),
-        depth=guide(g.depth),
-        hit=guide(g.hit),
+        **{k: guide(getattr(g, k) if g is not None else None) for k in ("albedo", "normal", "position", "depth", "hit")},
         variance=image(rows[9:12]),
-        spp=counts.clone(),
+        spp=counts.clamp_min(1) if fill_empty else counts.clone(),
     )
 
 
@@ -552,7 +554,7 @@ def _trace(
             done = ((tile, _run_tile(job, bar.update)) for job, tile in zip(tile_jobs, tiles))
         for (a, b), (mean, variance) in done:
             rows[:9, a:b] += torch.from_numpy(mean)
-            rows[9:, a:b] = torch.from_numpy(variance)
+            rows[9:, a:b] += torch.from_numpy(variance)  # (independent passes: their variances add)
             if workers > 1:
                 bar.update(int(pass_counts[a:b].sum()))
     return rows

@@ -1,11 +1,13 @@
 """Adaptive sampling (Bauszat et al. 2011): importance from the filters' geometry weights and an
-exact apportionment of a fixed sample budget, wired into the renderer (``adaptive_render``)."""
+exact apportionment of a fixed sample budget, wired into the renderer (``adaptive_render``), and progressive rendering to a time budget or a
+target error (``render_to``)."""
 
 from torchgi.geometry import pixel_footprint, sigma_position_rule
-from torchgi.sampling.adaptive import adaptive_counts, adaptive_render
+from torchgi.sampling.adaptive import adaptive_counts, adaptive_render, merge_rounds
 from torchgi.sampling.allocate import allocate, exclusive_scan
 from torchgi.sampling.batches import SampleBatch, accumulate, sample_batches
 from torchgi.sampling.importance import importance_map
+from torchgi.sampling.progressive import render_to
 
 __all__ = [
     "SampleBatch",
@@ -15,7 +17,9 @@ __all__ = [
     "allocate",
     "exclusive_scan",
     "importance_map",
+    "merge_rounds",
     "pixel_footprint",
+    "render_to",
     "sample_batches",
     "sigma_position_rule",
 ]

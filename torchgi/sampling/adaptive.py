@@ -3,7 +3,8 @@
 1. Render the noise-free guides (one ray per pixel centre).
 2. Importance from the filter's own geometry weights (:func:`importance_map`), background excluded.
 3. Apportion ``rate x (pixels on geometry)`` indirect samples exactly (:func:`allocate`).
-4. Render: indirect light with those counts, direct light at one sample per pixel.
+4. Render: each pixel's whole light with its count (the GBuffer's ``spp`` and ``variance`` are
+   those of the colour the Denoiser filters).
 
 Beyond the paper: ``variance_share > 0`` keeps that share of the budget for a second round,
 handed out in proportion to the first round's per-pixel variance of the indirect mean after a
@@ -30,7 +31,7 @@ from torchgi.sampling.importance import importance_map
 if TYPE_CHECKING:  # the renderer imports its scene types lazily (embree is an extra)
     from torchgi.render.scene import Scene
 
-__all__ = ["adaptive_counts", "adaptive_render"]
+__all__ = ["adaptive_counts", "adaptive_render", "merge_rounds"]
 
 # σ_x of the importance map, in pixel footprints: the map compares neighbours at step 1 over a
 # 4 px window, where the filter's σ_x (4 footprints, settings.ATROUS) would see no edge
@@ -103,12 +104,13 @@ def adaptive_render(
         render_kwargs: passed on to :func:`torchgi.render` (``workers``, ``progress``...).
 
     Returns:
-        The GBuffer (``spp`` = indirect samples per pixel) and the counts ``(1, 1, H, W)``.
+        The GBuffer (``spp``: each pixel's samples, 1 where it got none: :func:`torchgi.render`)
+        and the counts ``(1, 1, H, W)``.
 
     Example:
         >>> from torchgi.render import scenes
         >>> gb, counts = adaptive_render(scenes.cornell(16), rate=2.0, bounces=1)
-        >>> int(counts.sum()) == round(2.0 * int(gb.hit.sum())), torch.equal(gb.spp, counts)
+        >>> int(counts.sum()) == round(2.0 * int(gb.hit.sum())), torch.equal(gb.spp, counts.clamp_min(1))
         (True, True)
     """
     from torchgi.render import load_scene, render, render_guides
@@ -133,14 +135,48 @@ def adaptive_render(
     var = box(gb.variance.mean(1, keepdim=True), 1).clamp_min(0) * hit
     second = allocate(var, rest, min_samples=0, mask=hit)
     gb2 = render(scene, second, bounces, (seed + 0x5BD1E995) & 0xFFFFFFFF, **render_kwargs)
-    n1, n2 = counts.to(gb.indirect.dtype), second.to(gb.indirect.dtype)
-    n = (n1 + n2).clamp_min(1)
-    indirect = (gb.indirect * n1 + gb2.indirect * n2) / n
-    # variance of the merged mean: per-round variances of the mean, weighted by (n_i / n)²
-    variance = gb.variance * (n1 / n) ** 2 + gb2.variance * (n2 / n) ** 2
-    direct = (gb.direct + gb2.direct) / 2  # one independent sample each
-    merged = GBuffer(
-        emission=gb.emission, direct=direct, indirect=indirect, albedo=gb.albedo, normal=gb.normal,
-        position=gb.position, depth=gb.depth, hit=gb.hit, variance=variance, spp=counts + second,
-    )
-    return merged, counts + second
+    return merge_rounds(gb, counts, gb2, second), counts + second
+
+
+def merge_rounds(a: GBuffer, counts_a: torch.Tensor, b: GBuffer, counts_b: torch.Tensor) -> GBuffer:
+    """Two independent renders of one scene and camera (``render(scene, counts_*)`` with different
+    seeds) merged per pixel as one render of ``counts_a + counts_b`` samples: the light fields
+    weighted by the counts, the variance of the mean pooled exactly (the sums of squared
+    deviations of the two rounds and of their means, Chan et al. 1979), ``spp`` the sum. A pixel
+    with no samples in a round (``counts = 0``: that render holds nothing there, or with
+    ``fill_empty`` one sample of emission and direct light) takes the other round's values;
+    guides are ``a``'s.
+
+    Args:
+        a, b: GBuffers from :func:`torchgi.render` with per-pixel counts (``variance`` and ``spp`` set).
+        counts_a, counts_b: ``(B, 1, H, W)`` int64, the counts each was rendered with.
+
+    Returns:
+        The merged GBuffer.
+
+    Example:
+        >>> from torchgi.render import render, scenes
+        >>> scene = scenes.cornell(8)
+        >>> one = torch.ones(1, 1, 8, 8, dtype=torch.int64)
+        >>> gb = merge_rounds(render(scene, one, seed=1), one, render(scene, one, seed=2), one)
+        >>> int(gb.spp.max()), bool((gb.variance > 0).any())  # two single samples: a variance
+        (2, True)
+    """
+    n1, n2 = counts_a.to(a.color.dtype), counts_b.to(a.color.dtype)
+    n = n1 + n2
+    safe = n.clamp_min(1)
+    fields = {}
+    for name in ("emission", "direct", "indirect"):
+        x, y = getattr(a, name), getattr(b, name)
+        fields[name] = torch.where(n2 == 0, x, torch.where(n1 == 0, y, (x * n1 + y * n2) / safe))
+
+    def m2(gb: GBuffer, k: torch.Tensor) -> torch.Tensor:  # Σ (x - mean)² of a round's colour samples
+        return gb.variance * k * (k - 1).clamp_min(0)
+
+    delta = b.color - a.color
+    pooled = m2(a, n1) + m2(b, n2) + delta.square() * (n1 * n2 / safe)
+    variance = torch.where(n > 1, pooled / (n * (n - 1)).clamp_min(1), 0.0)
+    variance = torch.where(n2 == 0, a.variance, torch.where(n1 == 0, b.variance, variance))
+    spp = torch.where(n2 == 0, a.spp, torch.where(n1 == 0, b.spp, counts_a + counts_b))
+    return GBuffer(**{k: v for k, v in a.items() if k not in (*fields, "variance", "spp", "color")}, **fields,
+                   variance=variance, spp=spp)

@@ -1,0 +1,59 @@
+import pytest
+import torch
+
+from torchgi.core import RangeError
+
+pytest.importorskip("embreex")
+
+
+def test_render_to_spends_exactly_the_rounds_samples_and_none_on_noise_free_pixels():
+    # With a budget in samples (max_spp) rounds of 2, 2, 4 spp: 8 spp in all, counted exactly in
+    # the merged spp; the sky seen directly is noise-free (its variance 0 from round 0): away
+    # from the ground (the variance is 3x3-blurred) it gets no sample after round 0.
+    import torchgi
+    from torchgi.sampling import render_to
+
+    scene = torchgi.scenes.sky(24)
+    gb = render_to(scene, seconds=1e6, max_spp=8, bounces=1, seed=3, progress=False)
+    assert int(gb.spp.sum()) == 8 * 24 * 24
+    sky = ~gb.hit
+    assert bool(sky.any()) and bool((gb.variance[sky.expand_as(gb.variance)] == 0).all())
+    far = sky & (torch.nn.functional.max_pool2d((~sky).float(), 3, 1, 1) == 0)
+    assert bool(far.any()) and bool((gb.spp[far] == 2).all()) and float(gb.spp[~sky].float().mean()) > 8
+    flat = render_to(scene, seconds=1e6, max_spp=8, adaptive=False, bounces=1, seed=3, progress=False)
+    assert int(flat.spp.sum()) == 8 * 24 * 24 and int(flat.spp.max()) - int(flat.spp.min()) <= 1
+    # the merged colour is the mean of all of a pixel's samples: as good as a uniform render of
+    # the same samples against a 256 spp reference, within noise
+    ref = torchgi.render(scene, 256, bounces=1, seed=99).color[~sky.expand(-1, 3, -1, -1)]
+    uniform = torchgi.render(scene, 8, bounces=1, seed=4).color[~sky.expand(-1, 3, -1, -1)]
+    assert abs(float(gb.color[~sky.expand(-1, 3, -1, -1)].mean() / ref.mean()) - 1) < 0.05
+    assert abs(float(uniform.mean() / ref.mean()) - 1) < 0.05
+
+
+def test_render_to_a_target_is_deterministic_and_stops_at_its_estimate():
+    import torchgi
+    from torchgi.sampling import render_to
+
+    scene = torchgi.scenes.cornell(16)
+    a = render_to(scene, target=0.02, bounces=1, seed=5, progress=False)
+    b = render_to(scene, target=0.02, bounces=1, seed=5, progress=False)
+    assert torch.equal(a.color, b.color) and torch.equal(a.spp, b.spp)
+    easy = render_to(scene, target=1e6, bounces=1, seed=5, progress=False)  # met after round 0
+    assert int(easy.spp.max()) == 2 and int(a.spp.sum()) > int(easy.spp.sum())
+
+
+def test_render_to_arguments():
+    import torchgi
+    from torchgi.sampling import render_to
+
+    scene = torchgi.scenes.cornell(8)
+    with pytest.raises(ValueError, match="seconds, target: give exactly one"):
+        render_to(scene)
+    with pytest.raises(ValueError, match="seconds, target: give exactly one"):
+        render_to(scene, seconds=1.0, target=0.1)
+    with pytest.raises(RangeError, match="seconds"):
+        render_to(scene, seconds=0.0)
+    with pytest.raises(RangeError, match="target"):
+        render_to(scene, target=-1.0)
+    with pytest.raises(RangeError, match="first_spp"):
+        render_to(scene, seconds=1.0, first_spp=1)
