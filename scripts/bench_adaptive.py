@@ -189,7 +189,7 @@ def plot(rows: list[dict], out: Path) -> None:
         ax.set_xscale("log")
         ax.set_yscale("log")
         ax.set_xlabel("render + denoise (s, 2 threads)")
-        ax.set_ylabel("relMSE of Denoiser()'s output")
+        ax.set_ylabel("relMSE against the reference")
         ax.set_title(f"{scene}: adaptive sampling at equal time")
         ax.legend(fontsize=7)
         fig.tight_layout()

@@ -4,10 +4,10 @@
     python scripts/repro_adaptive.py --out out/bench                  # grass + dragon, ~3 min
     python scripts/repro_adaptive.py --scenes grass --size 128 --ref-spp 128 --out out/bench  # quick
 
-Protocol: indirect light gets ``rate`` samples per pixel on geometry on average (exact budget,
-minimum 1, none on background); direct light one sample per pixel in every variant. The filters
-work on the demodulated indirect light (indirect / albedo) and the result is remodulated; errors
-are those of the indirect light (the only part that is adaptively sampled and filtered) against a
+Protocol: each pixel on geometry gets ``rate`` samples on average (exact budget, minimum 1, none
+on background; each sample traces the pixel's whole light). The filters work on the demodulated
+indirect light (indirect / albedo) and the result is remodulated; errors are those of the indirect
+light (the part the paper samples adaptively and filters) against a
 ``--ref-spp`` render. Importance and filter share their geometry weights, as in the paper:
 σ_n = 0.1 and σ_x = (k · pixel footprint)², k = 2 by default; ``--k 2 8`` also reports k = 8
 (a stronger filter). Writes ``adaptive.csv/json/md``, ``adaptive_timing.csv`` and ``adaptive.png``.

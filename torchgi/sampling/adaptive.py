@@ -2,12 +2,12 @@
 
 1. Render the noise-free guides (one ray per pixel centre).
 2. Importance from the filter's own geometry weights (:func:`importance_map`), background excluded.
-3. Apportion ``rate x (pixels on geometry)`` indirect samples exactly (:func:`allocate`).
+3. Apportion ``rate x (pixels on geometry)`` samples exactly (:func:`allocate`).
 4. Render: each pixel's whole light with its count (the GBuffer's ``spp`` and ``variance`` are
    those of the colour the Denoiser filters).
 
 Beyond the paper: ``variance_share > 0`` keeps that share of the budget for a second round,
-handed out in proportion to the first round's per-pixel variance of the indirect mean after a
+handed out in proportion to the first round's per-pixel variance of the colour's mean after a
 3x3 box blur (where the filter will still see noise), and the two rounds are merged per pixel by
 their sample counts. The result is filtered with either À-Trous or the guided filter (the
 paper's stated future work) by the caller (see ``scripts/repro_adaptive.py``).
@@ -91,11 +91,11 @@ def adaptive_render(
     variance_share: float = 0.0,
     **render_kwargs: Any,
 ) -> tuple[GBuffer, torch.Tensor]:
-    """Render ``scene`` with adaptively apportioned indirect samples.
+    """Render ``scene`` with adaptively apportioned samples.
 
     Args:
         scene: a Scene, YAML path or built-in name.
-        rate: indirect samples per pixel on geometry, on average (the budget is exact); a
+        rate: samples per pixel on geometry, on average (the budget is exact); a
             finite number > 0.
         bounces, seed: as :func:`torchgi.render`.
         window, sigma_normal, sigma_position, min_samples: as :func:`adaptive_counts`.
