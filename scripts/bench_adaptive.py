@@ -44,9 +44,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from benchmark_utils import available_scenes, markdown_table, metadata, oidn, scene_sets, write_results
 
 import torchgi
-from torchgi import metrics
+from torchgi import metrics, render_to
 from torchgi.denoise import Denoiser
-from torchgi.sampling import adaptive_render, render_to
+from torchgi.sampling import adaptive_render
 
 POINTS = (4, 16)  # the uniform spp whose time and relMSE render_to is given
 
@@ -117,12 +117,12 @@ def scene_rows(name: str, scene, ref: torch.Tensor, args) -> list[dict]:
 
 
 def calibration_rows(name: str, scene, ref: torch.Tensor, args) -> list[dict]:
-    """``render_to``'s constant :data:`~torchgi.sampling.progressive.HALF_TO_WHOLE`: uniform
+    """``render_to``'s constant :data:`~torchgi.progressive.HALF_TO_WHOLE`: uniform
     renders of two halves of ``spp`` (seeds 11, 12) and their merge, the denoised relMSE of a half
     and of the whole, and the estimate ``render_to`` makes from the halves (over the constant)
     against the whole's true relMSE."""
+    from torchgi.progressive import _estimate
     from torchgi.sampling import merge_rounds
-    from torchgi.sampling.progressive import _estimate
 
     d, rows = Denoiser(), []
     for spp in args.spp:

@@ -8,7 +8,7 @@ import pytest
 import torchgi
 
 PUBLIC = {
-    "torchgi": ["GBuffer", "Denoiser", "TemporalDenoiser", "render", "render_sequence", "load_scene", "scenes",
+    "torchgi": ["GBuffer", "Denoiser", "TemporalDenoiser", "render", "render_sequence", "render_to", "load_scene", "scenes",
                 "__version__"],
     "torchgi.methods": ["Method", "register", "get", "names"],
     "torchgi.settings": ["Settings", "DEFAULTS", "PipelineSettings", "GuidedSettings", "ATrousSettings",
@@ -26,7 +26,7 @@ PUBLIC = {
     "torchgi.metrics": ["mse", "relmse", "psnr", "ssim", "flip", "tonemap"],
     "torchgi.filters": ["atrous", "ATrous", "guided", "Guided", "box", "Box", "cross_bilateral", "CrossBilateral",
                         "guide_from_gbuffer"],
-    "torchgi.sampling": ["importance_map", "allocate", "exclusive_scan", "adaptive_render", "adaptive_counts", "merge_rounds", "render_to"],
+    "torchgi.sampling": ["importance_map", "allocate", "exclusive_scan", "adaptive_render", "adaptive_counts", "merge_rounds"],
     "torchgi.export": ["export_onnx", "export_denoiser", "export_temporal", "OrtSession", "OrtDenoiser"],
     "torchgi.cli": ["main"],
 }

@@ -363,13 +363,12 @@ def test_render_command_renders_to_a_time_budget_or_a_target(tmp_path, capsys):
     pytest.importorskip("embreex")
     pytest.importorskip("OpenEXR")
     import torchgi
-    from torchgi.sampling import render_to
 
     out = tmp_path / "sky.exr"
     base = ["render", "sky", "--resolution", "16", "12", "--seed", "2", "--no-progress"]
     assert main(base + ["--target", "0.05", "--out", str(out)]) == 0
     gb = torchgi.GBuffer.from_exr(out, required=("color", "spp"))
-    want = render_to(torchgi.scenes.sky(16).with_resolution(16, 12), target=0.05, bounces=1, seed=2, progress=False)
+    want = torchgi.render_to(torchgi.scenes.sky(16).with_resolution(16, 12), target=0.05, bounces=1, seed=2, progress=False)
     assert torch.equal(gb.spp, want.spp) and torch.equal(gb.color, want.color)
     assert "spp (mean; per-pixel counts" in capsys.readouterr().out
     assert main(base + ["--seconds", "0.2", "--out", str(tmp_path / "t.exr")]) == 0

@@ -51,8 +51,8 @@ CASES = {
     "adaptive_render": ("rate", lambda v, _: sampling.adaptive_render(_scene(), rate=v), True, RangeError),
     "adaptive_render.variance_share": (
         "variance_share", lambda v, _: sampling.adaptive_render(_scene(), variance_share=v), False, RangeError),
-    "render_to.seconds": ("seconds", lambda v, _: sampling.render_to(_scene(), seconds=v), True, RangeError),
-    "render_to.target": ("target", lambda v, _: sampling.render_to(_scene(), target=v), True, RangeError),
+    "render_to.seconds": ("seconds", lambda v, _: torchgi.render_to(_scene(), seconds=v), True, RangeError),
+    "render_to.target": ("target", lambda v, _: torchgi.render_to(_scene(), target=v), True, RangeError),
     "adaptive_counts": ("rate", lambda v, _: sampling.adaptive_counts(
         torchgi.GBuffer(normal=N, position=P, hit=HIT), v), True, RangeError),
     "allocate": ("budget", lambda v, _: sampling.allocate(D, v, min_samples=0), False, RangeError),

@@ -32,7 +32,7 @@ LAYERS = (
     ("methods",),
     ("deployed",),
     ("denoise",),
-    ("temporal", "data"),
+    ("temporal", "data", "progressive"),
     ("export", "demo"),
     ("",),
     ("cli",),

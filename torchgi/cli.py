@@ -115,9 +115,7 @@ def cmd_render(args: argparse.Namespace) -> int:
         raise FileExistsError(f"--out: {args.out} exists; pass --overwrite")
     t0 = time.perf_counter()
     if budget:
-        from torchgi.sampling import render_to
-
-        gb = render_to(scene, bounces=args.bounces, seed=args.seed, workers=args.workers, progress=args.progress,
+        gb = torchgi.render_to(scene, bounces=args.bounces, seed=args.seed, workers=args.workers, progress=args.progress,
                        **budget)
         written = gb.to_exr(args.out, overwrite=args.overwrite)
     elif args.frames is None:

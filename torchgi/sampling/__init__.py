@@ -1,13 +1,11 @@
 """Adaptive sampling (Bauszat et al. 2011): importance from the filters' geometry weights and an
-exact apportionment of a fixed sample budget, wired into the renderer (``adaptive_render``), and progressive rendering to a time budget or a
-target error (``render_to``)."""
+exact apportionment of a fixed sample budget, wired into the renderer (``adaptive_render``), and rounds merged into one render (``merge_rounds``)."""
 
 from torchgi.geometry import pixel_footprint, sigma_position_rule
 from torchgi.sampling.adaptive import adaptive_counts, adaptive_render, merge_rounds
 from torchgi.sampling.allocate import allocate, exclusive_scan
 from torchgi.sampling.batches import SampleBatch, accumulate, sample_batches
 from torchgi.sampling.importance import importance_map
-from torchgi.sampling.progressive import render_to
 
 __all__ = [
     "SampleBatch",
@@ -19,7 +17,6 @@ __all__ = [
     "importance_map",
     "merge_rounds",
     "pixel_footprint",
-    "render_to",
     "sample_batches",
     "sigma_position_rule",
 ]

@@ -1,5 +1,6 @@
 """Progressive rendering to a time budget or a target error, with the samples placed for the
-Denoiser (``render_to``; docs/design.md, Sampling).
+Denoiser (``torchgi.render_to``; docs/design.md, Sampling). Above the Denoiser in the layers: it
+denoises between rounds.
 
 Round 0 renders ``first_spp`` samples in every pixel; each later round places its samples where
 they lower the error of the denoised image most. With the per-pixel sample variance ``s²``
@@ -34,10 +35,9 @@ from typing import TYPE_CHECKING, Any
 import torch
 
 from torchgi.core.check import check_int, check_positive
+from torchgi.denoise import Denoiser
 from torchgi.filters.box import box
-from torchgi.sampling.adaptive import merge_rounds
-from torchgi.sampling.allocate import allocate
-from torchgi.sampling.importance import importance_map
+from torchgi.sampling import allocate, importance_map, merge_rounds
 
 if TYPE_CHECKING:
     from torchgi.buffers import GBuffer
@@ -98,41 +98,27 @@ def render_to(
         >>> int(gb.spp.min()) >= 2
         True
     """
-    from torchgi.denoise import Denoiser
-    from torchgi.render import load_scene, render
+    from torchgi.render import load_scene
 
     start = time.perf_counter()
     _check_args(seconds, target, first_spp, max_spp)
-    if isinstance(scene, (str, os.PathLike)):
-        scene = load_scene(scene)
+    scene = load_scene(scene) if isinstance(scene, (str, os.PathLike)) else scene
+    run = _Run(scene, bounces, seed, target is not None, render_kwargs)
     denoiser = Denoiser() if denoiser is None else denoiser
     show = progress if progress is not None else os.isatty(2)
     W, H = scene.camera.resolution
     pixels = H * W
-    halves = target is not None
-
-    def rendered(counts: torch.Tensor, r: int) -> list[tuple[GBuffer, torch.Tensor]]:
-        """Round ``r`` of ``counts``: one render, or two halves of independent seeds."""
-        parts = [counts] if not halves else [counts // 2, counts - counts // 2]
-        return [(render(scene, c, bounces, _round_seed(seed, r, k), fill_empty=r == 0, guides=r == 0,
-                        **render_kwargs), c) for k, c in enumerate(parts)]
-
     first = torch.full((1, 1, H, W), first_spp, dtype=torch.int64)
-    t0 = time.perf_counter()
-    acc = rendered(first, 0)  # the accumulated render (or its two halves) and its counts
-    per_sample = (time.perf_counter() - t0) / int(first.sum()) * (_ADAPTIVE_COST if adaptive else 1.0)
+    acc, per_sample, denoised, denoise_s = run.first(first, denoiser, _ADAPTIVE_COST if adaptive else 1.0)
     total = int(first.sum())
     whole = _merged(acc)
-    t0 = time.perf_counter()
-    denoised = denoiser(whole[0])  # (also measures the final denoise)
-    denoise_s = time.perf_counter() - t0
     support = _support(whole[0]) if geometry else None
     r, overhead, history = 0, 0.0, []
     while True:
         t_plan = time.perf_counter()
         n = total  # the next round doubles the samples
         estimate = None
-        if halves:
+        if target is not None:
             estimate = _estimate(acc, whole, denoised, denoiser)
             history.append((total, estimate))
             if estimate <= target:
@@ -142,24 +128,49 @@ def render_to(
             n = min(n, int((seconds - (time.perf_counter() - start) - overhead - denoise_s) / per_sample))
         n = min(n, int(max_spp * pixels) - total)
         if show:
-            print(f"render_to: round {r}, {total / pixels:.2f} spp, {time.perf_counter() - start:.2f} s"
-                  + ("" if estimate is None else f", estimated relMSE {estimate:.3g}"), flush=True)
+            _report(r, total / pixels, time.perf_counter() - start, estimate)
         if n < _MIN_ROUND * pixels:
             break
         r += 1
-        counts = (_counts(whole[0], whole[1], denoised if halves else None, n, support) if adaptive
-                  else allocate(torch.ones_like(first, dtype=torch.float32), n, min_samples=0))
+        counts = _counts(whole[0], whole[1], denoised if target is not None else None, n, support, adaptive)
         t0 = time.perf_counter()
-        parts = rendered(counts, r)
+        parts = run.round(counts, r)
         t_render = time.perf_counter() - t0
         per_sample = t_render / n
         acc = [(merge_rounds(a, ca, b, cb), ca + cb) for (a, ca), (b, cb) in zip(acc, parts)]
         total += n
         whole = _merged(acc)
-        if halves:
+        if target is not None:
             denoised = denoiser(whole[0])  # the estimate's reference and the next round's weights
         overhead = time.perf_counter() - t_plan - t_render  # a round's work beside its render
     return whole[0]
+
+
+class _Run:
+    """How a round renders: one render, or with ``halves`` two of independent seeds; after round
+    0 without the sample of what a miss shows on pixels it skips and without guide rays."""
+
+    def __init__(self, scene: Scene, bounces: int, seed: int, halves: bool, kwargs: dict[str, Any]) -> None:
+        self.scene, self.bounces, self.seed, self.halves, self.kwargs = scene, bounces, seed, halves, kwargs
+
+    def first(self, counts: torch.Tensor, denoiser: Any,
+              cost: float) -> tuple[list[tuple[GBuffer, torch.Tensor]], float, torch.Tensor, float]:
+        """Round 0: its parts, the seconds a sample of the next round is expected to take (round
+        0's times ``cost``), the denoised whole and the seconds the denoise took."""
+        t0 = time.perf_counter()
+        acc = self.round(counts, 0)
+        per_sample = (time.perf_counter() - t0) / int(counts.sum()) * cost
+        t0 = time.perf_counter()
+        denoised = denoiser(_merged(acc)[0])
+        return acc, per_sample, denoised, time.perf_counter() - t0
+
+    def round(self, counts: torch.Tensor, r: int) -> list[tuple[GBuffer, torch.Tensor]]:
+        """Round ``r`` of ``counts``: its parts (the render, or the two halves) with their counts."""
+        from torchgi.render import render
+
+        parts = [counts] if not self.halves else [counts // 2, counts - counts // 2]
+        return [(render(self.scene, c, self.bounces, _round_seed(self.seed, r, k), fill_empty=r == 0, guides=r == 0,
+                        **self.kwargs), c) for k, c in enumerate(parts)]
 
 
 def _check_args(seconds: float | None, target: float | None, first_spp: int, max_spp: float) -> None:
@@ -197,17 +208,23 @@ def _support(gb: GBuffer) -> torch.Tensor:
     return torch.where(gb.hit, 1 - q, 1.0).clamp_min(1 / 16)
 
 
+def _report(r: int, spp: float, seconds: float, estimate: float | None) -> None:
+    """``progress``' line for round ``r``."""
+    print(f"render_to: round {r}, {spp:.2f} spp, {seconds:.2f} s"
+          + ("" if estimate is None else f", estimated relMSE {estimate:.3g}"), flush=True)
+
+
 def _counts(gb: GBuffer, counts: torch.Tensor, denoised: torch.Tensor | None, n: int,
-            support: torch.Tensor | None, spread: torch.Tensor | None = None) -> torch.Tensor:
+            support: torch.Tensor | None, adaptive: bool = True) -> torch.Tensor:
     """The next round's ``n`` samples: each pixel's shortfall from its share ``∝ sqrt(w s²)`` of
-    the new total (module docstring)."""
+    the new total (module docstring), or without ``adaptive`` spread evenly."""
+    if not adaptive:
+        return allocate(torch.ones_like(counts, dtype=torch.float32), n, min_samples=0)
     k = counts.to(gb.variance.dtype)
     s2 = box(gb.variance * k, 1).clamp_min(0)  # per-sample variance, blurred (box may leave -1e-10)
     ref = box(gb.color if denoised is None else denoised, 2).clamp_min(0)  # (prefix sums: -1e-10)
     w = 1 / (ref.square() + _EPS)
     share = (s2 * w).sum(1, keepdim=True).sqrt()
-    if spread is not None:  # the denoised variance ~ K s² / n: n ∝ sqrt(w K s²) = sqrt(w e n)
-        share = (box(spread, 2).clamp_min(0) * w.mean(1, keepdim=True) * k).sqrt()
     if support is not None:
         share = share / support.sqrt()
     total = float(counts.sum()) + n

@@ -11,7 +11,7 @@ def test_render_to_spends_exactly_the_rounds_samples_and_none_on_noise_free_pixe
     # the merged spp; the sky seen directly is noise-free (its variance 0 from round 0): away
     # from the ground (the variance is 3x3-blurred) it gets no sample after round 0.
     import torchgi
-    from torchgi.sampling import render_to
+    from torchgi import render_to
 
     scene = torchgi.scenes.sky(24)
     gb = render_to(scene, seconds=1e6, max_spp=8, bounces=1, seed=3, progress=False)
@@ -32,7 +32,7 @@ def test_render_to_spends_exactly_the_rounds_samples_and_none_on_noise_free_pixe
 
 def test_render_to_a_target_is_deterministic_and_stops_at_its_estimate():
     import torchgi
-    from torchgi.sampling import render_to
+    from torchgi import render_to
 
     scene = torchgi.scenes.cornell(16)
     a = render_to(scene, target=0.02, bounces=1, seed=5, progress=False)
@@ -44,7 +44,7 @@ def test_render_to_a_target_is_deterministic_and_stops_at_its_estimate():
 
 def test_render_to_arguments():
     import torchgi
-    from torchgi.sampling import render_to
+    from torchgi import render_to
 
     scene = torchgi.scenes.cornell(8)
     with pytest.raises(ValueError, match="seconds, target: give exactly one"):
