@@ -41,6 +41,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from bench_equal_time import merged_oidn
 from benchmark_utils import available_scenes, markdown_table, metadata, oidn, scene_sets, write_results
 
 import torchgi
@@ -197,17 +198,6 @@ def plot(rows: list[dict], out: Path) -> None:
         plt.close(fig)
 
 
-def best_oidn(rows: list[dict]) -> list[dict]:
-    """OIDN's two protocols as one row: the one of lower relMSE."""
-    out, best = [], {}
-    for r in rows:
-        if not r["method"].startswith("OIDN"):
-            out.append(r)
-        elif (k := (r["scene"], r["x"])) not in best or r["relmse"] < best[k]["relmse"]:
-            best[k] = {**r, "method": "OIDN high"}
-    return out + list(best.values())
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="out/bench-adaptive")
@@ -241,7 +231,7 @@ def main() -> None:
         (out / "render_to_calibration.md").write_text(markdown_table(rows, cols) + "\n")
         print(f"median half / whole: {statistics.median(r['half_over_whole'] for r in rows):.3f}")
         return
-    rows = best_oidn(rows)
+    rows = merged_oidn(rows)
     write_results(rows, metadata(torch.get_num_threads()), out, "adaptive_bench")
     lines = checks(rows)
     (out / "adaptive_bench.md").write_text(

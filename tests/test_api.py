@@ -26,7 +26,7 @@ PUBLIC = {
     "torchgi.metrics": ["mse", "relmse", "psnr", "ssim", "flip", "tonemap"],
     "torchgi.filters": ["atrous", "ATrous", "guided", "Guided", "box", "Box", "cross_bilateral", "CrossBilateral",
                         "guide_from_gbuffer"],
-    "torchgi.sampling": ["importance_map", "allocate", "exclusive_scan", "adaptive_render", "adaptive_counts", "merge_rounds"],
+    "torchgi.sampling": ["importance_map", "allocate", "exclusive_scan", "adaptive_render", "adaptive_counts", "geometry_importance", "merge_rounds"],
     "torchgi.export": ["export_onnx", "export_denoiser", "export_temporal", "OrtSession", "OrtDenoiser"],
     "torchgi.cli": ["main"],
 }

@@ -37,7 +37,7 @@ import torch
 from torchgi.core.check import check_int, check_positive
 from torchgi.denoise import Denoiser
 from torchgi.filters.box import box
-from torchgi.sampling import allocate, importance_map, merge_rounds
+from torchgi.sampling import allocate, geometry_importance, merge_rounds
 
 if TYPE_CHECKING:
     from torchgi.buffers import GBuffer
@@ -109,9 +109,8 @@ def render_to(
     W, H = scene.camera.resolution
     pixels = H * W
     first = torch.full((1, 1, H, W), first_spp, dtype=torch.int64)
-    acc, per_sample, denoised, denoise_s = run.first(first, denoiser, _ADAPTIVE_COST if adaptive else 1.0)
+    acc, whole, per_sample, denoised, denoise_s = run.first(first, denoiser, _ADAPTIVE_COST if adaptive else 1.0)
     total = int(first.sum())
-    whole = _merged(acc)
     support = _support(whole[0]) if geometry else None
     r, overhead, history = 0, 0.0, []
     while True:
@@ -153,16 +152,17 @@ class _Run:
     def __init__(self, scene: Scene, bounces: int, seed: int, halves: bool, kwargs: dict[str, Any]) -> None:
         self.scene, self.bounces, self.seed, self.halves, self.kwargs = scene, bounces, seed, halves, kwargs
 
-    def first(self, counts: torch.Tensor, denoiser: Any,
-              cost: float) -> tuple[list[tuple[GBuffer, torch.Tensor]], float, torch.Tensor, float]:
-        """Round 0: its parts, the seconds a sample of the next round is expected to take (round
-        0's times ``cost``), the denoised whole and the seconds the denoise took."""
+    def first(self, counts: torch.Tensor, denoiser: Any, cost: float) -> tuple[
+            list[tuple[GBuffer, torch.Tensor]], tuple[GBuffer, torch.Tensor], float, torch.Tensor, float]:
+        """Round 0: its parts, the whole, the seconds a sample of the next round is expected to
+        take (round 0's times ``cost``), the denoised whole and the seconds the denoise took."""
         t0 = time.perf_counter()
         acc = self.round(counts, 0)
         per_sample = (time.perf_counter() - t0) / int(counts.sum()) * cost
+        whole = _merged(acc)
         t0 = time.perf_counter()
-        denoised = denoiser(_merged(acc)[0])
-        return acc, per_sample, denoised, time.perf_counter() - t0
+        denoised = denoiser(whole[0])
+        return acc, whole, per_sample, denoised, time.perf_counter() - t0
 
     def round(self, counts: torch.Tensor, r: int) -> list[tuple[GBuffer, torch.Tensor]]:
         """Round ``r`` of ``counts``: its parts (the render, or the two halves) with their counts."""
@@ -200,11 +200,8 @@ def _merged(acc: list[tuple[GBuffer, torch.Tensor]]) -> tuple[GBuffer, torch.Ten
 
 def _support(gb: GBuffer) -> torch.Tensor:
     """The filter's support per pixel from its geometry weights, in [1/16, 1]: ``1 - q`` of
-    :func:`~torchgi.sampling.importance_map` (4 x 4 window), background 1."""
-    from torchgi.geometry import sigma_position_rule
-
-    q = importance_map(gb.normal, gb.position, window=4, sigma_position=sigma_position_rule(gb.position, gb.hit, 2.0),
-                       hit=gb.hit)
+    :func:`~torchgi.sampling.geometry_importance`, background 1."""
+    q = geometry_importance(gb)
     return torch.where(gb.hit, 1 - q, 1.0).clamp_min(1 / 16)
 
 

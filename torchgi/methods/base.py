@@ -18,7 +18,7 @@ from torchgi.filters import box
 from torchgi.settings import Settings
 from torchgi.supersample import composite, distribute
 
-__all__ = ["Method", "back_off", "budget", "noise_spp"]
+__all__ = ["Method", "back_off", "budget", "noise_spp", "sampled_twice"]
 
 
 class Method:
@@ -143,6 +143,18 @@ class Method:
         return out if hdr else out.clamp(0, 1)
 
 
+def sampled_twice(gb: GBuffer, surface: torch.Tensor) -> bool:
+    """Whether every ``surface`` pixel of ``gb`` has 2 samples or more (a variance of its own);
+    ``gb.spp`` must be set.
+
+    Example:
+        >>> gb = GBuffer(color=torch.zeros(1, 3, 1, 2), spp=torch.tensor([[[[1, 2]]]]))
+        >>> sampled_twice(gb, torch.tensor([[[[False, True]]]])), sampled_twice(gb, torch.ones(1, 1, 1, 2, dtype=torch.bool))
+        (True, False)
+    """
+    return int(gb.spp.min()) >= 2 or not bool(((gb.spp < 2) & surface).any())
+
+
 def noise_spp(gb: GBuffer, surface: torch.Tensor, settings: Settings) -> float:
     """The sample count the noise of ``gb`` corresponds to. With a measured variance (>= 2
     samples on every surface pixel): ``pipeline.rel_var_1spp`` over the mean relative variance of
@@ -160,7 +172,7 @@ def noise_spp(gb: GBuffer, surface: torch.Tensor, settings: Settings) -> float:
     spp = max(mean_spp(gb.spp, surface), 1.0)
     if gb.variance is None or gb.color is None:
         return spp
-    if int(gb.spp.min()) < 2 and bool(((gb.spp < 2) & surface).any()):
+    if not sampled_twice(gb, surface):
         return spp  # some surface pixel has no variance estimate
     count = int(surface.sum()) * gb.color.shape[1]
     if count == 0:

@@ -14,7 +14,7 @@ from torchgi.buffers import GBuffer, mean_spp
 from torchgi.core.check import check_finite, check_nonnegative
 from torchgi.core.tiles import guided_bytes, tiled
 from torchgi.filters import guide_from, guided
-from torchgi.methods.base import Method, back_off, budget, noise_spp
+from torchgi.methods.base import Method, back_off, budget, noise_spp, sampled_twice
 from torchgi.settings import Settings
 
 __all__ = ["Guided", "choice_radii", "footprint", "guide_spec"]
@@ -111,7 +111,7 @@ class Guided(Method):
         is not given, the filter runs at full resolution, the back-off is on and every surface pixel
         has a variance from 2 samples or more, ``guided.choose_from_spp`` on average on surfaces."""
         if ("radius" in self.params or s > 1 or gb.variance is None or gb.spp is None or not self.settings.pipeline.back_off
-                or bool(((gb.spp < 2) & surface).any())
+                or not sampled_twice(gb, surface)
                 or mean_spp(gb.spp, surface) < self.settings.guided.choose_from_spp):
             return (radius,)
         return choice_radii(radius)

@@ -31,7 +31,7 @@ from torchgi.sampling.importance import importance_map
 if TYPE_CHECKING:  # the renderer imports its scene types lazily (embree is an extra)
     from torchgi.render.scene import Scene
 
-__all__ = ["adaptive_counts", "adaptive_render", "merge_rounds"]
+__all__ = ["adaptive_counts", "adaptive_render", "geometry_importance", "merge_rounds"]
 
 # σ_x of the importance map, in pixel footprints: the map compares neighbours at step 1 over a
 # 4 px window, where the filter's σ_x (4 footprints, settings.ATROUS) would see no edge
@@ -68,14 +68,32 @@ def adaptive_counts(
     check_positive(rate, "rate")
     check_int(min_samples, "min_samples")
     hit = guides.hit
-    if sigma_position is None:
-        sigma_position = sigma_position_rule(guides.position, hit, IMPORTANCE_FOOTPRINTS)
-    imp = importance_map(guides.normal, guides.position, window=window, sigma_normal=sigma_normal,
-                         sigma_position=sigma_position, hit=hit)
+    imp = geometry_importance(guides, window=window, sigma_normal=sigma_normal, sigma_position=sigma_position)
     budget = round(rate * int(hit.flatten(1).sum(1).max()))
     if budget > MAX_BUDGET:
         raise RangeError(f"rate: {rate!r} samples per pixel make {budget} samples per image, more than 2**52")
     return allocate(imp, budget, min_samples=min_samples, mask=hit)
+
+
+def geometry_importance(guides: GBuffer, *, window: int = 4, sigma_normal: float = 0.1,
+                        sigma_position: float | None = None) -> torch.Tensor:
+    """:func:`importance_map` of ``guides``' normal, position and hit with the σ_x rule of adaptive
+    sampling: ``q = 1 - (the filter's geometry support) / window²``, ``(B, 1, H, W)`` in [0, 1].
+
+    Args:
+        guides: a GBuffer with ``normal``, ``position`` and ``hit``.
+        sigma_position: σ_x in scene units squared; None = :func:`sigma_position_rule` with 2 footprints.
+
+    Example:
+        >>> n = torch.zeros(1, 3, 4, 4); n[:, 2] = 1
+        >>> g = GBuffer(normal=n, position=torch.zeros(1, 3, 4, 4), hit=torch.ones(1, 1, 4, 4, dtype=torch.bool))
+        >>> float(geometry_importance(g).max())   # a flat plane: full support everywhere
+        0.0
+    """
+    if sigma_position is None:
+        sigma_position = sigma_position_rule(guides.position, guides.hit, IMPORTANCE_FOOTPRINTS)
+    return importance_map(guides.normal, guides.position, window=window, sigma_normal=sigma_normal,
+                          sigma_position=sigma_position, hit=guides.hit)
 
 
 def adaptive_render(
