@@ -30,7 +30,7 @@ if [ "$part" != check ]; then
     grep "^==" "$OUT/profile_tuned.txt" || true
 fi
 if [ "$part" != tune ]; then
-    timeout 60 python -m pytest -q tests/backends/test_gpu.py tests/sampling/test_sampling.py --device cuda \
+    timeout 60 python -m pytest -q -n 0 tests/backends/test_gpu.py tests/sampling/test_sampling.py --device cuda \
         -k "not interpreter and not spills and (gpu or importance_matches or hamilton)" 2>&1 | tail -25 \
         | tee "$OUT/test_gpu.txt" || failed+=(test_gpu)
     timeout 30 python scripts/profile_gpu_call.py > "$OUT/profile.txt" 2>&1 || failed+=(profile)
@@ -38,7 +38,7 @@ if [ "$part" != tune ]; then
     timeout 90 python scripts/bench_device.py --device cuda --no-fused --min-time 0.3 --out "$OUT" 2>&1 | tail -22 \
         || failed+=(bench_device)
     # issue 18's GPU line: the whole Denoiser at 1080p against OIDN (pyoidn) on the same CUDA tensors
-    timeout 120 python -m pytest -q tests/methods/test_pipeline.py tests/methods/test_denoise.py --device cuda 2>&1 | tail -5 \
+    timeout 120 python -m pytest -q -n 0 tests/methods/test_pipeline.py tests/methods/test_denoise.py --device cuda 2>&1 | tail -5 \
         || failed+=(test_pipeline)
     timeout 150 python scripts/bench_pipeline.py --sizes 1080p 4K --no-memory --rounds 5 --out "$OUT/pipeline" \
         > "$OUT/pipeline.txt" 2>&1 || failed+=(bench_pipeline)

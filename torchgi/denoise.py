@@ -19,7 +19,7 @@ remodulated. Around the filter:
   filter's residual exceeds that noise (:func:`torchgi.light.back_off`): the filter's bias is not
   left in where more samples made the input better than it, so the error falls as samples rise.
   Without a variance (1 spp, or none given) the filter's output is returned as it is.
-* Method "guided" with that variance from ``GUIDED.choose_from_spp`` (4) samples on average, at
+* Method "guided" with that variance from ``GUIDED.choose_from_spp`` (3) samples on average, at
   full resolution and no ``radius`` given: the filter runs at half and at twice its radius and
   each pixel takes a blend of the two weighted by their estimated error
   (:func:`torchgi.light.choose`) before the back-off: narrow at edges and glossy highlights, wide

@@ -101,15 +101,13 @@ class GuidedSettings(_Ranged):
                               "light above this is scaled down to it before filtering")
     subsample_from: int = _setting(256, 1, math.inf, "px (short side)",
                                    "half resolution only from this size: below it the error grows")
-    full_from_spp: float = _setting(4.0, 1.0, math.inf, "samples per pixel",
+    full_from_spp: float = _setting(2.0, 1.0, math.inf, "samples per pixel",
                                     "full resolution from this many samples: there the half-resolution bias outweighs "
-                                    "the noise (tuning set, 256²: 0-24 % lower error at 4-16 spp; 1.14-1.45x the "
-                                    "time)")
-    choose_from_spp: float = _setting(4.0, 2.0, math.inf, "samples per pixel",
+                                    "the noise (tuning set, 256², docs/calibration.md; 1.14-1.45x the time)")
+    choose_from_spp: float = _setting(3.0, 2.0, math.inf, "samples per pixel",
                                       "with a variance from this many samples and at full resolution, the filter runs "
                                       "at half and twice its radius and each pixel takes a blend by estimated error "
-                                      "(light.choose; tuning set, 256²: 4-16 spp 6-16 % lower relMSE on every scene; "
-                                      "worse at 2 spp)")
+                                      "(light.choose; tuning set, 256², docs/calibration.md: worse at 2 spp)")
     choose_noise: float = _setting(1.5, 0.0, math.inf, "x noise variance / (2r+1)²",
                                    "the noise a radius-r filter leaves, in light.choose's error estimate (tuning set; "
                                    "0.44 for a box mean applied twice on a flat guide, edges leave more)")

@@ -216,10 +216,10 @@ def test_noise_free_input_is_returned_as_it_is():
 
 
 def test_radius_follows_the_measured_variance():
-    # relative variance v on every surface pixel (3 samples each: below GUIDED.choose_from_spp, so one
+    # relative variance v on every surface pixel (2 samples each: below GUIDED.choose_from_spp, so one
     # radius): the noise of 0.25 / v samples, so radius round(4 / sqrt(0.25 / v)) - 4 at v = 0.25, 2 at
     # v = 0.0625 - whatever spp says
-    gb = _synthetic(torch.device("cpu")).replace(spp=torch.full((1, 1, 40, 48), 3))
+    gb = _synthetic(torch.device("cpu")).replace(spp=torch.full((1, 1, 40, 48), 2))
     for v, r in ((0.25, 4), (0.0625, 2)):
         noisy = gb.replace(variance=v * (gb.color.square() + 1e-4))
         torch.testing.assert_close(Denoiser("guided")(noisy), Denoiser("guided", radius=r)(noisy))
