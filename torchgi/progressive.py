@@ -15,7 +15,9 @@ al. 2011's geometry weights, :func:`~torchgi.sampling.importance_map`). Rounds m
 ``seconds``: the wall time of the renders, the planning and the final denoise together. Each
 round doubles the samples, cut to what the time per sample of the round before (round 0's
 times :data:`_ADAPTIVE_COST` for the first placed round), the planning's time and the Denoiser's
-measured time leave; a budget smaller than round 0 and one denoise is overrun by them.
+measured time leave; a budget smaller than round 0 and one denoise is overrun by them. A
+render call's own cost beside its samples is not in the plan, so a run can end past the budget
+by about one call's (docs/benchmarks/adaptive.md).
 
 ``target``: the estimated relMSE of the denoised image. Every round is rendered as two halves of
 independent seeds ``a`` and ``b``; each half's denoised error is estimated against the other
