@@ -12,7 +12,8 @@ from torchgi import metrics
 from torchgi.core import NonFiniteError
 from torchgi.denoise import Denoiser
 
-PRESETS = Path(__file__).resolve().parents[2] / "configs" / "denoise"
+ROOT = Path(__file__).resolve().parents[2]
+PRESETS = ROOT / "configs" / "denoise"
 
 
 @pytest.fixture(scope="module")
@@ -29,7 +30,7 @@ def test_the_default_error_falls_from_1_to_3_spp():
     the half resolution and one radius kept up to 4 spp (``full_from_spp`` and ``choose_from_spp``
     4) 0.01178 / 0.01027 / 0.00882 (0.87x, 0.86x)."""
     pytest.importorskip("embreex", reason="the render extra is not installed")
-    scene = torchgi.load_scene(Path(__file__).resolve().parents[2] / "configs" / "scenes" / "bunny_box.yaml")
+    scene = torchgi.load_scene(ROOT / "configs" / "scenes" / "bunny_box.yaml")
     scene = scene.with_resolution(256, 256)
     ref = torchgi.render(scene, spp=128, bounces=1, seed=999).color
     errors = [float(metrics.relmse(Denoiser()(torchgi.render(scene, spp=n, bounces=1, seed=1)), ref)) for n in (1, 2, 3)]
