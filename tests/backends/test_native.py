@@ -66,9 +66,9 @@ def test_guided_kernel_bands_and_subsample(two_bands):
 def test_autograd_runs_the_kernels_float64_the_torch_code():
     p = torch.rand(1, 3, 20, 40, requires_grad=True)
     I = torch.rand(1, 4, 20, 40)
-    guided(p, I, radius=3).sum().backward()  # GuidedFunction: the forward and the backward's boxes compiled
+    guided(p, I, radius=3).sum().backward()  # GuidedFunction: the forward and the backward compiled
     assert p.grad is not None
-    assert last_backend("guided") == "c" and last_backend("box") == "c"
+    assert last_backend("guided") == "c" and last_backend("guided_grad") == "c"
     guided(p.detach().double(), I.double(), radius=3)
     assert backends.status()["last"]["guided"]["skipped"]["c"] == "the C kernels take float32"
     atrous(p.detach().double(), iterations=2)

@@ -13,7 +13,7 @@ from ..oracles import box_oracle, fast_guided_oracle, guided_oracle, scene
 
 
 @pytest.mark.parametrize("n", [1, 2, 3, 4])
-@pytest.mark.parametrize("r", [0, 1, 2, 3, 5])  # the C kernel sums r <= 3 directly, wider by prefix sums
+@pytest.mark.parametrize("r", [0, 1, 2, 4, 5])  # the C kernel sums r <= 4 directly, wider by prefix sums
 def test_matches_float64_oracle(n, r):
     p, I = scene(2, 37, 53, n, seed=n + r)
     want = guided_oracle(p, I, r, 0.01)
@@ -126,24 +126,52 @@ def test_gradcheck_src_guide_eps():
     assert torch.autograd.gradcheck(lambda a, b, e: guided(a, b, radius=1, eps=e), (p, I, eps))
 
 
-@pytest.mark.parametrize("n, C, r", [(1, 1, 2), (4, 3, 4), (3, 2, 9)])
-def test_float32_gradients_match_float64_oracle(n, C, r):
-    """The written-out backward (compiled forward and boxes for float32 on the CPU) against
-    autograd through the float64 oracle (torch.linalg.solve, cumulative-sum boxes), for src,
-    guide and a per-channel eps; the compiled kernels ran under autograd."""
-    p, I = scene(2, 23, 31, n, seed=n * r)
-    eps = torch.linspace(0.01, 0.03, n)
-    g = torch.randn(2, C, 23, 31, generator=torch.Generator().manual_seed(1))
-    p = p[:, :C]
+def _oracle_gradients(p, I, r, eps, g):
+    """Autograd through the float64 oracle (torch.linalg.solve, cumulative-sum boxes) and through
+    :func:`guided` in the inputs' dtype: the gradients of ``Σ g · out`` for src, guide and eps."""
     want = torch.autograd.grad((guided_oracle(x := p.double().requires_grad_(), y := I.double().requires_grad_(), r,
                                               e := eps.double().requires_grad_()) * g.double()).sum(), (x, y, e))
     got = torch.autograd.grad((guided(x := p.clone().requires_grad_(), y := I.clone().requires_grad_(), radius=r,
                                       eps=(e := eps.clone().requires_grad_())) * g).sum(), (x, y, e))
+    return got, want
+
+
+@pytest.mark.parametrize("n, C, r", [(1, 1, 2), (4, 3, 4), (3, 2, 9)])
+def test_float32_gradients_match_float64_oracle(n, C, r):
+    """The backward (``GuidedGradOp``: the C kernel for float32 on the CPU, and the torch code)
+    against autograd through the float64 oracle for src, guide and a per-channel eps."""
+    p, I = scene(2, 23, 31, n, seed=n * r)
+    eps = torch.linspace(0.01, 0.03, n)
+    g = torch.randn(2, C, 23, 31, generator=torch.Generator().manual_seed(1))
+    got, want = _oracle_gradients(p[:, :C], I, r, eps, g)
     for a, b in zip(got, want):
         assert rel_error(a, b) < 2e-4
     if backends.status()["c"].startswith("compiled kernels in use"):
         assert backends.status()["last"]["guided"]["ran"] == "c"
-        assert backends.status()["last"]["box"]["ran"] == "c"
+        assert backends.status()["last"]["guided_grad"]["ran"] == "c"
+    with backends.use("torch"):
+        got, want = _oracle_gradients(p[:, :C], I, r, eps, g)
+    assert backends.status()["last"]["guided_grad"]["ran"] == "torch"
+    for a, b in zip(got, want):
+        assert rel_error(a, b) < 2e-4
+
+
+def test_compiled_gradients_in_bands_narrower_than_the_window():
+    """The C backward cuts the rows into one band per thread, each recomputing 2r rows around it:
+    4 bands of 12 rows at r = 9 (the window spans three bands) against the float64 oracle."""
+    p, I = scene(1, 48, 2800, 4, seed=7)
+    eps = torch.tensor([0.01, 0.02, 0.01, 0.03])
+    g = torch.randn(1, 3, 48, 2800, generator=torch.Generator().manual_seed(2))
+    threads = torch.get_num_threads()
+    torch.set_num_threads(4)
+    try:
+        got, want = _oracle_gradients(p, I, 9, eps, g)
+    finally:
+        torch.set_num_threads(threads)
+    for a, b in zip(got, want):
+        assert rel_error(a, b) < 2e-4
+    if backends.status()["c"].startswith("compiled kernels in use"):
+        assert backends.status()["last"]["guided_grad"]["ran"] == "c"
 
 
 @pytest.mark.parametrize("channels", [1, 3])

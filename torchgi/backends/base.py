@@ -24,7 +24,13 @@ from typing import Any
 
 import torch
 
-from torchgi.backends.kernel_ops import ApplyKernelsGradOp, ApplyKernelsOp, ATrousLevelGradOp, ATrousLevelOp
+from torchgi.backends.kernel_ops import (
+    ApplyKernelsGradOp,
+    ApplyKernelsOp,
+    ATrousLevelGradOp,
+    ATrousLevelOp,
+    GuidedGradOp,
+)
 from torchgi.backends.pyramid_ops import AppliedMeansOp, BlockMeanOp, FineBandOp, MixHalfOp, ModelResidualOp
 from torchgi.backends.temporal_ops import LUMA, Accumulated, AccumulateOp, Changed, ChangeOp, HistoryOp
 from torchgi.backends.tracer_ops import GuideRaysOp, PathOp, TraceSetup, chunks, embree_started, mark_embree_started
@@ -56,6 +62,7 @@ __all__ = [
     "GuideSpec",
     "GuideStats",
     "GuideStatsOp",
+    "GuidedGradOp",
     "GuidedOp",
     "HistoryOp",
     "ImportanceOp",
@@ -424,14 +431,14 @@ class ChooseOp:
 
 Op = BoxOp | GuidedOp | ATrousOp | ImportanceOp | AllocateOp | GuideStatsOp | EdgeShareOp | RestoreOp | LightInOp | \
     LightOutOp | MixHalfOp | ModelResidualOp | FineBandOp | BlockMeanOp | AppliedMeansOp | BackOffOp | ChooseOp | AccumulateOp | ChangeOp | HistoryOp | PathOp | \
-    GuideRaysOp | ApplyKernelsOp | ApplyKernelsGradOp | ATrousLevelOp | ATrousLevelGradOp
+    GuideRaysOp | ApplyKernelsOp | ApplyKernelsGradOp | ATrousLevelOp | ATrousLevelGradOp | GuidedGradOp
 _OPS = {BoxOp: "box", GuidedOp: "guided", UpsampleApplyOp: "upsample_apply", ATrousOp: "atrous", ImportanceOp: "importance", AllocateOp: "allocate",
         GuideStatsOp: "guide_stats", EdgeShareOp: "edge_share", RestoreOp: "restore", LightInOp: "light_in",
         LightOutOp: "light_out", MixHalfOp: "mix_half", ModelResidualOp: "model_residual", FineBandOp: "fine_band", BlockMeanOp: "block_means", AppliedMeansOp: "applied_means", BackOffOp: "back_off",
         ChooseOp: "choose",
         AccumulateOp: "accumulate", ChangeOp: "change", HistoryOp: "history", PathOp: "path", GuideRaysOp: "guide_rays",
         ApplyKernelsOp: "apply_kernels", ApplyKernelsGradOp: "apply_kernels_grad", ATrousLevelOp: "atrous_level",
-        ATrousLevelGradOp: "atrous_level_grad"}
+        ATrousLevelGradOp: "atrous_level_grad", GuidedGradOp: "guided_grad"}
 
 
 def eager(desc: Op) -> str | None:
@@ -465,7 +472,7 @@ def float32_eager(op: str, desc: Op, who: str) -> str | None:
         return why
     if op == "box" and desc.x.numel() == 0:
         return "an empty tensor: nothing to compute"
-    if op == "guided" and desc.eps.shape[-2:] != (1, 1):
+    if op in ("guided", "guided_grad") and desc.eps.shape[-2:] != (1, 1):
         return f"the {who} guided kernels take one eps per image and guide channel, not a per-pixel map"
     return None
 

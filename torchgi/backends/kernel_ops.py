@@ -2,7 +2,8 @@
 the forward :class:`ApplyKernelsOp` and its gradients :class:`ApplyKernelsGradOp`, the building
 block of kernel-predicting denoisers) and the edge-avoiding kernel of one À-Trous level
 (:class:`ATrousLevelOp`, :class:`ATrousLevelGradOp`: what :func:`torchgi.filters.atrous` runs per
-level under autograd). Re-exported by :mod:`torchgi.backends.base`.
+level under autograd), and the guided filter's gradients (:class:`GuidedGradOp`: what
+:class:`~torchgi.backends.torch_code.filter_guided.GuidedFunction` runs backward). Re-exported by :mod:`torchgi.backends.base`.
 
 Tap ``t = i k + j`` of a ``k x k`` kernel at dilation ``d`` reads the pixel ``(y + (i - k//2) d,
 x + (j - k//2) d)``; taps outside the image are left out of the sum (and, normalised, of the
@@ -14,7 +15,7 @@ from dataclasses import dataclass
 
 import torch
 
-__all__ = ["ATrousLevelGradOp", "ATrousLevelOp", "ApplyKernelsGradOp", "ApplyKernelsOp"]
+__all__ = ["ATrousLevelGradOp", "ATrousLevelOp", "ApplyKernelsGradOp", "ApplyKernelsOp", "GuidedGradOp"]
 
 
 @dataclass(eq=False, slots=True)
@@ -104,3 +105,26 @@ class ATrousLevelGradOp:
         if s.shape[-2:] == (1, 1):
             return 1, s.reshape(B).contiguous()
         return 2, s.expand(B, 1, H, W).contiguous()
+
+
+@dataclass(eq=False, slots=True)
+class GuidedGradOp:
+    """The gradients of the guided filter of the centred ``guide (B,n,H,W)`` (n <= 4) and ``src
+    (B,Cs,H,W)`` (zero means: the output is ``q`` without ``mean(src)``) with ``eps`` ``(B|1,n,1,1)``
+    or a per-pixel ``(B|1,n,H,W)`` map and ``radius``, given ``grad (B,Cs,H,W)`` of the output.
+    Returns ``(dguide, dsrc, deps)`` (``deps`` in the shape of ``eps``), each None where
+    ``need_guide`` / ``need_src`` / ``need_eps`` is False. Where a pivot or ``Σ_ii`` is clamped
+    (rounding level, flat guides) the gradient is that of the unclamped formula, and ``ε`` below
+    the rounding level gets none (it is not used)."""
+
+    guide: torch.Tensor
+    src: torch.Tensor
+    eps: torch.Tensor
+    radius: int
+    grad: torch.Tensor
+    need_guide: bool = True
+    need_src: bool = True
+    need_eps: bool = True
+
+    def tensors(self) -> tuple[torch.Tensor | None, ...]:
+        return (self.guide, self.src, self.eps, self.grad)

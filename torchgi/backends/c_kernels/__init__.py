@@ -1,5 +1,5 @@
 """The C back end: compiled CPU kernels of the filters (one À-Trous level, the guided filter and
-the box filter it is built from, per-pixel kernels and their gradients), the Denoiser's guided pipeline, the sampling importance map and
+the box filter it is built from, its gradients, per-pixel kernels and their gradients), the Denoiser's guided pipeline, the sampling importance map and
 the sample allocation, the temporal ops and the path tracer, float32.
 
 One file per op family, in Python and in C: :mod:`.filters` (``atrous.c``, ``guided.c``), :mod:`.kernels` (``kernels.c``),
@@ -59,7 +59,15 @@ from torchgi.backends.base import (
 from torchgi.backends.c_kernels import build
 from torchgi.backends.c_kernels.accumulation import accumulate, change, history
 from torchgi.backends.c_kernels.build import describe, library
-from torchgi.backends.c_kernels.filters import atrous, atrous_level, atrous_level_grad, box, guided, upsample_apply
+from torchgi.backends.c_kernels.filters import (
+    atrous,
+    atrous_level,
+    atrous_level_grad,
+    box,
+    guided,
+    guided_grad,
+    upsample_apply,
+)
 from torchgi.backends.c_kernels.kernels import apply_kernels, apply_kernels_grad
 from torchgi.backends.c_kernels.pipeline import back_off, choose, edge_share, guide_stats, light_in, light_out, restore
 from torchgi.backends.c_kernels.pyramid import applied_means, block_means, fine_band, mix_half, model_residual
@@ -69,7 +77,7 @@ from torchgi.backends.c_kernels.tracer import _path_support, guide_rays, path
 
 __all__ = [
     "NAME", "accumulate", "allocate", "applied_means", "apply_kernels", "apply_kernels_grad", "atrous", "atrous_level", "atrous_level_grad", "back_off", "block_means", "box", "change", "choose", "describe", "edge_share",
-    "empty_planes", "fine_band", "guide_rays", "guide_stats", "guided", "history", "importance", "library", "light_in", "light_out",
+    "empty_planes", "fine_band", "guide_rays", "guide_stats", "guided", "guided_grad", "history", "importance", "library", "light_in", "light_out",
     "mix_half", "model_residual", "padded", "path", "restore", "supports",
     "upsample_apply",
 ]
@@ -78,7 +86,7 @@ NAME = "c"
 # the image tensor of the ops whose kernels walk one image of fewer than 2^31 pixels per call
 _IMAGE = {"accumulate": "x", "change": "x", "history": "out", "restore": "color", "light_in": "color", "light_out": "color", "model_residual": "x",
           "fine_band": "model", "block_means": "x", "applied_means": "guide", "apply_kernels": "x", "apply_kernels_grad": "x",
-          "atrous_level": "color", "atrous_level_grad": "color"}
+          "atrous_level": "color", "atrous_level_grad": "color", "guided_grad": "src"}
 
 
 def supports(op: str, desc: BoxOp | GuidedOp | ATrousOp | ImportanceOp | AllocateOp | GuideStatsOp | EdgeShareOp |
@@ -120,6 +128,8 @@ def _shape_limits(op: str, desc: object) -> str | None:
     if op in ("atrous_level", "atrous_level_grad") and (desc.color.shape[1] not in (1, 3) or (
             desc.feat is not None and desc.feat.shape[1] not in (3, 6))):
         return f"the C {op} takes 1 or 3 colour channels and 0, 3 or 6 guide planes"
+    if op == "guided_grad" and desc.src.shape[1] > 3:
+        return "the C guided filter's gradients take at most 3 source channels"
     if op == "upsample_apply":
         C, (n, H, W) = desc.coeffs.shape[2], desc.guide.shape[1:]
         if n > 4 or C > 64 or H * W == 0 or H * W >= 2**31:

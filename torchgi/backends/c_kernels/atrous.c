@@ -195,7 +195,7 @@ void torchgi_atrous_level(const float *c, int C, const float *f, int F, const fl
  *   dc_q += w_pq gp_p - E_pq 2 s_p (c_p - c_q)   df_q -= E_pq 2 (f_p - f_q).
  * Each row gathers both (no two bands write one pixel); taps outside the image are left out as in
  * the forward. Plain contiguous planes of H x W; s: NULL (no colour weight), one value or a plane
- * (CSM 0, 1, 2); f, df NULL when F = 0; ds NULL when not wanted.
+ * (CSM 0, 1, 2); f, df NULL when F = 0; df, ds NULL when not wanted.
  */
 INLINE void grad_pairs(const int C, const int F, const int CSM, const float *restrict c, const float *restrict f,
                        const float *restrict s, const float *restrict out, const float *restrict gp, size_t HW,
@@ -213,11 +213,11 @@ INLINE void grad_pairs(const int C, const int F, const int CSM, const float *res
         const vf E = -w * G, E2s = 2.0f * E * sp;
         if (centre) {
             FOR8(k, C, vstore(dc + k * HW + p, vload(dc + k * HW + p) + E2s * u[k]));
-            FOR8(k, F, vstore(df + k * HW + p, vload(df + k * HW + p) + 2.0f * E * v[k]));
+            if (df) FOR8(k, F, vstore(df + k * HW + p, vload(df + k * HW + p) + 2.0f * E * v[k]));
             if (CSM && ds) vstore(ds + p, vload(ds + p) + E * dcol);
         } else {
             FOR8(k, C, vstore(dc + k * HW + q, vload(dc + k * HW + q) + w * vload(gp + k * HW + p) - E2s * u[k]));
-            FOR8(k, F, vstore(df + k * HW + q, vload(df + k * HW + q) - 2.0f * E * v[k]));
+            if (df) FOR8(k, F, vstore(df + k * HW + q, vload(df + k * HW + q) - 2.0f * E * v[k]));
         }
     }
     for (; x < xb; ++x) {
@@ -232,11 +232,11 @@ INLINE void grad_pairs(const int C, const int F, const int CSM, const float *res
         const float E = -w * G, E2s = 2.0f * E * sp;
         if (centre) {
             FOR8(k, C, dc[k * HW + p] += E2s * u[k]);
-            FOR8(k, F, df[k * HW + p] += 2.0f * E * v[k]);
+            if (df) FOR8(k, F, df[k * HW + p] += 2.0f * E * v[k]);
             if (CSM && ds) ds[p] += E * dcol;
         } else {
             FOR8(k, C, dc[k * HW + q] += w * gp[k * HW + p] - E2s * u[k]);
-            FOR8(k, F, df[k * HW + q] -= 2.0f * E * v[k]);
+            if (df) FOR8(k, F, df[k * HW + q] -= 2.0f * E * v[k]);
         }
     }
 }
@@ -270,7 +270,7 @@ static void atrous_grad_rows(const float *c, int C, const float *f, int F, const
     for (int y = y0; y < y1; ++y) {
         const size_t row = (size_t)y * W;
         for (int k = 0; k < C; ++k) memset(dc + k * HW + row, 0, sizeof(float) * W);
-        for (int k = 0; k < F; ++k) memset(df + k * HW + row, 0, sizeof(float) * W);
+        for (int k = 0; k < F && df; ++k) memset(df + k * HW + row, 0, sizeof(float) * W);
         if (ds) memset(ds + row, 0, sizeof(float) * W);
         for (int t = 0; t < 25; ++t) {
             const int oy = (t / 5 - 2) * step, ox = (t % 5 - 2) * step;

@@ -41,6 +41,7 @@ _SIGNATURES = {
     "torchgi_atrous_level": ([_P, _I, _P, _I, _P, _P, _P, _P, _I, _I, _I, _I, _L, _I, _P, _P, _P, _P, *_BANDS], None),
     "torchgi_guided_coefficients": ([_P, _P, _I, _P, _P, _I, _I, _I, _I, _P, _F, _P, *_BANDS], None),
     "torchgi_guided_apply": ([_P, _I, _I, _P, _P, _P, _I, _I, _I, _P, *_BANDS], None),
+    "torchgi_guided_grad": ([_P, _P, _P, _I, _I, _I, _I, _I, _P, _F, _P, _P, *_BANDS], None),
     "torchgi_importance": ([_P, _P, _F, _F, _P, _I, _I, _I, _I, _P, *_BANDS], None),
     "torchgi_allocate": ([_P, _I, _P, _L, _L, _L, _I, _P, _P, _P, _I], _I),
     "torchgi_guide_stats": ([_P, _P, _P, _I, _I, *_BANDS], None),

@@ -1,5 +1,5 @@
 """The C back end's filters: the box filter, the guided filter (its coefficient and apply
-passes) and one À-Trous level per call."""
+passes, and its gradients) and one À-Trous level per call."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ from torchgi.backends.base import (
     ATrousLevelOp,
     ATrousOp,
     BoxOp,
+    GuidedGradOp,
     GuidedOp,
     UpsampleApplyOp,
 )
@@ -19,6 +20,7 @@ from torchgi.backends.c_kernels.runtime import (
     _as_padded,
     _box_scratch,
     _layout,
+    _parts,
     _ptr,
     _run,
     _taps,
@@ -168,6 +170,40 @@ def guided(desc: GuidedOp) -> torch.Tensor:
                    coefficients_only=desc.coefficients_only, holder=desc.workspace, into=desc.out)
 
 
+def guided_grad(desc: GuidedGradOp) -> tuple[torch.Tensor | None, ...]:
+    """:class:`~torchgi.backends.base.GuidedGradOp` in one kernel call per image
+    (``torchgi_guided_grad``, ``guided_grad.c``: the forward's coefficients recomputed and the
+    adjoint streamed in one walk per band of rows); ε's gradient summed in double per band.
+
+    Example:
+        >>> I, p = torch.zeros(1, 1, 4, 4), torch.rand(1, 1, 4, 4)   # a flat guide, r = 0: q = p
+        >>> g = build.library() and guided_grad(GuidedGradOp(I, p, torch.ones(1, 1, 1, 1), 0, torch.ones(1, 1, 4, 4)))
+        >>> g is None or torch.allclose(g[1], torch.ones(1, 1, 4, 4))
+        True
+    """
+    lib = build.library()
+    I, p, g, r = desc.guide.contiguous(), desc.src.contiguous(), desc.grad.contiguous(), desc.radius
+    B, n, H, W = I.shape
+    Cs = p.shape[1]
+    K, Q = n + Cs + n * (n + 1) // 2 + n * Cs, (n + 1) * Cs
+    eps = desc.eps.expand(B, n, 1, 1).reshape(B, n).clamp_min(torch.finfo(torch.float32).tiny).contiguous()
+    dI = torch.empty_like(I) if desc.need_guide else None
+    dp = torch.empty_like(p) if desc.need_src else None
+    deps = torch.empty(B, n, dtype=torch.float64)
+    rows = 2 * K + Q + n * Cs  # the column sums' and the means' rows
+    scratch = 8 * (rows * (W + 8) + 2 * W + 8) + 4 * (rows * (W + 16) + (2 + n) * W + (2 * r + 2) * (K + Q) * W)
+    for b in range(B):
+        deps[b] = _parts(lib.torchgi_guided_grad, H, H * W, I[b].data_ptr(), p[b].data_ptr(), g[b].data_ptr(), n, Cs,
+                         H, W, r, eps[b].data_ptr(), variance_rounding(torch.float32),
+                         _ptr(None if dI is None else dI[b]), _ptr(None if dp is None else dp[b]), doubles=n,
+                         extra_bytes=scratch)
+    d_eps = None
+    if desc.need_eps:
+        d_eps = deps.to(torch.float32).view(B, n, 1, 1)
+        d_eps = d_eps.sum(0, keepdim=True) if desc.eps.shape[0] == 1 < B else d_eps
+    return dI, dp, d_eps
+
+
 def atrous(desc: ATrousOp) -> tuple[torch.Tensor, list[torch.Tensor]]:
     """:class:`~torchgi.backends.base.ATrousOp`, a level per kernel call: the guides divided by
     the square roots of their σ's once, into :func:`padded` planes; the kernel scales the normals'
@@ -228,11 +264,11 @@ def atrous_level_grad(desc: ATrousLevelGradOp) -> tuple[torch.Tensor, torch.Tens
     F = 0 if f is None else f.shape[1]
     csm, s = desc.scale_operand()
     dc = torch.empty_like(c)
-    df = None if f is None else torch.empty_like(f)  # (the kernel writes it; returned when asked)
+    df = None if f is None or not desc.need_feat else torch.empty_like(f)
     ds = None if s is None else torch.empty(B, 1, H, W, dtype=torch.float32)
     for b in range(B):
         _run(lib.torchgi_atrous_level_grad, H, W, c[b].data_ptr(), C, _ptr(None if f is None else f[b]), F,
              _ptr(None if s is None else s[b]), csm, out[b].data_ptr(), gp[b].data_ptr(), H, W, desc.step,
              _taps().data_ptr(), dc[b].data_ptr(), _ptr(None if df is None else df[b]),
              _ptr(None if ds is None else ds[b]), 0)
-    return dc, df if desc.need_feat else None, ds if desc.need_scale else None
+    return dc, df, ds if desc.need_scale else None

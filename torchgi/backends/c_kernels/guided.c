@@ -109,16 +109,15 @@ static void add_planes(const float *planes, int K, size_t HW, int W, int yin, in
 #undef E_IP
 #undef E_A
 
-/* 8 doubles, for the prefix sums along a row */
-typedef double vd __attribute__((vector_size(64)));
-typedef int64_t vl __attribute__((vector_size(64)));
+/* 4 doubles (one AVX2 register), for the prefix sums along a row */
+typedef double vd __attribute__((vector_size(32)));
+typedef int64_t vl __attribute__((vector_size(32)));
 
-/* Inclusive prefix sum within one vector (three shift-and-add steps). */
+/* Inclusive prefix sum within one vector (two shift-and-add steps). */
 INLINE vd vd_scan(vd v) {
     const vd z = {0};
-    v += __builtin_shuffle(z, v, (vl){0, 8, 9, 10, 11, 12, 13, 14});
-    v += __builtin_shuffle(z, v, (vl){0, 1, 8, 9, 10, 11, 12, 13});
-    v += __builtin_shuffle(z, v, (vl){0, 1, 2, 3, 8, 9, 10, 11});
+    v += __builtin_shuffle(z, v, (vl){0, 4, 5, 6});
+    v += __builtin_shuffle(z, v, (vl){0, 1, 4, 5});
     return v;
 }
 
@@ -146,8 +145,8 @@ static void row_means_clipped(const double *a, int W, int r, int x0, int x1, con
 }
 
 /* Box means along the row of K rows of column sums (acc) that cover cy image rows: mean[k][x]
- * = (sum of acc[k] over the window at x) / (pixels in the window): direct sums for r <= 3, else
- * from prefix sums pre (W + 1 doubles) computed eight at a time. */
+ * = (sum of acc[k] over the window at x) / (pixels in the window): direct sums for r <= 4, else
+ * from prefix sums pre (W + 1 doubles) computed four at a time. */
 static void row_means(const double *acc, int K, int W, int r, int cy, const double *inv_cx, double *pre,
                       float *mean) {
     const double inv_cy = 1.0 / cy;
@@ -156,7 +155,7 @@ static void row_means(const double *acc, int K, int W, int r, int cy, const doub
     for (int k = 0; k < K; ++k) {
         const double *a = acc + (size_t)k * ACC_STRIDE(W);
         float *m = mean + (size_t)k * MEAN_STRIDE(W);
-        if (r <= 3) {
+        if (r <= 4) {
             const double inv = inv_cy / (2 * r + 1);
             row_means_clipped(a, W, r, 0, mid0, inv_cx, inv_cy, m);
             row_means_clipped(a, W, r, mid1, W, inv_cx, inv_cy, m);
@@ -164,6 +163,7 @@ static void row_means(const double *acc, int K, int W, int r, int cy, const doub
                 case 1: row_means_direct(a, 1, mid0, mid1, inv, m); break;
                 case 2: row_means_direct(a, 2, mid0, mid1, inv, m); break;
                 case 3: row_means_direct(a, 3, mid0, mid1, inv, m); break;
+                case 4: row_means_direct(a, 4, mid0, mid1, inv, m); break;
                 default: row_means_direct(a, 0, mid0, mid1, inv, m); break;
             }
             continue;
@@ -171,12 +171,12 @@ static void row_means(const double *acc, int K, int W, int r, int cy, const doub
         vd carry = {0};
         int x = 0;
         pre[0] = 0.0;
-        for (; x + 8 <= W; x += 8) {
+        for (; x + 4 <= W; x += 4) {
             vd v;
             memcpy(&v, a + x, sizeof v);
             v = vd_scan(v) + carry;
             memcpy(pre + x + 1, &v, sizeof v);
-            carry = __builtin_shuffle(v, (vl){7, 7, 7, 7, 7, 7, 7, 7});
+            carry = __builtin_shuffle(v, (vl){3, 3, 3, 3});
         }
         for (; x < W; ++x) pre[x + 1] = pre[x] + a[x];
         for (x = 0; x < mid0; ++x) {

@@ -1,6 +1,6 @@
 /* The CPU kernels of torchgi, float32, one image per call: the filters (box, guided, À-Trous,
  * per-pixel kernels and their gradients),
- * the Denoiser's guided pipeline, the sampling importance and allocation, the temporal
+ * the guided filter's gradients, the Denoiser's guided pipeline, the sampling importance and allocation, the temporal
  * ops; the path tracer is tracer.c.
  *
  * Compiled at first use by torchgi/backends/c_kernels/build.py (gcc/cc, -O3 -march=native,
@@ -11,7 +11,7 @@
  */
 #include "common.h"
 
-int torchgi_native_version(void) { return 15; }
+int torchgi_native_version(void) { return 16; }
 
 float torchgi_exp_neg(float d) { return exp_neg(d); }
 
@@ -36,3 +36,4 @@ int torchgi_openmp(void) {
 #include "allocate.c"
 #include "accumulate.c"
 #include "kernels.c"
+#include "guided_grad.c"

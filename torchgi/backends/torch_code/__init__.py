@@ -20,7 +20,14 @@ from torchgi.backends.torch_code.filter_atrous import (
     squared_distance,
 )
 from torchgi.backends.torch_code.filter_box import PlaneBoxer, block_mean, block_means, box, box_pool, in_place
-from torchgi.backends.torch_code.filter_guided import apply_coefficients, guided, guided_filter, solve, upsample_apply
+from torchgi.backends.torch_code.filter_guided import (
+    apply_coefficients,
+    guided,
+    guided_filter,
+    guided_grad,
+    solve,
+    upsample_apply,
+)
 from torchgi.backends.torch_code.filter_kernels import apply_kernels, apply_kernels_grad
 from torchgi.backends.torch_code.pipeline import back_off, choose, edge_share, guide_stats, light_in, light_out, restore
 from torchgi.backends.torch_code.pyramid import applied_means, fine_band, mix_half, model_residual, up2
@@ -29,7 +36,7 @@ from torchgi.backends.torch_code.tracer import guide_rays, path
 
 __all__ = [
     "NAME", "PlaneBoxer", "accumulate", "allocate", "applied_means", "apply_coefficients", "apply_kernels", "apply_kernels_grad", "atrous", "atrous_level", "atrous_level_grad", "back_off", "block_mean", "block_means", "box", "box_pool",
-    "change", "channel_planes", "choose", "describe", "edge_share", "fine_band", "guide_rays", "guide_stats", "guided", "guided_filter",
+    "change", "channel_planes", "choose", "describe", "edge_share", "fine_band", "guide_rays", "guide_stats", "guided", "guided_filter", "guided_grad",
     "history", "importance", "in_place", "light_in", "light_out", "mix_half", "model_residual", "path", "restore", "solve", "squared_distance",
     "supports", "up2", "upsample_apply",
 ]

@@ -14,6 +14,7 @@ import torch.nn.functional as F
 
 from torchgi.backends.autograd_ops import box_adjoint, box_mean
 from torchgi.backends.base import (
+    GuidedGradOp,
     GuidedOp,
     UpsampleApplyOp,
     run,
@@ -158,11 +159,9 @@ class GuidedFunction(torch.autograd.Function):
     """The guided filter of centred ``I (B,n,H,W)``, ``p (B,Cs,H,W)`` with ``eps`` ``(B|1,n,1,1)``
     or ``(B|1,n,H,W)`` (the output without ``mean(p)``), whose backward is written out: the forward
     is one :class:`~torchgi.backends.base.GuidedOp` through the seam (the compiled kernels for
-    float32) and saves only its inputs; the backward recomputes the box means and the solve,
-    then runs the adjoint of each step: the box's transpose through the seam, the solve's
-    through the same LDLᵀ (``∂L/∂cov = A^-1 ∂L/∂a``, ``∂L/∂A = -(A^-1 ∂L/∂a) aᵀ``; ``A`` is
-    symmetric). Where a pivot or ``Σ_ii`` is clamped (rounding level, flat guides) the gradient is
-    that of the unclamped formula, and ``ε`` below the rounding level gets none (it is not used).
+    float32) and saves only its inputs; the backward is one
+    :class:`~torchgi.backends.base.GuidedGradOp` through the seam (:func:`guided_grad` in torch, the
+    C kernel on the CPU), which recomputes what it needs.
 
     Example:
         >>> I = torch.rand(1, 2, 8, 8, dtype=torch.float64, requires_grad=True)
@@ -183,73 +182,98 @@ class GuidedFunction(torch.autograd.Function):
     @staticmethod
     def backward(ctx: Any, g: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
         I, p, eps = ctx.saved_tensors
-        r = ctx.r
-        n, Cs = I.shape[1], p.shape[1]
-        Ii = I.split(1, 1)
-        mI, mp, mII, mIp = _box_means(I, p, r)
-        L, D, _ = _factor(mI, mII, eps)
-        a = _substitute(L, D, [torch.addcmul(mIp[i], mI[i], mp, value=-1) for i in range(n)])
-        b = mp
-        for i in range(n):
-            b = torch.addcmul(b, a[i], mI[i], value=-1)
-        coeffs = box_mean(torch.cat(a + [b], 1), r).split(Cs, 1)  # ā_0 .. ā_{n-1}, b̄
-        del b  # (each intermediate is dropped once used: the backward's peak memory)
-        # q = Σ_i ā_i I_i + b̄
-        dI = [(g * coeffs[i]).sum(1, keepdim=True) for i in range(n)]
-        del coeffs
-        adj = box_adjoint(torch.cat([g * Ii[i] for i in range(n)] + [g], 1), r, overwrite=True).split(Cs, 1)
-        db = adj[n]
-        # b = mp - Σ_i a_i mI_i ;  a = A^-1 cov
-        dmp = db
-        dmI = [-(db * a[i]).sum(1, keepdim=True) for i in range(n)]
-        z = _substitute(L, D, [torch.addcmul(adj[i], db, mI[i], value=-1) for i in range(n)])
-        del L, D, adj
-        dmIp = z
-        for i in range(n):
-            dmI[i] = dmI[i] - (z[i] * mp).sum(1, keepdim=True)
-            dmp = torch.addcmul(dmp, z[i], mI[i], value=-1)
-        del db
-        dmII: dict[tuple[int, int], torch.Tensor] = {}
-        deps = []
-        unit = variance_rounding(I.dtype)
-        for i, j in _pairs(n):
-            if i != j:
-                d = -(z[i] * a[j] + z[j] * a[i]).sum(1, keepdim=True)
-                dmII[(i, j)] = d
-                dmI[i] = torch.addcmul(dmI[i], d, mI[j], value=-1)
-                dmI[j] = torch.addcmul(dmI[j], d, mI[i], value=-1)
-                continue
-            dA = -(z[i] * a[i]).sum(1, keepdim=True)
-            raw = (mII[(i, i)] - mI[i] * mI[i]) >= 0
-            from_eps = eps[:, i : i + 1] >= mII[(i, i)] * unit
-            dvar = torch.where(raw, dA, 0)
-            dmII[(i, i)] = dvar + torch.where(from_eps, 0, dA * unit)
-            dmI[i] = dmI[i] - 2 * mI[i] * dvar
-            deps.append(torch.where(from_eps, dA, 0))
-        pairs = _pairs(n)
-        stack = torch.cat(dmI + [dmp] + [dmII[k] for k in pairs] + dmIp, 1)
-        del a, z, dmI, dmp, dmII, dmIp, mI, mp, mII, mIp
-        T = box_adjoint(stack, r, overwrite=True)
-        del stack
-        TI, Tp = T[:, :n].split(1, 1), T[:, n : n + Cs]
-        TII = dict(zip(pairs, T[:, n + Cs : n + Cs + len(pairs)].split(1, 1)))
-        TIp = T[:, n + Cs + len(pairs) :].split(Cs, 1)
-        dp = Tp
-        for i in range(n):
-            dI[i] = dI[i] + TI[i] + (TIp[i] * p).sum(1, keepdim=True)
-            dp = torch.addcmul(dp, TIp[i], Ii[i])
-        for (i, j), t in TII.items():
-            if i == j:
-                dI[i] = dI[i] + 2 * t * Ii[i]
-            else:
-                dI[i] = torch.addcmul(dI[i], t, Ii[j])
-                dI[j] = torch.addcmul(dI[j], t, Ii[i])
-        d_eps = None
-        if ctx.needs_input_grad[2]:
-            d_eps = torch.cat(deps, 1)
-            d_eps = d_eps if eps.shape[-2:] == d_eps.shape[-2:] else d_eps.sum((2, 3), keepdim=True)
-            d_eps = d_eps.sum(0, keepdim=True) if eps.shape[0] == 1 < d_eps.shape[0] else d_eps
-        return torch.cat(dI, 1), dp, d_eps, None
+        dI, dp, d_eps = run(GuidedGradOp(I, p, eps, ctx.r, g.contiguous(), *ctx.needs_input_grad[:3]))
+        return dI, dp, d_eps, None
+
+
+def guided_grad(desc: GuidedGradOp) -> tuple[torch.Tensor | None, ...]:
+    """:class:`~torchgi.backends.base.GuidedGradOp` in torch (the reference of the compiled
+    kernels): the box means and the solve recomputed, then the adjoint of each step: the box's
+    transpose through the seam, the solve's through the same LDLᵀ (``∂L/∂cov = A^-1 ∂L/∂a``,
+    ``∂L/∂A = -(A^-1 ∂L/∂a) aᵀ``; ``A`` is symmetric); each intermediate dropped once used.
+
+    Example:
+        >>> I, p = torch.zeros(1, 1, 4, 4), torch.rand(1, 1, 4, 4)   # a flat guide: q = box(box(p))
+        >>> dI, dp, _ = guided_grad(GuidedGradOp(I, p, torch.ones(1, 1, 1, 1), 0, torch.ones(1, 1, 4, 4)))
+        >>> torch.allclose(dp, torch.ones(1, 1, 4, 4))   # r = 0: q = p
+        True
+    """
+    I, p, eps, r, g = desc.guide, desc.src, desc.eps, desc.radius, desc.grad
+    n, Cs = I.shape[1], p.shape[1]
+    Ii = I.split(1, 1)
+    mI, mp, mII, mIp = _box_means(I, p, r)
+    L, D, _ = _factor(mI, mII, eps)
+    a = _substitute(L, D, [torch.addcmul(mIp[i], mI[i], mp, value=-1) for i in range(n)])
+    b = mp
+    for i in range(n):
+        b = torch.addcmul(b, a[i], mI[i], value=-1)
+    coeffs = box_mean(torch.cat(a + [b], 1), r).split(Cs, 1)  # ā_0 .. ā_{n-1}, b̄
+    del b  # (each intermediate is dropped once used: the backward's peak memory)
+    # q = Σ_i ā_i I_i + b̄
+    dI = [(g * coeffs[i]).sum(1, keepdim=True) for i in range(n)]
+    del coeffs
+    adj = box_adjoint(torch.cat([g * Ii[i] for i in range(n)] + [g], 1), r, overwrite=True).split(Cs, 1)
+    stack, deps = _solve_adjoint(adj, a, L, D, mI, mp, mII, eps)
+    del adj, a, L, D, mI, mp, mII, mIp
+    T = box_adjoint(stack, r, overwrite=True)
+    del stack
+    pairs = _pairs(n)
+    TI, Tp = T[:, :n].split(1, 1), T[:, n : n + Cs]
+    TII = dict(zip(pairs, T[:, n + Cs : n + Cs + len(pairs)].split(1, 1)))
+    TIp = T[:, n + Cs + len(pairs) :].split(Cs, 1)
+    dp = Tp
+    for i in range(n):
+        dI[i] = dI[i] + TI[i] + (TIp[i] * p).sum(1, keepdim=True)
+        dp = torch.addcmul(dp, TIp[i], Ii[i])
+    for (i, j), t in TII.items():
+        if i == j:
+            dI[i] = dI[i] + 2 * t * Ii[i]
+        else:
+            dI[i] = torch.addcmul(dI[i], t, Ii[j])
+            dI[j] = torch.addcmul(dI[j], t, Ii[i])
+    d_eps = None
+    if desc.need_eps:
+        d_eps = torch.cat(deps, 1)
+        d_eps = d_eps if eps.shape[-2:] == d_eps.shape[-2:] else d_eps.sum((2, 3), keepdim=True)
+        d_eps = d_eps.sum(0, keepdim=True) if eps.shape[0] == 1 < d_eps.shape[0] else d_eps
+    return torch.cat(dI, 1) if desc.need_guide else None, dp if desc.need_src else None, d_eps
+
+
+def _solve_adjoint(
+    adj: tuple[torch.Tensor, ...], a: list[torch.Tensor], L: dict, D: list[torch.Tensor], mI: list[torch.Tensor],
+    mp: torch.Tensor, mII: dict[tuple[int, int], torch.Tensor], eps: torch.Tensor,
+) -> tuple[torch.Tensor, list[torch.Tensor]]:
+    """The solve's adjoint in :func:`guided_grad`: from ``adj`` (the gradients of ``a_0..a_{n-1},
+    b``), the gradients of the box means stacked in :func:`_box_means`' order and of each ``ε_i``
+    per pixel."""
+    n = len(a)
+    db = adj[n]
+    # b = mp - Σ_i a_i mI_i ;  a = A^-1 cov
+    dmp = db
+    dmI = [-(db * a[i]).sum(1, keepdim=True) for i in range(n)]
+    z = _substitute(L, D, [torch.addcmul(adj[i], db, mI[i], value=-1) for i in range(n)])
+    dmIp = z
+    for i in range(n):
+        dmI[i] = dmI[i] - (z[i] * mp).sum(1, keepdim=True)
+        dmp = torch.addcmul(dmp, z[i], mI[i], value=-1)
+    dmII: dict[tuple[int, int], torch.Tensor] = {}
+    deps = []
+    unit = variance_rounding(a[0].dtype)
+    for i, j in _pairs(n):
+        if i != j:
+            d = -(z[i] * a[j] + z[j] * a[i]).sum(1, keepdim=True)
+            dmII[(i, j)] = d
+            dmI[i] = torch.addcmul(dmI[i], d, mI[j], value=-1)
+            dmI[j] = torch.addcmul(dmI[j], d, mI[i], value=-1)
+            continue
+        dA = -(z[i] * a[i]).sum(1, keepdim=True)
+        raw = (mII[(i, i)] - mI[i] * mI[i]) >= 0
+        from_eps = eps[:, i : i + 1] >= mII[(i, i)] * unit
+        dvar = torch.where(raw, dA, 0)
+        dmII[(i, i)] = dvar + torch.where(from_eps, 0, dA * unit)
+        dmI[i] = dmI[i] - 2 * mI[i] * dvar
+        deps.append(torch.where(from_eps, dA, 0))
+    return torch.cat(dmI + [dmp] + [dmII[k] for k in _pairs(n)] + dmIp, 1), deps
 
 
 def upsample_apply(desc: UpsampleApplyOp) -> torch.Tensor:
