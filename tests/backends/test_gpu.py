@@ -22,6 +22,7 @@ from torchgi.backends import triton_kernels as gpu
 from torchgi.backends.triton_kernels import accumulation as accumulation_kernels
 from torchgi.backends.triton_kernels import filter_atrous as atrous_kernels
 from torchgi.backends.triton_kernels import filter_guided as guided_kernels
+from torchgi.backends.triton_kernels import filter_guided_grad as guided_grad_kernels
 from torchgi.backends.triton_kernels import filter_kernels as kernel_kernels
 from torchgi.filters import atrous, box, guided
 
@@ -249,6 +250,36 @@ def test_triton_atrous_level_gradients_match_autograd_in_the_interpreter():
     assert worst < 1e-4
 
 
+_INTERPRETED_GUIDED_GRAD = """
+import sys, torch
+sys.path.insert(0, {root!r})
+from tests.oracles import guided_oracle
+from torchgi import backends
+from torchgi.filters import guided
+worst = 0.0
+for n, C, r, B in ((1, 1, 1, 1), (4, 3, 2, 2), (3, 2, 3, 1), (2, 3, 1, 1)):
+    g = torch.Generator().manual_seed(n + r)
+    p, I = torch.rand(B, C, 9, 13, generator=g), torch.rand(B, n, 9, 13, generator=g)
+    eps, gr = torch.linspace(0.01, 0.03, n), torch.randn(B, C, 9, 13, generator=g)
+    x, y, e = p.double().requires_grad_(), I.double().requires_grad_(), eps.double().requires_grad_()
+    want = torch.autograd.grad((guided_oracle(x, y, r, e) * gr.double()).sum(), (x, y, e))
+    x, y, e = p.clone().requires_grad_(), I.clone().requires_grad_(), eps.clone().requires_grad_()
+    with backends.use("triton"):
+        got = torch.autograd.grad((guided(x, y, radius=r, eps=e) * gr).sum(), (x, y, e))
+    assert backends.status()["last"]["guided_grad"]["ran"] == "triton"
+    for a, b in zip(got, want):
+        worst = max(worst, float((a.double() - b).abs().max() / b.abs().max()))
+print(worst)
+"""
+
+
+def test_triton_guided_gradients_match_autograd_in_the_interpreter():
+    """The Triton guided backward (source, guide, per-channel ε; 1 to 4 guide channels) against
+    autograd through the float64 oracle."""
+    (worst,) = _interpret(_INTERPRETED_GUIDED_GRAD)
+    assert worst < 2e-4
+
+
 def test_triton_apply_kernels_match_oracle_in_the_interpreter():
     """The Triton forward and gradients of apply_kernels against autograd through the float64 oracle."""
     (worst,) = _interpret(_INTERPRETED_KERNELS)
@@ -297,6 +328,22 @@ def test_triton_guided_matches_oracle_on_cuda(device, n, Cs):
     torch.testing.assert_close(box(x.to(device), 7).cpu().double(), box_oracle(x.double(), 7), rtol=0, atol=1e-6)
 
 
+@pytest.mark.parametrize("n", [1, 2, 3, 4])
+def test_triton_guided_gradients_match_autograd_on_cuda(device, n):
+    """The Triton guided backward on the GPU (a 4-channel guide at 256 x 301, r 9; the grid has
+    partial blocks) against autograd through the float64 oracle on the CPU."""
+    _cuda_with_triton(device)
+    p, I = scene(2, 256, 301, n, seed=n)
+    eps, gr = torch.linspace(0.01, 0.03, n), torch.randn(2, 3, 256, 301, generator=torch.Generator().manual_seed(n))
+    x, y, e = p.double().requires_grad_(), I.double().requires_grad_(), eps.double().requires_grad_()
+    want = torch.autograd.grad((guided_oracle(x, y, 9, e) * gr.double()).sum(), (x, y, e))
+    x, y, e = (t.to(device).requires_grad_() for t in (p, I, eps))
+    got = torch.autograd.grad((guided(x, y, radius=9, eps=e) * gr.to(device)).sum(), (x, y, e))
+    assert last_backend("guided_grad") == "triton"
+    for a, b in zip(got, want):
+        assert float((a.cpu().double() - b).abs().max() / b.abs().max()) < 2e-4
+
+
 def test_kernels_off_inside_use_torch():
     with backends.use("torch"):
         box(torch.rand(1, 1, 4, 4, device="cuda" if torch.cuda.is_available() else "cpu"), 1)
@@ -318,7 +365,8 @@ def _variants():
         (guided_kernels._column_sums, {"CENTRE": False, "BW": guided_kernels._COL_BW, "UNROLL": guided_kernels._COL_UNROLL}, guided_kernels._COL_WARPS),
         (guided_kernels._row_means, {"BH": guided_kernels._ROW_BH, "BW": guided_kernels._ROW_BW}, 4),
     ] + [(k, {"N": n, "BLOCK": guided_kernels._PIX}, 4) for k in (guided_kernels._solve, guided_kernels._apply) for n in (1, 2, 3, 4)
-         ] + [(accumulation_kernels._accumulate, {"BLOCK": accumulation_kernels._BLOCK}, 4)] + [
+         ] + [(guided_grad_kernels._adjoint, {"N": n, "BLOCK": guided_kernels._PIX}, 4) for n in (1, 2, 3, 4)] + [
+        (guided_grad_kernels._gradients, {"N": n, "DI": True, "BLOCK": guided_kernels._PIX}, 4) for n in (1, 2, 3, 4)] + [(accumulation_kernels._accumulate, {"BLOCK": accumulation_kernels._BLOCK}, 4)] + [
         (kernel_kernels._forward, {"NORMALIZE": True, "BLOCK": kernel_kernels._BLOCK}, 4),
         (kernel_kernels._gradients, {"NORMALIZE": True, "DX": True, "DW": True, "BLOCK": kernel_kernels._BLOCK}, 4),
         (atrous_kernels._level_grad, {"C": 3, "F": 6, "CS": 2, "DF": True, "DS": True,

@@ -1,8 +1,8 @@
 """The Triton back end, for CUDA tensors (float32, without autograd or tracing): an À-Trous level,
-the guided filter (with the box filter it is built from), the Denoiser's guided pipeline, the
+the guided filter (with the box filter it is built from) and its gradients, the Denoiser's guided pipeline, the
 temporal accumulation, and per-pixel kernels with their gradients.
 
-One file per op family: :mod:`.filter_atrous`, :mod:`.filter_guided` (and the box filter), :mod:`.filter_kernels`,
+One file per op family: :mod:`.filter_atrous`, :mod:`.filter_guided` (and the box filter), :mod:`.filter_guided_grad`, :mod:`.filter_kernels`,
 :mod:`.pipeline`, :mod:`.accumulation` (one launch per frame);
 :mod:`.common` holds Triton itself and what the kernels share. This module is the back end's
 registry: :func:`supports`, :func:`describe` and one function per op.
@@ -37,11 +37,12 @@ from torchgi.backends.triton_kernels.accumulation import accumulate
 from torchgi.backends.triton_kernels.common import _INTERPRET, triton
 from torchgi.backends.triton_kernels.filter_atrous import MAX_CHANNELS, atrous, atrous_level, atrous_level_grad
 from torchgi.backends.triton_kernels.filter_guided import box, guided
+from torchgi.backends.triton_kernels.filter_guided_grad import guided_grad
 from torchgi.backends.triton_kernels.filter_kernels import apply_kernels, apply_kernels_grad
 from torchgi.backends.triton_kernels.pipeline import restore
 
 __all__ = ["MAX_CHANNELS", "NAME", "accumulate", "apply_kernels", "apply_kernels_grad", "atrous", "atrous_level",
-           "atrous_level_grad", "box", "describe", "guided", "restore", "supports"]
+           "atrous_level_grad", "box", "describe", "guided", "guided_grad", "restore", "supports"]
 
 NAME = "triton"
 
@@ -68,8 +69,8 @@ def supports(op: str, desc: BoxOp | GuidedOp | ATrousOp | RestoreOp | Accumulate
         >>> supports("importance", None)   # no Triton kernel of the importance map
         'no Triton kernel for importance'
     """
-    if op not in ("box", "guided", "atrous", "restore", "accumulate", "apply_kernels", "apply_kernels_grad",
-                  "atrous_level", "atrous_level_grad"):
+    if op not in ("box", "guided", "guided_grad", "atrous", "restore", "accumulate", "apply_kernels",
+                  "apply_kernels_grad", "atrous_level", "atrous_level_grad"):
         return f"no Triton kernel for {op}"
     if triton is None:
         return "Triton not installed"
