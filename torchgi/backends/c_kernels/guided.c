@@ -109,7 +109,24 @@ static void add_planes(const float *planes, int K, size_t HW, int W, int yin, in
 #undef E_IP
 #undef E_A
 
-/* 4 doubles (one AVX2 register), for the prefix sums along a row */
+/* VD doubles, for the prefix sums along a row: one register's width (8 with AVX-512; 4 else,
+ * where wider vectors' shuffles would be emulated lane by lane) */
+#if defined(__AVX512F__)
+#define VD 8
+typedef double vd __attribute__((vector_size(64)));
+typedef int64_t vl __attribute__((vector_size(64)));
+
+/* Inclusive prefix sum within one vector (three shift-and-add steps). */
+INLINE vd vd_scan(vd v) {
+    const vd z = {0};
+    v += __builtin_shuffle(z, v, (vl){0, 8, 9, 10, 11, 12, 13, 14});
+    v += __builtin_shuffle(z, v, (vl){0, 1, 8, 9, 10, 11, 12, 13});
+    v += __builtin_shuffle(z, v, (vl){0, 1, 2, 3, 8, 9, 10, 11});
+    return v;
+}
+#define VD_LAST ((vl){7, 7, 7, 7, 7, 7, 7, 7})
+#else
+#define VD 4
 typedef double vd __attribute__((vector_size(32)));
 typedef int64_t vl __attribute__((vector_size(32)));
 
@@ -120,6 +137,8 @@ INLINE vd vd_scan(vd v) {
     v += __builtin_shuffle(z, v, (vl){0, 1, 4, 5});
     return v;
 }
+#define VD_LAST ((vl){3, 3, 3, 3})
+#endif
 
 /* Interior box means of a small constant radius R: m[x] = Σ_{|d| <= R} a[x + d] · inv for x in
  * [x0, x1), the window inside the row (a direct sum: fewer operations than the prefix sums for
@@ -146,7 +165,7 @@ static void row_means_clipped(const double *a, int W, int r, int x0, int x1, con
 
 /* Box means along the row of K rows of column sums (acc) that cover cy image rows: mean[k][x]
  * = (sum of acc[k] over the window at x) / (pixels in the window): direct sums for r <= 4, else
- * from prefix sums pre (W + 1 doubles) computed four at a time. */
+ * from prefix sums pre (W + 1 doubles) computed VD at a time. */
 static void row_means(const double *acc, int K, int W, int r, int cy, const double *inv_cx, double *pre,
                       float *mean) {
     const double inv_cy = 1.0 / cy;
@@ -171,12 +190,12 @@ static void row_means(const double *acc, int K, int W, int r, int cy, const doub
         vd carry = {0};
         int x = 0;
         pre[0] = 0.0;
-        for (; x + 4 <= W; x += 4) {
+        for (; x + VD <= W; x += VD) {
             vd v;
             memcpy(&v, a + x, sizeof v);
             v = vd_scan(v) + carry;
             memcpy(pre + x + 1, &v, sizeof v);
-            carry = __builtin_shuffle(v, (vl){3, 3, 3, 3});
+            carry = __builtin_shuffle(v, VD_LAST);
         }
         for (; x < W; ++x) pre[x + 1] = pre[x] + a[x];
         for (x = 0; x < mid0; ++x) {
