@@ -160,8 +160,8 @@ class GuidedFunction(torch.autograd.Function):
     or ``(B|1,n,H,W)`` (the output without ``mean(p)``), whose backward is written out: the forward
     is one :class:`~torchgi.backends.base.GuidedOp` through the seam (the compiled kernels for
     float32) and saves only its inputs; the backward is one
-    :class:`~torchgi.backends.base.GuidedGradOp` through the seam (:func:`guided_grad` in torch, the
-    C kernel on the CPU), which recomputes what it needs.
+    :class:`~torchgi.backends.base.GuidedGradOp` through the seam (:func:`guided_grad` in torch, a
+    C kernel on the CPU, Triton on CUDA), which recomputes what it needs.
 
     Example:
         >>> I = torch.rand(1, 2, 8, 8, dtype=torch.float64, requires_grad=True)
