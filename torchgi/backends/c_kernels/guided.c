@@ -220,6 +220,37 @@ static void column_counts(int W, int r, double *inv_cx) {
 
 #define TRI(i, j) ((i) * ((i) + 1) / 2 + (j))
 
+/* The LDLᵀ of pixel x's Σ + diag(ε_eff) as in torch_code.filter_guided._factor, from the means
+ * mI (n planes MW apart) and mII (j <= i, TRI order): L below the diagonal, the pivots D
+ * (clamped at ε_eff) and ε_eff e (each ε_i raised to unit · E[I_i²]; variances clamped at 0). */
+INLINE void ldl_factor(const int n, const float *mI, const float *mII, int MW, int x, const float *eps, float unit,
+                       float L[4][4], float D[4], float e[4]) {
+    float A[4][4], E[4][4];
+    FOR8(i, n, FOR8(j, i + 1, {
+        const float mij = mII[(size_t)TRI(i, j) * MW + x];
+        float v = mij - mI[(size_t)i * MW + x] * mI[(size_t)j * MW + x];
+        if (i == j) {
+            e[i] = MAXF(mij * unit, eps[i]);
+            v = MAXF(v, 0.0f) + e[i];
+        }
+        A[i][j] = v;
+    }));
+    FOR8(j, n, {
+        float d = A[j][j];
+        FOR8(q, j, d -= L[j][q] * E[j][q]);
+        D[j] = MAXF(d, e[j]);
+        FOR8(i, n, if (i > j) {
+            float v = A[i][j];
+            FOR8(q, j, v -= L[i][q] * E[j][q]);
+            E[i][j] = v;
+            L[i][j] = v / D[j];
+        });
+    });
+}
+
+/* The rows of the (2r+1)² window around row y, clipped to the image */
+INLINE int window_rows(int y, int r, int H) { return (y + r < H ? y + r : H - 1) - (y - r > 0 ? y - r : 0) + 1; }
+
 /* Solve one row for source channels [c0, c0 + G): means in m (K x W, the order of
  * add_products), write a_0..a_{n-1}, b (each Cs planes) into coef at row y. LDLᵀ as in
  * torch_code.filter_guided.solve: eps_i raised to unit · E[I_i²] per pixel, variances clamped at 0, pivots at eps. */
@@ -231,27 +262,8 @@ INLINE void solve_row(const int n, const int G, int c0, int Cs, const float *m, 
     float *row = coef + (size_t)y * W;
 #pragma GCC ivdep
     for (int x = 0; x < W; ++x) {
-        float A[4][4], L[4][4], E[4][4], D[4], e[4];
-        FOR8(i, n, FOR8(j, i + 1, {
-            const float mij = mII[(size_t)TRI(i, j) * MW + x];
-            float v = mij - mI[(size_t)i * MW + x] * mI[(size_t)j * MW + x];
-            if (i == j) {
-                e[i] = MAXF(mij * unit, eps[i]);
-                v = MAXF(v, 0.0f) + e[i];
-            }
-            A[i][j] = v;
-        }));
-        FOR8(j, n, {
-            float d = A[j][j];
-            FOR8(q, j, d -= L[j][q] * E[j][q]);
-            D[j] = MAXF(d, e[j]);
-            FOR8(i, n, if (i > j) {
-                float v = A[i][j];
-                FOR8(q, j, v -= L[i][q] * E[j][q]);
-                E[i][j] = v;
-                L[i][j] = v / D[j];
-            });
-        });
+        float L[4][4], D[4], e[4];
+        ldl_factor(n, mI, mII, MW, x, eps, unit, L, D, e);
         FOR8(g, G, {
             const int c = c0 + g;
             const float mpc = mp[(size_t)c * MW + x];
@@ -305,7 +317,7 @@ static void coefficients_rows(const guide_t *G, const float *meanI, int n, const
     for (int y = y0; y < y1; ++y) {
         /* the window's rows are [y - r, y + r] clipped to the image */
         if (y + r < H || y - r - 1 >= 0) add_products(&P, y + r < H ? y + r : -1, y - r - 1, acc);
-        const int cy = (y + r < H ? y + r : H - 1) - (y - r > 0 ? y - r : 0) + 1;
+        const int cy = window_rows(y, r, H);
         row_means(acc, K, W, r, cy, inv_cx, pre, m);
         for (int c0 = 0; c0 < Cs; c0 += 3) /* source channels three at a time */
             SOLVERS[n - 1][(Cs - c0 < 3 ? Cs - c0 : 3) - 1](c0, Cs, m, W, eps, unit, coef, HW, y);
@@ -337,7 +349,7 @@ static void apply_rows(const float *coef, int n, int Cs, const guide_t *G, const
         add_planes(coef, Q, HW, W, yy, -1, acc);
     for (int y = y0; y < y1; ++y) {
         if (y + r < H || y - r - 1 >= 0) add_planes(coef, Q, HW, W, y + r < H ? y + r : -1, y - r - 1, acc);
-        const int cy = (y + r < H ? y + r : H - 1) - (y - r > 0 ? y - r : 0) + 1;
+        const int cy = window_rows(y, r, H);
         row_means(acc, Q, W, r, cy, inv_cx, pre, m);
         if (L) demod_row(L, y, ad);
         if (!G) {

@@ -27,9 +27,6 @@ typedef struct {
     size_t HW;
 } guided_grad_t;
 
-/* Rows of the window around row y, clipped to the image */
-INLINE int window_rows(int y, int r, int H) { return (y + r < H ? y + r : H - 1) - (y - r > 0 ? y - r : 0) + 1; }
-
 /* The column sums of g_c I_i / N (k = i Cs + c) and g_c / N (k = n Cs + c) slide: + row yin, - row yout (< 0: none) */
 static void add_adjoint(const guided_grad_t *T, int yin, int yout, const double *inv_cx, double *acc) {
     const int n = T->n, Cs = T->Cs, W = T->W;
@@ -62,29 +59,10 @@ INLINE void adjoint_row(const int n, const int Cs, const float *m, const float *
     float *sI = st, *sp = st + (size_t)n * W, *sII = sp + (size_t)Cs * W, *sIp = sII + (size_t)NP * W;
 #pragma GCC ivdep
     for (int x = 0; x < W; ++x) {
-        float A[4][4], L[4][4], E[4][4], D[4], e[4], mi[4], a[4][3], z[4][3], db[3], dmp[3], dmI[4];
+        float L[4][4], D[4], e[4], mi[4], a[4][3], z[4][3], db[3], dmp[3], dmI[4];
         const float N = cx[x] * cy, invN = 1.0f / N;
         FOR8(i, n, mi[i] = mI[(size_t)i * MW + x]);
-        FOR8(i, n, FOR8(j, i + 1, { /* the forward's LDLᵀ (solve_row) */
-            const float mij = mII[(size_t)TRI(i, j) * MW + x];
-            float v = mij - mi[i] * mi[j];
-            if (i == j) {
-                e[i] = MAXF(mij * unit, eps[i]);
-                v = MAXF(v, 0.0f) + e[i];
-            }
-            A[i][j] = v;
-        }));
-        FOR8(j, n, {
-            float d = A[j][j];
-            FOR8(q, j, d -= L[j][q] * E[j][q]);
-            D[j] = MAXF(d, e[j]);
-            FOR8(i, n, if (i > j) {
-                float v = A[i][j];
-                FOR8(q, j, v -= L[i][q] * E[j][q]);
-                E[i][j] = v;
-                L[i][j] = v / D[j];
-            });
-        });
+        ldl_factor(n, mI, mII, MW, x, eps, unit, L, D, e); /* the forward's (solve_row) */
         FOR8(i, n, FOR8(c, Cs, a[i][c] = coef[((size_t)i * Cs + c) * HW + x]));
         FOR8(c, Cs, { db[c] = adj[((size_t)n * Cs + c) * MW + x] * N; dmp[c] = db[c]; });
         /* b = mp - Σ_i a_i mI_i */
