@@ -118,40 +118,35 @@ if triton is not None:
         return e, tl.maximum(mean_sq - mean * mean, 0.0) + e
 
     @triton.jit
-    def _solve(  # noqa: PLR0915 - the LDLᵀ of up to 4 guide channels unrolled in one launch
-               m_ptr, eps_ptr, a_ptr, HW, Cs, n_blk, sm_b, sa_b, unit, tiny, N: tl.constexpr, BLOCK: tl.constexpr):
-        # a = (Σ + diag(ε))^-1 cov, b = mean(p) - aᵀ mean(I) for every source channel: torch_code.filter_guided.solve
-        # written out for four guide channels; channels past N are 0 with ε = 1, so they give a = 0.
-        # Σ is loaded and factorised once per pixel, then each source channel is solved with it.
-        blk, b = _split(tl.program_id(0), n_blk)
-        b = b.to(tl.int64)
-        i = blk * BLOCK + tl.arange(0, BLOCK)
-        m = i < HW
-        base = m_ptr + b * sm_b + i
-        P = N * (N + 1) // 2
-        zero = tl.zeros([BLOCK], dtype=tl.float32)
+    def _factored(base, eps_ptr, HW, Cs, m, unit, tiny, zero, N: tl.constexpr):
+        # The LDLᵀ of a pixel block's Σ + diag(ε) from the box means at base (torch_code.filter_guided
+        # ._factor's order of operations): the guide means mI, the means of I_i² (q), the pivots d
+        # and L below the diagonal, for four guide channels; channels past N are 0 with ε = 1.
         mi0 = _plane(base, 0, HW, m)
-        e0, a00 = _pivot(_plane(base, N + Cs, HW, m), mi0, eps_ptr + b * N, unit, tiny)
-        mi1, mi2, mi3 = zero, zero, zero
+        q00 = _plane(base, N + Cs, HW, m)
+        e0, a00 = _pivot(q00, mi0, eps_ptr, unit, tiny)
+        mi1, mi2, mi3, q11, q22, q33 = zero, zero, zero, zero, zero, zero
         a10, a20, a21, a30, a31, a32 = zero, zero, zero, zero, zero, zero
         e1, e2, e3 = zero + 1.0, zero + 1.0, zero + 1.0
         a11, a22, a33 = e1, e2, e3
         if N > 1:
             mi1 = _plane(base, 1, HW, m)
             a10 = _plane(base, N + Cs + 1, HW, m) - mi1 * mi0
-            e1, a11 = _pivot(_plane(base, N + Cs + 2, HW, m), mi1, eps_ptr + b * N + 1, unit, tiny)
+            q11 = _plane(base, N + Cs + 2, HW, m)
+            e1, a11 = _pivot(q11, mi1, eps_ptr + 1, unit, tiny)
         if N > 2:
             mi2 = _plane(base, 2, HW, m)
             a20 = _plane(base, N + Cs + 3, HW, m) - mi2 * mi0
             a21 = _plane(base, N + Cs + 4, HW, m) - mi2 * mi1
-            e2, a22 = _pivot(_plane(base, N + Cs + 5, HW, m), mi2, eps_ptr + b * N + 2, unit, tiny)
+            q22 = _plane(base, N + Cs + 5, HW, m)
+            e2, a22 = _pivot(q22, mi2, eps_ptr + 2, unit, tiny)
         if N > 3:
             mi3 = _plane(base, 3, HW, m)
             a30 = _plane(base, N + Cs + 6, HW, m) - mi3 * mi0
             a31 = _plane(base, N + Cs + 7, HW, m) - mi3 * mi1
             a32 = _plane(base, N + Cs + 8, HW, m) - mi3 * mi2
-            e3, a33 = _pivot(_plane(base, N + Cs + 9, HW, m), mi3, eps_ptr + b * N + 3, unit, tiny)
-        # LDLᵀ with E = L·D (torch_code.filter_guided.solve's order of operations)
+            q33 = _plane(base, N + Cs + 9, HW, m)
+            e3, a33 = _pivot(q33, mi3, eps_ptr + 3, unit, tiny)
         d0 = tl.maximum(a00, e0)
         l10 = a10 / d0
         l20 = a20 / d0
@@ -165,6 +160,23 @@ if triton is not None:
         e32 = a32 - l30 * a20 - l31 * e21
         l32 = e32 / d2
         d3 = tl.maximum(a33 - l30 * a30 - l31 * e31 - l32 * e32, e3)
+        return mi0, mi1, mi2, mi3, q00, q11, q22, q33, d0, d1, d2, d3, l10, l20, l30, l21, l31, l32
+
+    @triton.jit
+    def _solve(
+               m_ptr, eps_ptr, a_ptr, HW, Cs, n_blk, sm_b, sa_b, unit, tiny, N: tl.constexpr, BLOCK: tl.constexpr):
+        # a = (Σ + diag(ε))^-1 cov, b = mean(p) - aᵀ mean(I) for every source channel: torch_code.filter_guided.solve
+        # written out for four guide channels; channels past N are 0 with ε = 1, so they give a = 0.
+        # Σ is loaded and factorised once per pixel, then each source channel is solved with it.
+        blk, b = _split(tl.program_id(0), n_blk)
+        b = b.to(tl.int64)
+        i = blk * BLOCK + tl.arange(0, BLOCK)
+        m = i < HW
+        base = m_ptr + b * sm_b + i
+        P = N * (N + 1) // 2
+        zero = tl.zeros([BLOCK], dtype=tl.float32)
+        mi0, mi1, mi2, mi3, _, _, _, _, d0, d1, d2, d3, l10, l20, l30, l21, l31, l32 = _factored(
+            base, eps_ptr + b * N, HW, Cs, m, unit, tiny, zero, N)
         pa = a_ptr + b * sa_b + i
         for g in range(Cs):
             mp = _plane(base, N + g, HW, m)

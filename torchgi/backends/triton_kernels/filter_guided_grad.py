@@ -12,7 +12,7 @@ import torch
 from torchgi.backends.autograd_ops import window_counts
 from torchgi.backends.base import GuidedGradOp
 from torchgi.backends.triton_kernels.common import _cdiv, tl, triton
-from torchgi.backends.triton_kernels.filter_guided import _PIX, _box_products, _pivot, _plane, _solve, _split
+from torchgi.backends.triton_kernels.filter_guided import _PIX, _box_products, _factored, _plane, _solve, _split
 from torchgi.core.dtypes import variance_rounding
 
 if triton is not None:
@@ -34,7 +34,7 @@ if triton is not None:
         return dvar, dvar + tl.where(from_eps, 0.0, dA * unit), tl.where(from_eps, dA, 0.0)
 
     @triton.jit
-    def _adjoint(  # noqa: C901, PLR0912, PLR0915 - the solve's adjoint for up to 4 guide channels unrolled in one launch
+    def _adjoint(  # noqa: PLR0915 - the solve's adjoint for up to 4 guide channels unrolled in one launch
                  m_ptr, a_ptr, adj_ptr, eps_ptr, s_ptr, de_ptr, H, W, r, Cs, n_blk, sm_b, sa_b, sadj_b, ss_b, sde_b,
                  unit, tiny, N: tl.constexpr, BLOCK: tl.constexpr):
         # From the box means m (the forward's K planes), the coefficients a (not boxed) and adj (the
@@ -49,44 +49,8 @@ if triton is not None:
         base = m_ptr + b * sm_b + i
         P = N * (N + 1) // 2
         zero = tl.zeros([BLOCK], dtype=tl.float32)
-        mi0 = _plane(base, 0, HW, m)
-        q00 = _plane(base, N + Cs, HW, m)
-        e0, a00 = _pivot(q00, mi0, eps_ptr + b * N, unit, tiny)
-        mi1, mi2, mi3, q11, q22, q33 = zero, zero, zero, zero, zero, zero
-        a10, a20, a21, a30, a31, a32 = zero, zero, zero, zero, zero, zero
-        e1, e2, e3 = zero + 1.0, zero + 1.0, zero + 1.0
-        a11, a22, a33 = e1, e2, e3
-        if N > 1:
-            mi1 = _plane(base, 1, HW, m)
-            a10 = _plane(base, N + Cs + 1, HW, m) - mi1 * mi0
-            q11 = _plane(base, N + Cs + 2, HW, m)
-            e1, a11 = _pivot(q11, mi1, eps_ptr + b * N + 1, unit, tiny)
-        if N > 2:
-            mi2 = _plane(base, 2, HW, m)
-            a20 = _plane(base, N + Cs + 3, HW, m) - mi2 * mi0
-            a21 = _plane(base, N + Cs + 4, HW, m) - mi2 * mi1
-            q22 = _plane(base, N + Cs + 5, HW, m)
-            e2, a22 = _pivot(q22, mi2, eps_ptr + b * N + 2, unit, tiny)
-        if N > 3:
-            mi3 = _plane(base, 3, HW, m)
-            a30 = _plane(base, N + Cs + 6, HW, m) - mi3 * mi0
-            a31 = _plane(base, N + Cs + 7, HW, m) - mi3 * mi1
-            a32 = _plane(base, N + Cs + 8, HW, m) - mi3 * mi2
-            q33 = _plane(base, N + Cs + 9, HW, m)
-            e3, a33 = _pivot(q33, mi3, eps_ptr + b * N + 3, unit, tiny)
-        d0 = tl.maximum(a00, e0)  # the forward's LDLᵀ (_solve)
-        l10 = a10 / d0
-        l20 = a20 / d0
-        l30 = a30 / d0
-        d1 = tl.maximum(a11 - l10 * a10, e1)
-        e21 = a21 - l20 * a10
-        l21 = e21 / d1
-        e31 = a31 - l30 * a10
-        l31 = e31 / d1
-        d2 = tl.maximum(a22 - l20 * a20 - l21 * e21, e2)
-        e32 = a32 - l30 * a20 - l31 * e21
-        l32 = e32 / d2
-        d3 = tl.maximum(a33 - l30 * a30 - l31 * e31 - l32 * e32, e3)
+        mi0, mi1, mi2, mi3, q00, q11, q22, q33, d0, d1, d2, d3, l10, l20, l30, l21, l31, l32 = _factored(
+            base, eps_ptr + b * N, HW, Cs, m, unit, tiny, zero, N)  # the forward's LDLᵀ (_solve)
         dm0, dm1, dm2, dm3 = zero, zero, zero, zero  # dL/dmI
         t00, t10, t11, t20, t21, t22, t30, t31, t32, t33 = zero, zero, zero, zero, zero, zero, zero, zero, zero, zero
         pa = a_ptr + b * sa_b + i
