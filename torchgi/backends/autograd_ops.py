@@ -120,42 +120,54 @@ class ATrousLevel(torch.autograd.Function):
     """One À-Trous level (:class:`~torchgi.backends.base.ATrousLevelOp`) as an autograd function:
     the forward and the written-out gradients (:class:`~torchgi.backends.base.ATrousLevelGradOp`)
     each one op through the seam (the compiled kernels for float32 on the CPU). The guides come
-    unscaled, ``feat (B, 3G, H, W)`` shared by every level, with the level's multiplier of each
-    group ``mult (B, G, 1, 1)`` (the level's ``feat * mult`` is a temporary of the forward and of
-    the backward, not kept); saved: the inputs, the output and the weight sums.
+    as the caller holds them, ``guide0``, ``guide1`` ``(B, 3, H, W)`` or None, shared by every
+    level, with the level's multiplier of each present guide ``mult (B|1, G, 1, 1)`` (the
+    kernels weigh guide ``g``'s squared distance by ``mult_g²``: no scaled copy of the guides is
+    kept); ``last``: the last level, whose output comes contiguous (the others in the back end's
+    own layout, which the next level reads as it is); saved: the inputs, the output and the
+    weight sums.
 
     Example:
         >>> c = torch.rand(1, 3, 8, 8, requires_grad=True)
-        >>> ATrousLevel.apply(c, None, None, torch.ones(1, 1, 1, 1), 1).sum().backward()
+        >>> ATrousLevel.apply(c, None, None, None, torch.ones(1, 1, 1, 1), 1).sum().backward()
         >>> c.grad.shape
         torch.Size([1, 3, 8, 8])
     """
 
     @staticmethod
-    def _scaled(feat: torch.Tensor | None, mult: torch.Tensor | None) -> torch.Tensor | None:
-        return None if feat is None else feat * mult.repeat_interleave(3, dim=1)
+    def _feat_scale(color: torch.Tensor, mult: torch.Tensor | None) -> torch.Tensor | None:
+        """``mult²`` as the ops' ``feat_scale (B, G)``."""
+        return None if mult is None else mult.detach().square().flatten(1).expand(color.shape[0], -1).contiguous()
 
     @staticmethod
-    def forward(ctx: Any, color: torch.Tensor, feat: torch.Tensor | None, mult: torch.Tensor | None,
-                scale: torch.Tensor | None, step: int) -> torch.Tensor:
-        out, den = run(ATrousLevelOp(color, ATrousLevel._scaled(feat, mult), scale, step))
-        ctx.save_for_backward(color, feat, mult, scale, out, den)
+    def forward(ctx: Any, color: torch.Tensor, guide0: torch.Tensor | None, guide1: torch.Tensor | None,
+                mult: torch.Tensor | None, scale: torch.Tensor | None, step: int, last: bool = False) -> torch.Tensor:
+        guides = tuple(g for g in (guide0, guide1) if g is not None)
+        out, den = run(ATrousLevelOp(color, guides, ATrousLevel._feat_scale(color, mult), scale, step, last))
+        ctx.save_for_backward(color, guide0, guide1, mult, scale, out, den)
         ctx.step = step
         return out
 
     @staticmethod
     def backward(ctx: Any, g: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
-        color, feat, mult, scale, out, den = ctx.saved_tensors
-        need_feat = feat is not None and (ctx.needs_input_grad[1] or ctx.needs_input_grad[2])
-        need_scale = scale is not None and ctx.needs_input_grad[3]
-        dc, df, ds = run(ATrousLevelGradOp(color, ATrousLevel._scaled(feat, mult), scale, out, g / den, ctx.step,
-                                           need_feat, need_scale))
+        color, guide0, guide1, mult, scale, out, den = ctx.saved_tensors
+        present = [i for i, t in enumerate((guide0, guide1)) if t is not None]
+        guides = tuple((guide0, guide1)[i] for i in present)
+        need_feat = bool(guides) and any(ctx.needs_input_grad[1:4])
+        need_scale = scale is not None and ctx.needs_input_grad[4]
+        dc, df, ds = run(ATrousLevelGradOp(color, guides, ATrousLevel._feat_scale(color, mult), scale, out, g / den,
+                                           ctx.step, need_feat, need_scale))
         if ds is not None and scale.shape[-2:] == (1, 1):
             ds = ds.sum((2, 3), keepdim=True)
-        dfeat = dmult = None
-        if df is not None:  # feat * mult: each factor's gradient from the other
-            dfeat = df * mult.repeat_interleave(3, dim=1) if ctx.needs_input_grad[1] else None
-            if ctx.needs_input_grad[2]:
-                dmult = (df * feat).sum((2, 3), keepdim=True).unflatten(1, (-1, 3)).sum(2)
+        dguide, dmult = [None, None], None
+        if df is not None:
+            parts = df.split(3, dim=1)
+            for k, i in enumerate(present):
+                dguide[i] = parts[k] if ctx.needs_input_grad[1 + i] else None
+            if ctx.needs_input_grad[3]:  # the distance is homogeneous of degree 2 in mult_g and in f_g (and
+                # blind to its offset): mult_g ∂L/∂mult_g = Σ (f_g - mean f_g) ∂L/∂f_g
+                dmult = torch.cat([(d * (f - f.mean((2, 3), keepdim=True))).sum((1, 2, 3), keepdim=True)
+                                   for d, f in zip(parts, guides)], 1)
                 dmult = dmult.sum(0, keepdim=True) if mult.shape[0] == 1 < dmult.shape[0] else dmult
-        return dc, dfeat, dmult, ds, None
+                dmult = torch.where(mult > 0, dmult / torch.where(mult > 0, mult, 1.0), 0.0)
+        return dc, dguide[0], dguide[1], dmult, ds, None, None

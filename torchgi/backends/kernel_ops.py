@@ -61,30 +61,39 @@ class ApplyKernelsGradOp:
 @dataclass(eq=False, slots=True)
 class ATrousLevelOp:
     """One À-Trous level without variance or holes: ``out_p = Σ_q w_pq c_q / den_p`` over the 25
-    taps at ``step`` inside the image, ``w_pq = h_t exp(-(s_p |c_p - c_q|² + |f_p - f_q|²))``, for
-    ``color (B,C,H,W)``, the scaled guides ``feat (B,F,H,W)`` (F a multiple of 3; None: no geometry
-    weight) and the colour scale ``scale`` ``(B,1,1,1)`` or a ``(B,1,H,W)`` map (None: no colour
-    weight). Returns ``(out, den)``, ``den (B,1,H,W)``."""
+    taps at ``step`` inside the image, ``w_pq = h_t exp(-(s_p |c_p - c_q|² + Σ_g m_g |f_gp - f_gq|²))``,
+    for ``color (B,C,H,W)``, the guides ``guides`` (0 to 2 tensors ``f_g (B,3,H,W)``, as the
+    caller holds them: the same serve every level) with ``feat_scale (B,G)``, the multiplier
+    ``m_g`` of each guide's squared distance (each level brings its own), and the colour scale
+    ``scale`` ``(B,1,1,1)`` or a ``(B,1,H,W)`` map (None: no colour weight). Returns ``(out,
+    den)``, ``den (B,1,H,W)``; ``out`` may come in a back end's own strided layout (the C kernels'
+    padded rows), which the next level reads without a copy, or contiguous with ``plain_out``
+    (the last level: the caller's result)."""
 
     color: torch.Tensor
-    feat: torch.Tensor | None
+    guides: tuple[torch.Tensor, ...]
+    feat_scale: torch.Tensor | None
     scale: torch.Tensor | None
     step: int
+    plain_out: bool = False
 
     def tensors(self) -> tuple[torch.Tensor | None, ...]:
-        return (self.color, self.feat, self.scale)
+        return (self.color, *self.guides, self.feat_scale, self.scale)
 
 
 @dataclass(eq=False, slots=True)
 class ATrousLevelGradOp:
     """The gradients of :class:`ATrousLevelOp` given its inputs, its ``out`` and ``gp = grad / den``
     ``(B,C,H,W)``: with ``E_pq = -w_pq Σ_k gp_pk (c_qk - out_pk)``, ``dcolor`` (the value path
-    ``Σ_p w_pq gp_p`` and the colour distance's), ``dfeat`` (None where ``feat`` is None or
-    ``need_feat`` is False) and ``dscale (B,1,H,W)`` per pixel (None without a colour weight or
-    ``need_scale``). Returns ``(dcolor, dfeat, dscale)``."""
+    ``Σ_p w_pq gp_p`` and the colour distance's), ``dguides`` (a ``(B,3G,H,W)`` tensor, the
+    gradient of each guide itself, through its multiplier ``m_g``; None without guides or with
+    ``need_feat`` False) and ``dscale (B,1,H,W)`` per pixel (None without a colour weight or
+    ``need_scale``). Inputs may come in any layout with unit column stride. Returns ``(dcolor,
+    dguides, dscale)``."""
 
     color: torch.Tensor
-    feat: torch.Tensor | None
+    guides: tuple[torch.Tensor, ...]
+    feat_scale: torch.Tensor | None
     scale: torch.Tensor | None
     out: torch.Tensor
     gp: torch.Tensor
@@ -93,7 +102,7 @@ class ATrousLevelGradOp:
     need_scale: bool = True
 
     def tensors(self) -> tuple[torch.Tensor | None, ...]:
-        return (self.color, self.feat, self.scale, self.out, self.gp)
+        return (self.color, *self.guides, self.feat_scale, self.scale, self.out, self.gp)
 
     def scale_operand(self) -> tuple[int, torch.Tensor | None]:
         """How a kernel reads ``scale``: 0 and None (no colour weight), 1 and its ``(B,)`` values,

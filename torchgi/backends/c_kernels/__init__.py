@@ -126,8 +126,8 @@ def _shape_limits(op: str, desc: object) -> str | None:
     if op in ("model_residual", "mix_half") and not 1 <= len(desc.ys if op == "model_residual" else desc.fines) <= 4:
         return f"the C {op} takes 1 to 4 candidates"
     if op in ("atrous_level", "atrous_level_grad") and (desc.color.shape[1] not in (1, 3) or (
-            desc.feat is not None and desc.feat.shape[1] not in (3, 6))):
-        return f"the C {op} takes 1 or 3 colour channels and 0, 3 or 6 guide planes"
+            len(desc.guides) > 2 or any(g.shape[1] != 3 for g in desc.guides))):
+        return f"the C {op} takes 1 or 3 colour channels and at most 2 guides of 3 planes"
     if op == "guided_grad" and desc.src.shape[1] > 3:
         return "the C guided filter's gradients take at most 3 source channels"
     if op == "upsample_apply":

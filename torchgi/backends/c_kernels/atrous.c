@@ -17,7 +17,7 @@
 typedef struct {
     const float *c, *f, *var, *valid, *cs; /* row y of plane 0 (cs: row y, or the one value) */
     const float *fs;                       /* scale of each feature group */
-    size_t PS;                             /* plane stride of the inputs and outputs */
+    size_t PS, OPS;                        /* plane stride of the inputs (and var_out), of out */
     ptrdiff_t off[25];                     /* offset of each tap's neighbour; skip[t]: row outside */
     int skip[25];
     float h[25];
@@ -57,7 +57,7 @@ INLINE void tap_block(const int C, const int G, const int CS, const int V, const
     /* no weight at all keeps the centre pixel (and its variance) */
     const vi ok = den > vsplat(0.0f);
     const vf safe = vselect(ok, den, vsplat(1.0f));
-    FOR8(k, C, vstore(out + k * PS + x, vselect(ok, num[k] / safe, cp[k])));
+    FOR8(k, C, vstore(out + k * L->OPS + x, vselect(ok, num[k] / safe, cp[k])));
     if (V) FOR8(k, C, vstore(var_out + k * PS + x, vselect(ok, vnum[k] / (safe * safe), vload(L->var + x + k * PS))));
     vstore(den_out + x, den);
 }
@@ -114,17 +114,17 @@ static block_fn pick_block(int C, int G, int CS, int V) {
     return NULL;
 }
 
-/* Planes of every input and of out / var_out are ps floats apart, rows rs floats apart (padded
- * layouts keep the row streams of the taps out of one another's cache sets); den is a plain
- * H x W plane. scratch: (2 C + 1) (W + 16) floats. */
+/* Planes of every input and of var_out are ps floats apart, rows rs floats apart (padded
+ * layouts keep the row streams of the taps out of one another's cache sets); out's planes and
+ * rows are ops and ors apart; den is a plain H x W plane. scratch: (2 C + 1) (W + 16) floats. */
 static void atrous_rows(const float *c, int C, const float *f, int F, const float *fs, const float *var,
                         const float *valid, const float *cs, int cs_plane, int H, int W, int rs, long long ps,
-                        int step, const float *h25, float *out, float *var_out, float *den_out, int y0, int y1,
-                        float *scratch) {
+                        int step, const float *h25, float *out, int ors, long long ops, float *var_out,
+                        float *den_out, int y0, int y1, float *scratch) {
     const unsigned csr = ftz_begin();
     const int G = F / 3, CS = cs == NULL ? 0 : cs_plane ? 2 : 1, V = var != NULL, SW = W + 16;
     level_t L;
-    L.PS = (size_t)ps, L.fs = fs;
+    L.PS = (size_t)ps, L.OPS = (size_t)ops, L.fs = fs;
     float *num = scratch, *vnum = scratch + (size_t)C * SW, *den = scratch + (size_t)2 * C * SW;
     const block_fn block = pick_block(C, G, CS, V);
     /* the vector blocks cover [xl, xv); the edges [0, xl) and [xv, W) go tap by tap */
@@ -141,7 +141,7 @@ static void atrous_rows(const float *c, int C, const float *f, int F, const floa
             L.off[t] = (ptrdiff_t)oy * rs + ox;
             L.h[t] = h25[t];
         }
-        float *o = out + row, *vo = V ? var_out + row : NULL, *dn = den_out + (size_t)y * W;
+        float *o = out + (size_t)y * ors, *vo = V ? var_out + row : NULL, *dn = den_out + (size_t)y * W;
         for (int x = xl; x < xv; x += VL) block(&L, x, o, vo, dn);
         const int spans[2][2] = {{0, xl}, {xv, W}};
         for (int e = 0; e < 2; ++e) {
@@ -166,7 +166,7 @@ static void atrous_rows(const float *c, int C, const float *f, int F, const floa
                 for (int x = a; x < b; ++x) {
                     const int ok = den[x] > 0.0f;
                     const float sd = ok ? den[x] : 1.0f;
-                    o[k * L.PS + x] = ok ? num[k * SW + x] / sd : L.c[k * L.PS + x];
+                    o[k * L.OPS + x] = ok ? num[k * SW + x] / sd : L.c[k * L.PS + x];
                     if (V) vo[k * L.PS + x] = ok ? vnum[k * SW + x] / (sd * sd) : L.var[k * L.PS + x];
                 }
             for (int x = a; x < b; ++x) dn[x] = den[x];
@@ -177,77 +177,93 @@ static void atrous_rows(const float *c, int C, const float *f, int F, const floa
 
 void torchgi_atrous_level(const float *c, int C, const float *f, int F, const float *fs, const float *var,
                           const float *valid, const float *cs, int cs_plane, int H, int W, int rs, long long ps,
-                          int step, const float *h25, float *out, float *var_out, float *den_out, int nt,
-                          void *scratch, long long stride) {
-    OVER_BANDS(H, atrous_rows(c, C, f, F, fs, var, valid, cs, cs_plane, H, W, rs, ps, step, h25, out, var_out, den_out,
-                              y0, y1, (float *)scr));
+                          int step, const float *h25, float *out, int ors, long long ops, float *var_out,
+                          float *den_out, int nt, void *scratch, long long stride) {
+    OVER_BANDS(H, atrous_rows(c, C, f, F, fs, var, valid, cs, cs_plane, H, W, rs, ps, step, h25, out, ors, ops, var_out,
+                              den_out, y0, y1, (float *)scr));
 }
 
 /* ------------------------------------------------------------------------------------------
  * The gradients of one À-Trous level without variance or holes (backends.base.ATrousLevelGradOp;
  * torch_code.filter_atrous.level_grad is the same in torch), for rows [y0, y1) of one image.
  *
- * out_p = Σ_q w_pq c_q / D_p, w_pq = h_t exp(-(s_p |c_p - c_q|² + |f_p - f_q|²)). With gp = g / D
- * (given), G_pq = Σ_k gp_pk (c_qk - out_pk) and E_pq = -w_pq G_pq:
+ * out_p = Σ_q w_pq c_q / D_p, w_pq = h_t exp(-(s_p |c_p - c_q|² + Σ_g fs_g |f_gp - f_gq|²)). With
+ * gp = g / D (given), G_pq = Σ_k gp_pk (c_qk - out_pk) and E_pq = -w_pq G_pq:
  *   dc_p += Σ_q E_pq 2 s_p (c_p - c_q)          ds_p += Σ_q E_pq |c_p - c_q|²
- *   df_p += Σ_q E_pq 2 (f_p - f_q)
+ *   df_gp += Σ_q E_pq 2 fs_g (f_gp - f_gq)
  * as the centre, and as the neighbour q of p = q - o_t:
- *   dc_q += w_pq gp_p - E_pq 2 s_p (c_p - c_q)   df_q -= E_pq 2 (f_p - f_q).
+ *   dc_q += w_pq gp_p - E_pq 2 s_p (c_p - c_q)   df_gq -= E_pq 2 fs_g (f_gp - f_gq).
  * Each row gathers both (no two bands write one pixel); taps outside the image are left out as in
- * the forward. Plain contiguous planes of H x W; s: NULL (no colour weight), one value or a plane
- * (CSM 0, 1, 2); f, df NULL when F = 0; df, ds NULL when not wanted.
+ * the forward. c, out and each guide f_g (G = F / 3 of them, 3 planes each) come with their own
+ * row and plane strides (the forward's padded rows, or plain planes); gp, s, dc, df (F planes)
+ * and ds are plain H x W planes. s: NULL (no colour weight), one value or a plane (CSM 0, 1, 2);
+ * fs, df NULL when F = 0; df, ds NULL when not wanted.
  */
-INLINE void grad_pairs(const int C, const int F, const int CSM, const float *restrict c, const float *restrict f,
-                       const float *restrict s, const float *restrict out, const float *restrict gp, size_t HW,
-                       float h, size_t p0, size_t q0, int xa, int xb, int centre, float *restrict dc,
-                       float *restrict df, float *restrict ds) {
+typedef struct {
+    const float *cp, *cq, *fp[2], *fq[2], *op, *gp, *s; /* pixel x of the pair's p (or q) is [x] */
+    const float *fs;                                     /* each guide's multiplier */
+    size_t CPS, FPS[2], OPS, HW;                         /* plane strides of c, f_g, out, plain planes */
+    float h;
+} pair_t;
+
+INLINE void grad_pairs(const int C, const int F, const int CSM, const pair_t *P, int xa, int xb, int centre,
+                       float *restrict dc, float *restrict df, float *restrict ds) {
+    const float *restrict cp = P->cp, *restrict cq = P->cq, *restrict op = P->op, *restrict gp = P->gp;
+    const float *restrict s = P->s;
+    const size_t CPS = P->CPS, OPS = P->OPS, HW = P->HW, FPS[2] = {P->FPS[0], P->FPS[1]};
+    const float *fp[2] = {P->fp[0], P->fp[1]}, *fq[2] = {P->fq[0], P->fq[1]};
+    const float h = P->h;
+    float fs[2] = {0.0f, 0.0f};
+    FOR8(g, F / 3, fs[g] = P->fs[g]);
     int x = xa;
     for (; x + VL <= xb; x += VL) { /* VL pixels at a time, the same sums on vectors */
-        const size_t p = p0 + x, q = q0 + x;
         vf dcol = vsplat(0.0f), dfe = vsplat(0.0f), u[8], v[8], G = vsplat(0.0f);
-        FOR8(k, C, { u[k] = vload(c + k * HW + p) - vload(c + k * HW + q); dcol += u[k] * u[k]; });
-        FOR8(k, F, { v[k] = vload(f + k * HW + p) - vload(f + k * HW + q); dfe += v[k] * v[k]; });
-        const vf sp = CSM == 2 ? vload(s + p) : vsplat(CSM == 1 ? s[0] : 0.0f);
+        FOR8(k, C, { u[k] = vload(cp + k * CPS + x) - vload(cq + k * CPS + x); dcol += u[k] * u[k]; });
+        FOR8(g, F / 3, {
+            vf e = vsplat(0.0f);
+            FOR8(k, 3, { v[3 * g + k] = vload(fp[g] + k * FPS[g] + x) - vload(fq[g] + k * FPS[g] + x);
+                         e += v[3 * g + k] * v[3 * g + k]; });
+            dfe += e * vsplat(fs[g]);
+        });
+        const vf sp = CSM == 2 ? vload(s + x) : vsplat(CSM == 1 ? s[0] : 0.0f);
         const vf w = vsplat(h) * vexp_neg(sp * dcol + dfe);
-        FOR8(k, C, G += vload(gp + k * HW + p) * (vload(c + k * HW + q) - vload(out + k * HW + p)));
+        FOR8(k, C, G += vload(gp + k * HW + x) * (vload(cq + k * CPS + x) - vload(op + k * OPS + x)));
         const vf E = -w * G, E2s = 2.0f * E * sp;
         if (centre) {
-            FOR8(k, C, vstore(dc + k * HW + p, vload(dc + k * HW + p) + E2s * u[k]));
-            if (df) FOR8(k, F, vstore(df + k * HW + p, vload(df + k * HW + p) + 2.0f * E * v[k]));
-            if (CSM && ds) vstore(ds + p, vload(ds + p) + E * dcol);
+            FOR8(k, C, vstore(dc + k * HW + x, vload(dc + k * HW + x) + E2s * u[k]));
+            if (df) FOR8(k, F, vstore(df + k * HW + x, vload(df + k * HW + x) + 2.0f * E * vsplat(fs[k / 3]) * v[k]));
+            if (CSM && ds) vstore(ds + x, vload(ds + x) + E * dcol);
         } else {
-            FOR8(k, C, vstore(dc + k * HW + q, vload(dc + k * HW + q) + w * vload(gp + k * HW + p) - E2s * u[k]));
-            if (df) FOR8(k, F, vstore(df + k * HW + q, vload(df + k * HW + q) - 2.0f * E * v[k]));
+            FOR8(k, C, vstore(dc + k * HW + x, vload(dc + k * HW + x) + w * vload(gp + k * HW + x) - E2s * u[k]));
+            if (df) FOR8(k, F, vstore(df + k * HW + x, vload(df + k * HW + x) - 2.0f * E * vsplat(fs[k / 3]) * v[k]));
         }
     }
     for (; x < xb; ++x) {
-        const size_t p = p0 + x, q = q0 + x;
         float dcol = 0.0f, dfe = 0.0f, u[8], v[8];
-        FOR8(k, C, { u[k] = c[k * HW + p] - c[k * HW + q]; dcol += u[k] * u[k]; });
-        FOR8(k, F, { v[k] = f[k * HW + p] - f[k * HW + q]; dfe += v[k] * v[k]; });
-        const float sp = CSM == 2 ? s[p] : CSM == 1 ? s[0] : 0.0f;
+        FOR8(k, C, { u[k] = cp[k * CPS + x] - cq[k * CPS + x]; dcol += u[k] * u[k]; });
+        FOR8(k, F, { v[k] = fp[k / 3][k % 3 * FPS[k / 3] + x] - fq[k / 3][k % 3 * FPS[k / 3] + x];
+                     dfe += fs[k / 3] * v[k] * v[k]; });
+        const float sp = CSM == 2 ? s[x] : CSM == 1 ? s[0] : 0.0f;
         const float w = h * exp_neg(sp * dcol + dfe);
         float G = 0.0f;
-        FOR8(k, C, G += gp[k * HW + p] * (c[k * HW + q] - out[k * HW + p]));
+        FOR8(k, C, G += gp[k * HW + x] * (cq[k * CPS + x] - op[k * OPS + x]));
         const float E = -w * G, E2s = 2.0f * E * sp;
         if (centre) {
-            FOR8(k, C, dc[k * HW + p] += E2s * u[k]);
-            if (df) FOR8(k, F, df[k * HW + p] += 2.0f * E * v[k]);
-            if (CSM && ds) ds[p] += E * dcol;
+            FOR8(k, C, dc[k * HW + x] += E2s * u[k]);
+            if (df) FOR8(k, F, df[k * HW + x] += 2.0f * E * fs[k / 3] * v[k]);
+            if (CSM && ds) ds[x] += E * dcol;
         } else {
-            FOR8(k, C, dc[k * HW + q] += w * gp[k * HW + p] - E2s * u[k]);
-            if (df) FOR8(k, F, df[k * HW + q] -= 2.0f * E * v[k]);
+            FOR8(k, C, dc[k * HW + x] += w * gp[k * HW + x] - E2s * u[k]);
+            if (df) FOR8(k, F, df[k * HW + x] -= 2.0f * E * fs[k / 3] * v[k]);
         }
     }
 }
 
-typedef void (*pairs_fn)(const float *, const float *, const float *, const float *, const float *, size_t, float,
-                         size_t, size_t, int, int, int, float *, float *, float *);
-#define PAIRS(C, F, CSM)                                                                                     \
-    static void pairs_##C##_##F##_##CSM(const float *c, const float *f, const float *s, const float *out,   \
-                                        const float *gp, size_t HW, float h, size_t p0, size_t q0, int xa,   \
-                                        int xb, int centre, float *dc, float *df, float *ds) {               \
-        grad_pairs(C, F, CSM, c, f, s, out, gp, HW, h, p0, q0, xa, xb, centre, dc, df, ds);                  \
+typedef void (*pairs_fn)(const pair_t *, int, int, int, float *, float *, float *);
+#define PAIRS(C, F, CSM)                                                                                 \
+    static void pairs_##C##_##F##_##CSM(const pair_t *P, int xa, int xb, int centre, float *dc, float *df, \
+                                        float *ds) {                                                     \
+        grad_pairs(C, F, CSM, P, xa, xb, centre, dc, df, ds);                                            \
     }
 #define PAIRS_C(C) PAIRS(C, 0, 0) PAIRS(C, 0, 1) PAIRS(C, 0, 2) PAIRS(C, 3, 0) PAIRS(C, 3, 1) PAIRS(C, 3, 2) \
     PAIRS(C, 6, 0) PAIRS(C, 6, 1) PAIRS(C, 6, 2)
@@ -261,12 +277,21 @@ static pairs_fn pick_pairs(int C, int F, int CSM) {
     return NULL;
 }
 
-static void atrous_grad_rows(const float *c, int C, const float *f, int F, const float *s, int CSM, const float *out,
-                             const float *gp, int H, int W, int step, const float *h25, float *dc, float *df,
-                             float *ds, int y0, int y1) {
+/* rs (rows) and ps (planes) of c, out and the guides, in floats */
+typedef struct {
+    int crs, ors, frs[2];
+    size_t cps, ops, fps[2];
+} strides_t;
+
+static void atrous_grad_rows(const float *c, int C, const float *const *f, int F, const float *fs, const float *s, int CSM,
+                             const float *out, const float *gp, const strides_t *S, int H, int W, int step,
+                             const float *h25, float *dc, float *df, float *ds, int y0, int y1) {
     const unsigned csr = ftz_begin();
     const size_t HW = (size_t)H * W;
     const pairs_fn pairs = pick_pairs(C, F, CSM);
+    pair_t P;
+    P.fs = fs, P.CPS = S->cps, P.OPS = S->ops, P.HW = HW;
+    P.FPS[0] = S->fps[0], P.FPS[1] = S->fps[1];
     for (int y = y0; y < y1; ++y) {
         const size_t row = (size_t)y * W;
         for (int k = 0; k < C; ++k) memset(dc + k * HW + row, 0, sizeof(float) * W);
@@ -274,23 +299,34 @@ static void atrous_grad_rows(const float *c, int C, const float *f, int F, const
         if (ds) memset(ds + row, 0, sizeof(float) * W);
         for (int t = 0; t < 25; ++t) {
             const int oy = (t / 5 - 2) * step, ox = (t % 5 - 2) * step;
+            P.h = h25[t];
             for (int centre = 1; centre >= 0; --centre) {
                 const int yo = centre ? y + oy : y - oy; /* the other pixel's row */
                 if (yo < 0 || yo >= H) continue;
                 const int sx = centre ? ox : -ox;        /* the other pixel's column offset */
                 const int xa = sx < 0 ? -sx : 0, xb = sx > 0 ? W - sx : W;
                 if (xa >= xb) continue;
-                /* p: the centre of the pair, q: its neighbour */
-                const size_t p0 = centre ? row : (size_t)yo * W - ox, q0 = centre ? (size_t)yo * W + ox : row;
-                pairs(c, f, s, out, gp, HW, h25[t], p0, q0, xa, xb, centre, dc, df, ds);
+                /* p: the centre of the pair, q: its neighbour; [x] indexes the pixel (y, x) */
+                const ptrdiff_t yp = centre ? y : yo, yq = centre ? yo : y;
+                const ptrdiff_t xp = centre ? 0 : -ox, xq = centre ? ox : 0;
+                P.cp = c + yp * S->crs + xp, P.cq = c + yq * S->crs + xq;
+                for (int g = 0; g < F / 3; ++g)
+                    P.fp[g] = f[g] + yp * S->frs[g] + xp, P.fq[g] = f[g] + yq * S->frs[g] + xq;
+                P.op = out + yp * S->ors + xp, P.gp = gp + yp * W + xp;
+                P.s = CSM == 2 ? s + yp * W + xp : s;
+                pairs(&P, xa, xb, centre, dc + row, df ? df + row : NULL, ds ? ds + row : NULL);
             }
         }
     }
     ftz_end(csr);
 }
 
-void torchgi_atrous_level_grad(const float *c, int C, const float *f, int F, const float *s, int CSM,
-                               const float *out, const float *gp, int H, int W, int step, const float *h25,
-                               float *dc, float *df, float *ds, int nt, void *scratch, long long stride) {
-    OVER_BANDS(H, atrous_grad_rows(c, C, f, F, s, CSM, out, gp, H, W, step, h25, dc, df, ds, y0, y1));
+void torchgi_atrous_level_grad(const float *c, int crs, long long cps, int C, const float *f0, int f0rs,
+                               long long f0ps, const float *f1, int f1rs, long long f1ps, int F, const float *fs,
+                               const float *s, int CSM, const float *out, int ors, long long ops, const float *gp,
+                               int H, int W, int step, const float *h25, float *dc, float *df, float *ds, int nt,
+                               void *scratch, long long stride) {
+    const strides_t S = {crs, ors, {f0rs, f1rs}, (size_t)cps, (size_t)ops, {(size_t)f0ps, (size_t)f1ps}};
+    const float *const f[2] = {f0, f1};
+    OVER_BANDS(H, atrous_grad_rows(c, C, f, F, fs, s, CSM, out, gp, &S, H, W, step, h25, dc, df, ds, y0, y1));
 }

@@ -33,21 +33,23 @@ from torchgi.core.dtypes import variance_rounding
 
 
 def _atrous_level(
-    c: torch.Tensor, feat: torch.Tensor | None, feat_scale: list[float], var: torch.Tensor | None,
-    valid: torch.Tensor | None, step: int, colour_scale: torch.Tensor | None,
+    c: torch.Tensor, feat: torch.Tensor | None, feat_scale: list[float] | torch.Tensor, var: torch.Tensor | None,
+    valid: torch.Tensor | None, step: int, colour_scale: torch.Tensor | None, plain_out: bool = False,
 ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
     """One À-Trous level with the arguments of ``torch_code.filter_atrous._iteration``, except that ``feat`` holds
-    groups of 3 planes whose squared distances are multiplied by ``feat_scale`` (one per group;
-    the level's ``1 / step²`` for normals). Returns the filtered colour ``(B,C,H,W)`` and the
-    propagated variance, both in :func:`padded` layout (pass them on as they are), and the
-    weight sum ``(B,1,H,W)``."""
+    groups of 3 planes whose squared distances are multiplied by ``feat_scale`` (one per group,
+    a list for every image or a ``(B, G)`` tensor; the level's ``1 / step²`` for normals).
+    Returns the filtered colour ``(B,C,H,W)`` and the propagated variance, both in :func:`padded`
+    layout (pass them on as they are; the colour contiguous with ``plain_out``), and the weight
+    sum ``(B,1,H,W)``."""
     taps = _taps()
     lib = build.library()
     B, C, H, W = c.shape
     F = 0 if feat is None else feat.shape[1]
-    if F % 3 or len(feat_scale) != F // 3:
+    fs = torch.as_tensor(feat_scale, dtype=torch.float32)
+    if F % 3 or fs.numel() not in (F // 3, B * F // 3):
         raise ValueError(f"feat: expected groups of 3 planes with one scale each, got {F} planes, {feat_scale}")
-    fs = torch.tensor(list(feat_scale) or [1.0], dtype=torch.float32)
+    fs = fs.reshape(-1, F // 3).expand(B, -1).contiguous() if F else torch.ones(B, 1)
     rs, ps = _layout(H, W)
     c = _as_padded(c)
     feat = None if feat is None else _as_padded(feat)
@@ -56,14 +58,14 @@ def _atrous_level(
     plane = colour_scale is not None and colour_scale.shape[-2:] == (H, W)
     cs = None if colour_scale is None else _as_padded(colour_scale.expand(B, 1, H, W)) if plane else \
         colour_scale.reshape(B).contiguous()
-    out = padded(B, C, H, W)
+    out = torch.empty(B, C, H, W, dtype=torch.float32) if plain_out else padded(B, C, H, W)
     var_out = None if var is None else padded(B, C, H, W)
     den = torch.empty(B, 1, H, W, dtype=torch.float32)
     for b in range(B):
         cs_b = None if cs is None else (cs[b] if plane else cs[b : b + 1])
         _run(lib.torchgi_atrous_level, H, W, c[b].data_ptr(), C, _ptr(None if feat is None else feat[b]), F,
-             fs.data_ptr(), _ptr(None if var is None else var[b]), _ptr(None if valid is None else valid[b]), _ptr(cs_b),
-             int(plane), H, W, rs, ps, step, taps.data_ptr(), out[b].data_ptr(),
+             fs[b].data_ptr(), _ptr(None if var is None else var[b]), _ptr(None if valid is None else valid[b]), _ptr(cs_b),
+             int(plane), H, W, rs, ps, step, taps.data_ptr(), out[b].data_ptr(), out.stride(2), out.stride(1),
              _ptr(None if var_out is None else var_out[b]), den[b].data_ptr(),
              (2 * C + 1) * (W + _PAD))
     return out, var_out, den
@@ -234,41 +236,58 @@ def atrous(desc: ATrousOp) -> tuple[torch.Tensor, list[torch.Tensor]]:
 
 
 def atrous_level(desc: ATrousLevelOp) -> tuple[torch.Tensor, torch.Tensor]:
-    """:class:`~torchgi.backends.base.ATrousLevelOp` in one kernel call per image (the guides
-    already scaled for the level); the output copied out of the padded layout.
+    """:class:`~torchgi.backends.base.ATrousLevelOp` in one kernel call per image (the groups'
+    multipliers applied by the kernel); the output in :func:`padded` layout, as the next level
+    and the gradients' kernel read it (contiguous with ``plain_out``).
 
     Example:
         >>> c = torch.full((1, 3, 8, 8), 0.5)
-        >>> build.library() is None or torch.equal(atrous_level(ATrousLevelOp(c, None, torch.ones(1, 1, 1, 1), 2))[0], c)
+        >>> build.library() is None or torch.equal(atrous_level(ATrousLevelOp(c, (), None, torch.ones(1, 1, 1, 1), 2))[0], c)
         True
     """
-    groups = 0 if desc.feat is None else desc.feat.shape[1] // 3
-    out, _, den = _atrous_level(desc.color, desc.feat, [1.0] * groups, None, None, desc.step, desc.scale)
-    return out.contiguous(), den
+    feat = None
+    if desc.guides:  # one padded copy of the guides for the level (the kernel reads one buffer)
+        feat = empty_planes(desc.color, 3 * len(desc.guides))
+        for k, g in enumerate(desc.guides):
+            feat[:, 3 * k : 3 * k + 3].copy_(g)
+    fs = [] if feat is None else desc.feat_scale
+    out, _, den = _atrous_level(desc.color, feat, fs, None, None, desc.step, desc.scale, desc.plain_out)
+    return out, den
+
+
+def _rows(t: torch.Tensor) -> torch.Tensor:
+    """``t (B, C, H, W)`` as the gradients' kernel reads it: unit column stride (padded rows kept
+    as they are), else a contiguous copy."""
+    return t if t.stride(3) == 1 else t.contiguous()
 
 
 def atrous_level_grad(desc: ATrousLevelGradOp) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
-    """:class:`~torchgi.backends.base.ATrousLevelGradOp` in one kernel call per image (plain planes).
+    """:class:`~torchgi.backends.base.ATrousLevelGradOp` in one kernel call per image: colour,
+    guides and output read in their own row and plane strides (the forward's padded rows).
 
     Example:
         >>> c = torch.rand(1, 3, 6, 6); s = torch.ones(1, 1, 1, 1)
-        >>> out, den = atrous_level(ATrousLevelOp(c, None, s, 1)) if build.library() else (c, None)
-        >>> g = build.library() and atrous_level_grad(ATrousLevelGradOp(c, None, s, out, torch.ones_like(c) / den, 1))
+        >>> out, den = atrous_level(ATrousLevelOp(c, (), None, s, 1)) if build.library() else (c, None)
+        >>> g = build.library() and atrous_level_grad(ATrousLevelGradOp(c, (), None, s, out, torch.ones_like(c) / den, 1))
         >>> g is None or round(float(g[0].sum()), 3) == 108.0   # a constant shift of c moves every output
         True
     """
     lib = build.library()
-    c, out, gp = desc.color.contiguous(), desc.out.contiguous(), desc.gp.contiguous()
+    c, out = _rows(desc.color), _rows(desc.out)
+    f = [_rows(g) for g in desc.guides]
+    gp = desc.gp.contiguous()
     B, C, H, W = c.shape
-    f = None if desc.feat is None else desc.feat.contiguous()
-    F = 0 if f is None else f.shape[1]
+    F = 3 * len(f)
+    fs = desc.feat_scale.to(torch.float32).reshape(B, len(f)).contiguous() if f else None
     csm, s = desc.scale_operand()
-    dc = torch.empty_like(c)
-    df = None if f is None or not desc.need_feat else torch.empty_like(f)
-    ds = None if s is None else torch.empty(B, 1, H, W, dtype=torch.float32)
+    dc = torch.empty(B, C, H, W, dtype=torch.float32)
+    df = torch.empty(B, F, H, W, dtype=torch.float32) if f and desc.need_feat else None
+    ds = None if s is None or not desc.need_scale else torch.empty(B, 1, H, W, dtype=torch.float32)
+    guide = [(g, g.stride(2), g.stride(1)) for g in f] + [(None, 0, 0)] * (2 - len(f))
     for b in range(B):
-        _run(lib.torchgi_atrous_level_grad, H, W, c[b].data_ptr(), C, _ptr(None if f is None else f[b]), F,
-             _ptr(None if s is None else s[b]), csm, out[b].data_ptr(), gp[b].data_ptr(), H, W, desc.step,
-             _taps().data_ptr(), dc[b].data_ptr(), _ptr(None if df is None else df[b]),
-             _ptr(None if ds is None else ds[b]), 0)
-    return dc, df, ds if desc.need_scale else None
+        _run(lib.torchgi_atrous_level_grad, H, W, c[b].data_ptr(), c.stride(2), c.stride(1), C,
+             *(x for g, rs, ps in guide for x in (_ptr(None if g is None else g[b]), rs, ps)), F,
+             _ptr(None if fs is None else fs[b]), _ptr(None if s is None else s[b]), csm, out[b].data_ptr(),
+             out.stride(2), out.stride(1), gp[b].data_ptr(), H, W, desc.step, _taps().data_ptr(), dc[b].data_ptr(),
+             _ptr(None if df is None else df[b]), _ptr(None if ds is None else ds[b]), 0)
+    return dc, df, ds

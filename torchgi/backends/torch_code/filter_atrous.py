@@ -114,14 +114,17 @@ def atrous(desc: ATrousOp) -> tuple[torch.Tensor, list[torch.Tensor]]:
     guides = scaled_guides(desc)
     level_fn = _compiled_iteration() if desc.fused else _iteration
     by_level = level_backward(desc)
-    base = torch.cat([g for g, _, _ in guides], 1) if by_level and guides else None  # saved once for all levels
+    raw, roots = [None, None], []
+    if by_level:  # the guides as the caller holds them (no centred or scaled copy kept for the backward)
+        present = [t for t, inv in ((desc.normal, desc.inv_normal), (desc.position, desc.inv_position)) if inv is not None]
+        raw, roots, guides = present + raw[len(present):], [(s, per_step) for _, s, per_step in guides], []
 
     def level(c, var, valid, i):
         step = 2**i
         scale = colour_scale(desc, i, var)
         if by_level:
-            mult = torch.cat([s / step if per_step else s for _, s, per_step in guides], 1) if guides else None
-            return ATrousLevel.apply(c, base, mult, scale, step), None, None
+            mult = torch.cat([s / step if per_step else s for s, per_step in roots], 1) if roots else None
+            return ATrousLevel.apply(c, *raw, mult, scale, step, i == desc.iterations - 1), None, None
         feat = torch.cat([g * (s / step if per_step else s) for g, s, per_step in guides], 1) if guides else None
         return level_fn(c, feat, var, valid, step, scale, desc.fused)
 
@@ -147,12 +150,26 @@ def atrous_level(desc: ATrousLevelOp) -> tuple[torch.Tensor, torch.Tensor]:
 
     Example:
         >>> c = torch.full((1, 3, 8, 8), 0.5)
-        >>> out, den = atrous_level(ATrousLevelOp(c, None, torch.ones(1, 1, 1, 1), 2))
+        >>> out, den = atrous_level(ATrousLevelOp(c, (), None, torch.ones(1, 1, 1, 1), 2))
         >>> torch.equal(out, c)
         True
     """
-    out, _, den = _iteration(desc.color, desc.feat, None, None, desc.step, desc.scale)
+    out, _, den = _iteration(desc.color, scaled_feat(desc.guides, desc.feat_scale), None, None, desc.step, desc.scale)
     return out, den
+
+
+def scaled_feat(guides: tuple[torch.Tensor, ...], feat_scale: torch.Tensor | None) -> torch.Tensor | None:
+    """The guides ``f_g (B,3,H,W)`` times the square roots of their multipliers ``feat_scale
+    (B,G)``, as one ``(B,3G,H,W)`` tensor (so plain squared distances carry the multipliers);
+    None without guides.
+
+    Example:
+        >>> scaled_feat((torch.ones(1, 3, 1, 1), torch.ones(1, 3, 1, 1)), torch.tensor([[4.0, 9.0]])).flatten().tolist()
+        [2.0, 2.0, 2.0, 3.0, 3.0, 3.0]
+    """
+    if not guides:
+        return None
+    return torch.cat([g * feat_scale[:, k, None, None, None].sqrt() for k, g in enumerate(guides)], 1)
 
 
 def atrous_level_grad(desc: ATrousLevelGradOp) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
@@ -161,12 +178,13 @@ def atrous_level_grad(desc: ATrousLevelGradOp) -> tuple[torch.Tensor, torch.Tens
 
     Example:
         >>> c = torch.rand(1, 3, 6, 6); s = torch.ones(1, 1, 1, 1)
-        >>> out, den = atrous_level(ATrousLevelOp(c, None, s, 1))
-        >>> dc, _, ds = atrous_level_grad(ATrousLevelGradOp(c, None, s, out, torch.ones_like(c) / den, 1))
+        >>> out, den = atrous_level(ATrousLevelOp(c, (), None, s, 1))
+        >>> dc, _, ds = atrous_level_grad(ATrousLevelGradOp(c, (), None, s, out, torch.ones_like(c) / den, 1))
         >>> round(float(dc.sum()), 4) == 6 * 6 * 3   # the sum of the outputs moves with a constant shift of c
         True
     """
-    c, f, s, out, gp, step = desc.color, desc.feat, desc.scale, desc.out, desc.gp, desc.step
+    c, s, out, gp, step = desc.color, desc.scale, desc.out, desc.gp, desc.step
+    f = scaled_feat(desc.guides, desc.feat_scale)  # the gradient of f, times the same roots, is the guides'
     pad = 2 * step
     pc, pgp, pout = Padded(c, pad), Padded(gp, pad), Padded(out, pad)
     pf = Padded(f, pad) if f is not None else None
@@ -202,6 +220,8 @@ def atrous_level_grad(desc: ATrousLevelGradOp) -> tuple[torch.Tensor, torch.Tens
                 dc = dc + w * gpp - E2s * u
                 if df is not None:
                     df = df - 2 * E * v
+    if df is not None:
+        df = df * desc.feat_scale.sqrt().repeat_interleave(3, dim=1)[:, :, None, None]
     return dc, df, ds
 
 

@@ -85,8 +85,8 @@ def supports(op: str, desc: BoxOp | GuidedOp | ATrousOp | RestoreOp | Accumulate
     if op == "atrous" and desc.color.shape[1] > MAX_CHANNELS:
         return f"the À-Trous kernel takes at most {MAX_CHANNELS} colour channels"
     if op in ("atrous_level", "atrous_level_grad") and (desc.color.shape[1] > MAX_CHANNELS or (
-            desc.feat is not None and desc.feat.shape[1] not in (3, 6))):
-        return f"the Triton {op} takes at most {MAX_CHANNELS} colour channels and 0, 3 or 6 guide planes"
+            len(desc.guides) > 2 or any(g.shape[1] != 3 for g in desc.guides))):
+        return f"the Triton {op} takes at most {MAX_CHANNELS} colour channels and at most 2 guides of 3 planes"
     if op == "atrous" and desc.inv_color.shape[-2:] != (1, 1):
         return "a per-pixel sigma_color map: the torch code"
     return None

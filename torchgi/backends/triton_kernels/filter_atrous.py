@@ -235,21 +235,22 @@ def atrous(desc: ATrousOp) -> tuple[torch.Tensor, list[torch.Tensor]]:
 
 
 def atrous_level(desc: ATrousLevelOp) -> tuple[torch.Tensor, torch.Tensor]:
-    """:class:`~torchgi.backends.base.ATrousLevelOp` by the level kernel: the scaled guides' groups
-    enter as its normal and position with unit inverse σ's (the normal's times ``step²``, which
-    the kernel divides by), the colour scale as its σ (a value) or plane (a map).
+    """:class:`~torchgi.backends.base.ATrousLevelOp` by the level kernel: the guides' groups
+    enter as its normal and position with their multipliers as inverse σ's (the normal's times
+    ``step²``, which the kernel divides by), the colour scale as its σ (a value) or plane (a map).
 
     Example:
         >>> c = torch.full((1, 3, 8, 8), 0.5, device="cuda")                                        # doctest: +SKIP
-        >>> torch.equal(atrous_level(ATrousLevelOp(c, None, torch.ones(1, 1, 1, 1, device="cuda"), 2))[0], c)  # doctest: +SKIP
+        >>> torch.equal(atrous_level(ATrousLevelOp(c, (), None, torch.ones(1, 1, 1, 1, device="cuda"), 2))[0], c)  # doctest: +SKIP
         True
     """
-    c, f, s, step = desc.color, desc.feat, desc.scale, desc.step
+    c, s, step = desc.color, desc.scale, desc.step
     B = c.shape[0]
     one = torch.ones(B, dtype=c.dtype, device=c.device)
     scalar = s is not None and s.shape[-2:] == (1, 1)
-    inv = torch.stack([s.reshape(B) if scalar else one, one * step * step, one], 1)
-    groups = [None, None] if f is None else [f[:, :3], f[:, 3:6] if f.shape[1] == 6 else None]
+    fs = [one, one] if not desc.guides else [desc.feat_scale[:, 0], desc.feat_scale[:, -1]]
+    inv = torch.stack([s.reshape(B) if scalar else one, fs[0] * step * step, fs[1]], 1)
+    groups = [*desc.guides, None, None][:2]
     colour = None if s is None else 1.0 if scalar else s
     out, _, den = _atrous_level(c, groups[0], groups[1], inv, None, None, step, colour)
     return out, den
@@ -258,10 +259,11 @@ def atrous_level(desc: ATrousLevelOp) -> tuple[torch.Tensor, torch.Tensor]:
 if triton is not None:
 
     @triton.jit
-    def _pair(c_ptr, f_ptr, s_ptr, out_ptr, gp_ptr, p, q, ok, hw, h, sv, C: tl.constexpr, F: tl.constexpr,
-              CS: tl.constexpr):
+    def _pair(c_ptr, f_ptr, s_ptr, out_ptr, gp_ptr, p, q, ok, hw, h, sv, fs0, fs1, C: tl.constexpr,
+              F: tl.constexpr, CS: tl.constexpr):
         # the pair (p centre, q neighbour) of one tap: w, E = -w Σ_k gp_pk (c_qk - out_pk), s_p and
-        # the colour distance (the channel loop over at most 4 colour and 6 guide planes)
+        # the colour distance (the channel loop over at most 4 colour and 6 guide planes, each
+        # guide group's squared distance times its multiplier fs0, fs1)
         dcol = tl.zeros_like(h)
         G = tl.zeros_like(h)
         for k in tl.static_range(C):
@@ -270,7 +272,10 @@ if triton is not None:
         dfe = tl.zeros_like(h)
         for k in tl.static_range(F):
             v = tl.load(f_ptr + k * hw + p, mask=ok, other=0.0) - tl.load(f_ptr + k * hw + q, mask=ok, other=0.0)
-            dfe += v * v
+            if k < 3:
+                dfe += fs0 * v * v
+            else:
+                dfe += fs1 * v * v
         sp = tl.zeros_like(h)
         if CS == 1:
             sp += sv
@@ -283,7 +288,7 @@ if triton is not None:
         return w, -w * G, sp, dcol
 
     @triton.jit
-    def _level_grad(c_ptr, f_ptr, s_ptr, out_ptr, gp_ptr, taps_ptr, dc_ptr, df_ptr, ds_ptr, H, W, step,
+    def _level_grad(c_ptr, f_ptr, fs_ptr, s_ptr, out_ptr, gp_ptr, taps_ptr, dc_ptr, df_ptr, ds_ptr, H, W, step,
                     C: tl.constexpr, F: tl.constexpr, CS: tl.constexpr, DF: tl.constexpr, DS: tl.constexpr,
                     BLOCK: tl.constexpr):
         # kernels.c's atrous_grad_rows (the same sums): each pixel gathers its gradients as the
@@ -302,6 +307,11 @@ if triton is not None:
             sv = tl.load(s_ptr + b)
         if CS == 2:
             s_ptr += b * hw
+        fs0 = 1.0
+        fs1 = 1.0
+        if F > 0:
+            fs0 = tl.load(fs_ptr + b * (F // 3))
+            fs1 = tl.load(fs_ptr + b * (F // 3) + F // 3 - 1)
         for k in tl.static_range(C):
             tl.store(dc_ptr + b * C * hw + k * hw + i, tl.zeros([BLOCK], dtype=tl.float32), mask=live)
         for t in range(25):
@@ -311,7 +321,7 @@ if triton is not None:
             # as the centre: q = i + o
             ok = live & (y + oy >= 0) & (y + oy < H) & (x + ox >= 0) & (x + ox < W)
             q = i + oy * W + ox
-            w, E, sp, dcol = _pair(c_ptr, f_ptr, s_ptr, out_ptr, gp_ptr, i, q, ok, hw, h, sv, C, F, CS)
+            w, E, sp, dcol = _pair(c_ptr, f_ptr, s_ptr, out_ptr, gp_ptr, i, q, ok, hw, h, sv, fs0, fs1, C, F, CS)
             for k in tl.static_range(C):
                 u = tl.load(c_ptr + k * hw + i, mask=ok, other=0.0) - tl.load(c_ptr + k * hw + q, mask=ok, other=0.0)
                 a = dc_ptr + b * C * hw + k * hw + i
@@ -321,7 +331,7 @@ if triton is not None:
                     v = tl.load(f_ptr + k * hw + i, mask=ok, other=0.0) - tl.load(f_ptr + k * hw + q, mask=ok, other=0.0)
                     a = df_ptr + b * F * hw + k * hw + i
                     prev = tl.where(t == 0, 0.0, tl.load(a, mask=live, other=0.0))
-                    tl.store(a, prev + 2.0 * E * v, mask=live)
+                    tl.store(a, prev + 2.0 * E * (fs0 if k < 3 else fs1) * v, mask=live)
             if DS:
                 a = ds_ptr + b * hw + i
                 prev = tl.where(t == 0, 0.0, tl.load(a, mask=live, other=0.0))
@@ -329,7 +339,7 @@ if triton is not None:
             # as the neighbour: p = i - o
             ok = live & (y - oy >= 0) & (y - oy < H) & (x - ox >= 0) & (x - ox < W)
             p = i - oy * W - ox
-            w, E, sp, dcol = _pair(c_ptr, f_ptr, s_ptr, out_ptr, gp_ptr, p, i, ok, hw, h, sv, C, F, CS)
+            w, E, sp, dcol = _pair(c_ptr, f_ptr, s_ptr, out_ptr, gp_ptr, p, i, ok, hw, h, sv, fs0, fs1, C, F, CS)
             for k in tl.static_range(C):
                 u = tl.load(c_ptr + k * hw + p, mask=ok, other=0.0) - tl.load(c_ptr + k * hw + i, mask=ok, other=0.0)
                 a = dc_ptr + b * C * hw + k * hw + i
@@ -339,30 +349,32 @@ if triton is not None:
                 for k in tl.static_range(F):
                     v = tl.load(f_ptr + k * hw + p, mask=ok, other=0.0) - tl.load(f_ptr + k * hw + i, mask=ok, other=0.0)
                     a = df_ptr + b * F * hw + k * hw + i
-                    tl.store(a, tl.load(a, mask=live, other=0.0) - 2.0 * E * v, mask=live)
+                    tl.store(a, tl.load(a, mask=live, other=0.0) - 2.0 * E * (fs0 if k < 3 else fs1) * v, mask=live)
 
 
 def atrous_level_grad(desc: ATrousLevelGradOp) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
-    """:class:`~torchgi.backends.base.ATrousLevelGradOp` in one launch.
+    """:class:`~torchgi.backends.base.ATrousLevelGradOp` in one launch (the guides side by side in
+    one buffer).
 
     Example:
         >>> c = torch.rand(1, 3, 6, 6, device="cuda"); s = torch.ones(1, 1, 1, 1, device="cuda")  # doctest: +SKIP
-        >>> out, den = atrous_level(ATrousLevelOp(c, None, s, 1))                                  # doctest: +SKIP
-        >>> dc, _, ds = atrous_level_grad(ATrousLevelGradOp(c, None, s, out, torch.ones_like(c) / den, 1))  # doctest: +SKIP
+        >>> out, den = atrous_level(ATrousLevelOp(c, (), None, s, 1))                                  # doctest: +SKIP
+        >>> dc, _, ds = atrous_level_grad(ATrousLevelGradOp(c, (), None, s, out, torch.ones_like(c) / den, 1))  # doctest: +SKIP
         >>> round(float(dc.sum()), 3)                                                             # doctest: +SKIP
         108.0
     """
     c, out, gp = desc.color.contiguous(), desc.out.contiguous(), desc.gp.contiguous()
     B, C, H, W = c.shape
-    f = None if desc.feat is None else desc.feat.contiguous()
+    f = torch.cat(desc.guides, 1).contiguous() if desc.guides else None
     F = 0 if f is None else f.shape[1]
+    fs = None if f is None else desc.feat_scale.to(torch.float32).contiguous()
     cs, s = desc.scale_operand()
     dc = torch.empty_like(c)
     need_f, need_s = f is not None and desc.need_feat, s is not None and desc.need_scale
     df = torch.empty_like(f) if need_f else dc
     ds = torch.empty(B, 1, H, W, dtype=c.dtype, device=c.device) if need_s else dc
     _level_grad[(_cdiv(H * W, _GRAD_BLOCK), B)](
-        c, dc if f is None else f, dc if s is None else s, out, gp, _taps(c.device), dc, df, ds, H, W, desc.step,
+        c, dc if f is None else f, dc if fs is None else fs, dc if s is None else s, out, gp, _taps(c.device), dc, df, ds, H, W, desc.step,
         C=C, F=F, CS=cs, DF=need_f, DS=need_s, BLOCK=_GRAD_BLOCK)
     return dc, df if need_f else None, ds if need_s else None
 
