@@ -1,5 +1,7 @@
 """ONNX export: dynamic B/H/W, onnxruntime parity with torch at two resolutions."""
 
+import functools
+
 import pytest
 import torch
 
@@ -243,6 +245,15 @@ def test_finite_inputs_whose_sum_overflows_pass_unchanged():
     assert bool(torch.isfinite(got[1]).all()) and got[0][0, 0, 4, 4] != x[0, 0, 4, 4]  # the whole pixel is a hole
 
 
+@functools.cache
+def _cornell(W: int, spp: int, seed: int):
+    """A Cornell box render of ``W x (W + 7)`` (1 bounce), rendered once per test process (the
+    tests below share their references)."""
+    import torchgi
+
+    return torchgi.render(torchgi.scenes.cornell(W).with_resolution(W, W + 7), spp=spp, bounces=1, seed=seed)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("emission", [True, False])
 def test_exported_default_matches_the_eager_default_on_large_renders(tmp_path, emission):
@@ -253,17 +264,14 @@ def test_exported_default_matches_the_eager_default_on_large_renders(tmp_path, e
     without; exported without the frame (full resolution) 4.6e-3; zeros fed as the emission
     of a render without one (what OrtDenoiser used to do) 0.97 and 3.1x the eager relMSE."""
     pytest.importorskip("embreex")
-    import torchgi
     from torchgi import metrics
     from torchgi.denoise import Denoiser
     from torchgi.export import OrtDenoiser, export_denoiser
 
     frames = []
     for W in (256, 512):
-        scene = torchgi.scenes.cornell(W).with_resolution(W, W + 7)
-        gb = torchgi.render(scene, spp=1, bounces=1, seed=3)
-        frames.append((gb if emission else gb.replace(emission=None), torchgi.render(scene, spp=128, bounces=1,
-                                                                                     seed=4).color))
+        gb = _cornell(W, 1, 3)
+        frames.append((gb if emission else gb.replace(emission=None), _cornell(W, 128, 4).color))
     ort = OrtDenoiser(export_denoiser("guided", tmp_path / "d.onnx", emission=emission, frame=frames[0][0]))
     assert ("emission" in ort.input_names) == emission
     for gb, ref in frames:
@@ -280,14 +288,11 @@ def test_exported_default_backs_off_with_the_variance_as_the_eager_one(tmp_path)
     exported without the variance input 0.45 (relMSE +0.8 % there; +14 % on a 64² box). The graph
     refuses a render without its emission layer (nothing made up)."""
     pytest.importorskip("embreex")
-    import torchgi
     from torchgi import metrics
     from torchgi.denoise import Denoiser
     from torchgi.export import OrtDenoiser, export_denoiser
 
-    scene = torchgi.scenes.cornell(256).with_resolution(256, 263)
-    gb = torchgi.render(scene, spp=4, bounces=1, seed=3)
-    ref = torchgi.render(scene, spp=128, bounces=1, seed=4).color
+    gb, ref = _cornell(256, 4, 3), _cornell(256, 128, 4).color
     ort = OrtDenoiser(export_denoiser("guided", tmp_path / "v.onnx", frame=gb))
     assert ort.input_names[-1] == "variance"
     import onnx
