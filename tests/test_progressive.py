@@ -57,3 +57,36 @@ def test_render_to_arguments():
         render_to(scene, target=-1.0)
     with pytest.raises(RangeError, match="first_spp"):
         render_to(scene, seconds=1.0, first_spp=1)
+
+
+@pytest.mark.parametrize("call_spp", [0.5, 0.75, 1.0])
+def test_render_to_seconds_fits_renders_that_cost_a_call_beside_their_samples(monkeypatch, call_spp):
+    # A simulated clock: each render call takes call + n * per seconds (call = call_spp samples
+    # per pixel's time, as the tracer's buffers and walk over every pixel cost), the Denoiser
+    # d seconds. The rounds planned for a budget T end, with the final denoise, at most one
+    # eighth of a sample per pixel's time past T (the smallest round the plan starts), and use
+    # most of it.
+    import torchgi
+    from torchgi import progressive
+
+    scene = torchgi.scenes.cornell(16)
+    pixels, per, d = 16 * 16, 1e-3, 0.01
+    clock = [0.0]
+    monkeypatch.setattr(progressive.time, "perf_counter", lambda: clock[0])
+    real_round = progressive._Run.round
+
+    def timed_round(self, counts, r):
+        clock[0] += call_spp * pixels * per + float(counts.sum()) * per
+        return real_round(self, counts, r)
+
+    def denoiser(gb):
+        clock[0] += d
+        return gb.color
+
+    monkeypatch.setattr(progressive._Run, "round", timed_round)
+    for T in (0.02 + 8 * pixels * per, 0.02 + 20 * pixels * per):
+        clock[0] = 0.0
+        gb = progressive.render_to(scene, seconds=T, bounces=1, seed=1, denoiser=denoiser, progress=False)
+        denoiser(gb)
+        assert clock[0] <= T + pixels * per / 8 + 1e-9
+        assert clock[0] >= T - (2 + 2 * call_spp) * pixels * per  # at most about a round's call unused

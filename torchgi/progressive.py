@@ -12,12 +12,13 @@ shortfall from that share of the new total (:func:`~torchgi.sampling.allocate`, 
 al. 2011's geometry weights, :func:`~torchgi.sampling.importance_map`). Rounds merge by
 :func:`~torchgi.sampling.merge_rounds`.
 
-``seconds``: the wall time of the renders, the planning and the final denoise together. Each
-round doubles the samples, cut to what the time per sample of the round before (round 0's
-times :data:`_ADAPTIVE_COST` for the first placed round), the planning's time and the Denoiser's
-measured time leave; a budget smaller than round 0 and one denoise is overrun by them. A
-render call's own cost beside its samples is not in the plan, so a run can end past the budget
-by about one call's (docs/benchmarks/adaptive.md).
+``seconds``: the wall time of the renders, the planning and the final denoise together. A
+render call is planned to take ``call + n · per_sample`` seconds for ``n`` samples: ``call``, its
+cost beside its samples, is taken as :data:`_CALL_SPP` samples per pixel of round 0's time;
+``per_sample`` from the round before (round 0's times :data:`_ADAPTIVE_COST` for the first
+placed round). Each round doubles the samples, cut to what that plan, the planning's time and
+the Denoiser's measured time leave; a budget smaller than round 0 and one denoise is overrun by
+them.
 
 ``target``: the estimated relMSE of the denoised image. Every round is rendered as two halves of
 independent seeds ``a`` and ``b``; each half's denoised error is estimated against the other
@@ -53,6 +54,9 @@ _MIN_ROUND = 0.125  # a round of fewer samples per pixel than this is not worth 
 # a placed sample's time over a uniform one's, until a placed round is timed (they go where light
 # paths are longer: 1.1-1.15x on the tuning scenes, docs/benchmarks/adaptive.md)
 _ADAPTIVE_COST = 1.2
+# a render call's cost beside its samples, in samples per pixel of round 0 (its buffers and its
+# walk over every pixel: 0.6-0.9 spp on the tuning scenes, docs/benchmarks/adaptive.md)
+_CALL_SPP = 0.75
 
 
 def render_to(
@@ -111,7 +115,8 @@ def render_to(
     W, H = scene.camera.resolution
     pixels = H * W
     first = torch.full((1, 1, H, W), first_spp, dtype=torch.int64)
-    acc, whole, per_sample, denoised, denoise_s = run.first(first, denoiser, _ADAPTIVE_COST if adaptive else 1.0)
+    acc, whole, per_sample, call_s, denoised, denoise_s = run.first(first, denoiser,
+                                                                    _ADAPTIVE_COST if adaptive else 1.0)
     total = int(first.sum())
     support = _support(whole[0]) if geometry else None
     r, overhead, history = 0, 0.0, []
@@ -126,7 +131,8 @@ def render_to(
                 break
             n = _samples_to(history, target)
         if seconds is not None:  # what is left after this round's planning and the final denoise
-            n = min(n, int((seconds - (time.perf_counter() - start) - overhead - denoise_s) / per_sample))
+            left = seconds - (time.perf_counter() - start) - overhead - denoise_s - call_s
+            n = min(n, int(left / per_sample))
         n = min(n, int(max_spp * pixels) - total)
         if show:
             _report(r, total / pixels, time.perf_counter() - start, estimate)
@@ -137,7 +143,7 @@ def render_to(
         t0 = time.perf_counter()
         parts = run.round(counts, r)
         t_render = time.perf_counter() - t0
-        per_sample = t_render / n
+        per_sample = max(t_render - len(parts) * call_s, t_render / 2) / n
         acc = [(merge_rounds(a, ca, b, cb), ca + cb) for (a, ca), (b, cb) in zip(acc, parts)]
         total += n
         whole = _merged(acc)
@@ -155,16 +161,21 @@ class _Run:
         self.scene, self.bounces, self.seed, self.halves, self.kwargs = scene, bounces, seed, halves, kwargs
 
     def first(self, counts: torch.Tensor, denoiser: Any, cost: float) -> tuple[
-            list[tuple[GBuffer, torch.Tensor]], tuple[GBuffer, torch.Tensor], float, torch.Tensor, float]:
+            list[tuple[GBuffer, torch.Tensor]], tuple[GBuffer, torch.Tensor], float, float, torch.Tensor, float]:
         """Round 0: its parts, the whole, the seconds a sample of the next round is expected to
-        take (round 0's times ``cost``), the denoised whole and the seconds the denoise took."""
+        take (round 0's, less its call's cost, times ``cost``), the seconds a render call costs
+        beside its samples (module docstring), the denoised whole and the seconds the denoise
+        took."""
         t0 = time.perf_counter()
         acc = self.round(counts, 0)
-        per_sample = (time.perf_counter() - t0) / int(counts.sum()) * cost
+        t_render = time.perf_counter() - t0
+        spp = float(counts.sum()) / counts.numel()
+        call_s = t_render * _CALL_SPP / (spp + len(acc) * _CALL_SPP)  # per call (two with halves)
+        per_sample = (t_render - len(acc) * call_s) / float(counts.sum()) * cost
         whole = _merged(acc)
         t0 = time.perf_counter()
         denoised = denoiser(whole[0])
-        return acc, whole, per_sample, denoised, time.perf_counter() - t0
+        return acc, whole, per_sample, call_s, denoised, time.perf_counter() - t0
 
     def round(self, counts: torch.Tensor, r: int) -> list[tuple[GBuffer, torch.Tensor]]:
         """Round ``r`` of ``counts``: its parts (the render, or the two halves) with their counts."""
