@@ -7,7 +7,7 @@ pytest.importorskip("embreex")
 
 
 def test_render_to_spends_exactly_the_rounds_samples_and_none_on_noise_free_pixels():
-    # With a budget in samples (max_spp) rounds of 2, 2, 4 spp: 8 spp in all, counted exactly in
+    # With a budget in samples (max_spp) rounds of 2 and 6 spp: 8 spp in all, counted exactly in
     # the merged spp; the sky seen directly is noise-free (its variance 0 from round 0): away
     # from the ground (the variance is 3x3-blurred) it gets no sample after round 0.
     import torchgi

@@ -16,9 +16,11 @@ al. 2011's geometry weights, :func:`~torchgi.sampling.importance_map`). Rounds m
 render call is planned to take ``call + n · per_sample`` seconds for ``n`` samples: ``call``, its
 cost beside its samples, is taken as :data:`_CALL_SPP` samples per pixel of round 0's time;
 ``per_sample`` from the round before (round 0's times :data:`_ADAPTIVE_COST` for the first
-placed round). Each round doubles the samples, cut to what that plan, the planning's time and
-the Denoiser's measured time leave; a budget smaller than round 0 and one denoise is overrun by
-them.
+placed round). The samples that plan, the planning's time and the Denoiser's measured time
+leave go into one placed round, or, where 0.3 of them are worth at least two calls, 0.7 of them
+into the first placed round and the rest, timed by its measured time per sample, into a second
+(each call costs; a second round corrects the first's time per sample); a budget smaller than
+round 0 and one denoise is overrun by them. With ``target`` each round doubles the samples.
 
 ``target``: the estimated relMSE of the denoised image. Every round is rendered as two halves of
 independent seeds ``a`` and ``b``; each half's denoised error is estimated against the other
@@ -122,7 +124,7 @@ def render_to(
     r, overhead, history = 0, 0.0, []
     while True:
         t_plan = time.perf_counter()
-        n = total  # the next round doubles the samples
+        n = total  # with a target the next round doubles the samples
         estimate = None
         if target is not None:
             estimate = _estimate(acc, whole, denoised, denoiser)
@@ -132,7 +134,10 @@ def render_to(
             n = _samples_to(history, target)
         if seconds is not None:  # what is left after this round's planning and the final denoise
             left = seconds - (time.perf_counter() - start) - overhead - denoise_s - call_s
-            n = min(n, int(left / per_sample))
+            n = left / per_sample
+            # one placed round for all that is left, unless a second's call is worth its cost:
+            # then this round 0.7 of it, the rest with the time per sample measured on it
+            n = int(n * 0.7 if r == 0 and n * 0.3 >= 2 * call_s / per_sample else n)
         n = min(n, int(max_spp * pixels) - total)
         if show:
             _report(r, total / pixels, time.perf_counter() - start, estimate)
