@@ -133,11 +133,7 @@ def render_to(
                 break
             n = _samples_to(history, target)
         if seconds is not None:  # what is left after this round's planning and the final denoise
-            left = seconds - (time.perf_counter() - start) - overhead - denoise_s - call_s
-            n = left / per_sample
-            # one placed round for all that is left, unless a second's call is worth its cost:
-            # then this round 0.7 of it, the rest with the time per sample measured on it
-            n = int(n * 0.7 if r == 0 and n * 0.3 >= 2 * call_s / per_sample else n)
+            n = _samples_left(seconds - (time.perf_counter() - start) - overhead - denoise_s, call_s, per_sample, r)
         n = min(n, int(max_spp * pixels) - total)
         if show:
             _report(r, total / pixels, time.perf_counter() - start, estimate)
@@ -265,6 +261,14 @@ def _estimate(acc: list[tuple[GBuffer, torch.Tensor]], whole: tuple[GBuffer, tor
         var_b = per_sample / cb.clamp_min(1)
         errors.append(float((((denoiser(a) - b.color).square() - var_b) * w).mean()))
     return max(sum(errors) / 2, 0.0) / HALF_TO_WHOLE
+
+
+def _samples_left(left: float, call_s: float, per_sample: float, r: int) -> int:
+    """The samples of the next round with ``left`` seconds for its render call: all of them, or,
+    after round 0 where 0.3 of them are worth two calls, 0.7 of them (the rest goes into a second
+    round, timed by the first's measured time per sample)."""
+    n = (left - call_s) / per_sample
+    return int(n * 0.7 if r == 0 and n * 0.3 >= 2 * call_s / per_sample else n)
 
 
 def _samples_to(history: list[tuple[int, float]], target: float) -> int:
