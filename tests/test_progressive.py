@@ -59,7 +59,7 @@ def test_render_to_arguments():
         render_to(scene, seconds=1.0, first_spp=1)
 
 
-@pytest.mark.parametrize("call_spp", [0.5, 0.75, 1.0])
+@pytest.mark.parametrize("call_spp", [0.25, 0.5, 0.7])  # the range measured on the tuning scenes
 def test_render_to_seconds_fits_renders_that_cost_a_call_beside_their_samples(monkeypatch, call_spp):
     # A simulated clock: each render call takes call + n * per seconds (call = call_spp samples
     # per pixel's time, as the tracer's buffers and walk over every pixel cost), the Denoiser

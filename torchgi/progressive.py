@@ -57,8 +57,8 @@ _MIN_ROUND = 0.125  # a round of fewer samples per pixel than this is not worth 
 # paths are longer: 1.1-1.15x on the tuning scenes, docs/benchmarks/adaptive.md)
 _ADAPTIVE_COST = 1.2
 # a render call's cost beside its samples, in samples per pixel of round 0 (its buffers and its
-# walk over every pixel: 0.6-0.9 spp on the tuning scenes, docs/benchmarks/adaptive.md)
-_CALL_SPP = 0.75
+# walk over every pixel: 0.25-0.7 spp on the tuning scenes, docs/benchmarks/adaptive.md)
+_CALL_SPP = 0.5
 
 
 def render_to(

@@ -534,7 +534,7 @@ def _trace(
     (None: every core) where it takes the render, else here or on ``workers`` processes (None:
     every core from 2^19 samples); each tile is merged as soon as it arrives, so only one tile's
     film is held at a time."""
-    rows = torch.zeros(12, passes[0][1].numel())
+    rows = torch.empty(12, passes[0][1].numel())  # the first pass's tiles cover every pixel
     probe = jobs(passes[0][0], skips, 0, passes[0][1][:1].numpy(), chunk_size, allowed)
     with backends.use(*allowed):
         compiled = probe.integrator == "path" and backends.select(_path_op(probe))[0] == "c"
@@ -543,7 +543,7 @@ def _trace(
     else:
         threads = 1
         workers = workers or (_cores() if total >= _PARALLEL_MIN_SAMPLES else 1)
-    for render_pass, pass_counts in passes:
+    for index, (render_pass, pass_counts) in enumerate(passes):
         tiles = _tiles(pass_counts, workers * _TILES_PER_WORKER if workers > 1 else 1)
         tile_jobs = [jobs(render_pass, skips, a, pass_counts[a:b].numpy(), chunk_size, allowed, threads)
                      for a, b in tiles]
@@ -553,8 +553,12 @@ def _trace(
         else:
             done = ((tile, _run_tile(job, bar.update)) for job, tile in zip(tile_jobs, tiles))
         for (a, b), (mean, variance) in done:
-            rows[:9, a:b] += torch.from_numpy(mean)
-            rows[9:, a:b] += torch.from_numpy(variance)  # (independent passes: their variances add)
+            if index == 0:
+                rows[:9, a:b].copy_(torch.from_numpy(mean))
+                rows[9:, a:b].copy_(torch.from_numpy(variance))
+            else:
+                rows[:9, a:b] += torch.from_numpy(mean)
+                rows[9:, a:b] += torch.from_numpy(variance)  # (independent passes: their variances add)
             if workers > 1:
                 bar.update(int(pass_counts[a:b].sum()))
     return rows

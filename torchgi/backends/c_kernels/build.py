@@ -69,7 +69,7 @@ _SIGNATURES = {
     "torchgi_embree_init": ([_P], None),
     "torchgi_scene_new": ([_P, _L], _P),
     "torchgi_scene_free": ([_P], None),
-    "torchgi_render_pixels": ([_P, _P, _L, _P, _L, _P, _P, _I], None),
+    "torchgi_render_pixels": ([_P, _P, _L, _P, _L, _L, _P, _P, _I], None),
     "torchgi_render_guides": ([_P, _P, _L, _P, _I], None),
     "torchgi_upsample_apply": ([_P, _I, _I, _P, _P, _P, _P, _I, _I, _P, *_BANDS], None),
     "torchgi_atrous_level_grad": ([_P, _I, _L, _I, _P, _I, _L, _P, _I, _L, _I, _P, _P, _I, _P, _I, _L, _P, _I, _I, _I, _P,

@@ -11,7 +11,7 @@
  */
 #include "common.h"
 
-int torchgi_native_version(void) { return 17; }
+int torchgi_native_version(void) { return 18; }
 
 float torchgi_exp_neg(float d) { return exp_neg(d); }
 

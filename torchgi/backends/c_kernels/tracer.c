@@ -444,26 +444,29 @@ static void pixel_film(const pt_render *R, void *scene, uint32_t pixel, long lon
     }
 }
 
-/* Pixels first .. first + P - 1 (global index b*H*W + y*W + x), counts[i] samples each:
- * mean (9, P) of emission, direct, indirect and var (3, P), the variance of the colour's mean. */
-static void film_pixels(const pt_render *R, void *scene, long long first, const long long *counts, long long P,
+/* Pixels first + i0 .. first + i1 - 1 (global index b*H*W + y*W + x), counts[i] samples each:
+ * mean (9, rows of `stride`) of emission, direct, indirect and var (3, rows of `stride`), the
+ * variance of the colour's mean. */
+static void film_pixels(const pt_render *R, void *scene, long long first, const long long *counts, long long stride,
                         long long i0, long long i1, double *mean, double *var, float *colour) {
     profile_on(R);
     for (long long i = i0; i < i1; i++) {
         double m[12] = {0}, m2[3] = {0};
         pixel_film(R, scene, (uint32_t)(first + i), counts[i], m, m2, colour);
-        for (int k = 0; k < 9; k++) mean[k * P + i] = m[k];
+        for (int k = 0; k < 9; k++) mean[k * stride + i] = m[k];
         const double n = (double)counts[i];
-        for (int k = 0; k < 3; k++) var[k * P + i] = n > 1 ? m2[k] / (n * (n - 1)) : 0.0;
+        for (int k = 0; k < 3; k++) var[k * stride + i] = n > 1 ? m2[k] / (n * (n - 1)) : 0.0;
     }
 }
 
 /* Pixels first .. first + P - 1 (global index b*H*W + y*W + x), counts[i] samples each:
- * mean (9, P) of emission, direct, indirect and var (3, P), the variance of the colour's mean.
+ * mean (9, P) of emission, direct, indirect and var (3, P), the variance of the colour's mean,
+ * each row `stride` >= P doubles after the one before (P: packed; a larger stride writes a column
+ * range of a wider buffer). Every element is written.
  * nt > 1: OpenMP threads take runs of 16 pixels as they free up; nt = 1 never enters OpenMP (a
  * forked worker process stays safe, as in native.c). */
 void torchgi_render_pixels(void *handle, const pt_render *R, long long first, const long long *counts, long long P,
-                           double *mean, double *var, int nt) {
+                           long long stride, double *mean, double *var, int nt) {
     void *scene = ((pt_scene *)handle)->scene;
     if (nt > 1) {
 #pragma omp parallel num_threads(nt)
@@ -471,12 +474,12 @@ void torchgi_render_pixels(void *handle, const pt_render *R, long long first, co
             float colour[3 * PT_BLOCK];
 #pragma omp for schedule(dynamic, 1)
             for (long long run = 0; run < (P + 15) / 16; run++)
-                film_pixels(R, scene, first, counts, P, 16 * run, 16 * run + 16 < P ? 16 * run + 16 : P, mean, var,
-                            colour);
+                film_pixels(R, scene, first, counts, stride, 16 * run, 16 * run + 16 < P ? 16 * run + 16 : P, mean,
+                            var, colour);
         }
     } else {
         float colour[3 * PT_BLOCK];
-        film_pixels(R, scene, first, counts, P, 0, P, mean, var, colour);
+        film_pixels(R, scene, first, counts, stride, 0, P, mean, var, colour);
     }
 }
 

@@ -131,14 +131,12 @@ def path(desc: PathOp) -> tuple:
 def _trace_pixels(desc: PathOp, handle: int, r: _Render) -> tuple:
     counts = torch.from_numpy(desc.counts).to(torch.int64).contiguous()
     n = counts.numel()
-    mean = torch.zeros(9, n, dtype=torch.float64)
-    var = torch.zeros(3, n, dtype=torch.float64)
+    mean = torch.empty(9, n, dtype=torch.float64)  # every element written by the kernel
+    var = torch.empty(3, n, dtype=torch.float64)
     # pieces of at most chunk_size samples per thread (>= 1 pixel), so that progress is reported as it goes
     for a, b in chunks(counts, desc.chunk_size * desc.threads):
-        m, v = torch.zeros(9, b - a, dtype=torch.float64), torch.zeros(3, b - a, dtype=torch.float64)
         build.library().torchgi_render_pixels(handle, ctypes.byref(r), desc.first_pixel + a, counts[a:].data_ptr(), b - a,
-                                        m.data_ptr(), v.data_ptr(), desc.threads)
-        mean[:, a:b], var[:, a:b] = m, v
+                                              n, mean[:, a:].data_ptr(), var[:, a:].data_ptr(), desc.threads)
         if desc.on_chunk is not None:
             desc.on_chunk(int(counts[a:b].sum()))
     return mean.numpy(), var.numpy()
