@@ -63,9 +63,9 @@ def test_render_to_arguments():
 def test_render_to_seconds_fits_renders_that_cost_a_call_beside_their_samples(monkeypatch, call_spp):
     # A simulated clock: each render call takes call + n * per seconds (call = call_spp samples
     # per pixel's time, as the tracer's buffers and walk over every pixel cost), the Denoiser
-    # d seconds. The rounds planned for a budget T end, with the final denoise, at most one
-    # eighth of a sample per pixel's time past T (the smallest round the plan starts), and use
-    # most of it.
+    # d seconds below 3 spp and 5 d from 3 spp. The rounds planned for a budget T end, with the
+    # final denoise, at most one eighth of a sample per pixel's time past T (the smallest round
+    # the plan starts), and use most of it.
     import torchgi
     from torchgi import progressive
 
@@ -79,12 +79,12 @@ def test_render_to_seconds_fits_renders_that_cost_a_call_beside_their_samples(mo
         clock[0] += call_spp * pixels * per + float(counts.sum()) * per
         return real_round(self, counts, r)
 
-    def denoiser(gb):
-        clock[0] += d
+    def denoiser(gb):  # a Denoiser that does five times the work from 3 spp (as "guided" chooses radii)
+        clock[0] += d if float(gb.spp.float().mean()) < 3 else 5 * d
         return gb.color
 
     monkeypatch.setattr(progressive._Run, "round", timed_round)
-    for T in (0.02 + 8 * pixels * per, 0.02 + 20 * pixels * per):
+    for T in (0.06 + 8 * pixels * per, 0.06 + 20 * pixels * per):
         clock[0] = 0.0
         gb = progressive.render_to(scene, seconds=T, bounces=1, seed=1, denoiser=denoiser, progress=False)
         denoiser(gb)

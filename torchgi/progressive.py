@@ -16,7 +16,9 @@ al. 2011's geometry weights, :func:`~torchgi.sampling.importance_map`). Rounds m
 render call is planned to take ``call + n · per_sample`` seconds for ``n`` samples: ``call``, its
 cost beside its samples, is taken as :data:`_CALL_SPP` samples per pixel of round 0's time;
 ``per_sample`` from the round before (round 0's times :data:`_ADAPTIVE_COST` for the first
-placed round). The samples that plan, the planning's time and the Denoiser's measured time
+placed round). The final denoise is timed after round 0 on round 0's buffers given the sample
+count the budget is planned to reach (and their variance scaled to it), so that a Denoiser that
+does more work at more samples is planned with that work. The samples that plan, the planning's time and the Denoiser's measured time
 leave go into one placed round, or, where 0.3 of them are worth at least two calls, 0.7 of them
 into the first placed round and the rest, timed by its measured time per sample, into a second
 (each call costs; a second round corrects the first's time per sample); a budget smaller than
@@ -118,7 +120,8 @@ def render_to(
     pixels = H * W
     first = torch.full((1, 1, H, W), first_spp, dtype=torch.int64)
     acc, whole, per_sample, call_s, denoised, denoise_s = run.first(first, denoiser,
-                                                                    _ADAPTIVE_COST if adaptive else 1.0)
+                                                                    _ADAPTIVE_COST if adaptive else 1.0,
+                                                                    None if seconds is None else seconds + start)
     total = int(first.sum())
     support = _support(whole[0]) if geometry else None
     r, overhead, history = 0, 0.0, []
@@ -161,12 +164,13 @@ class _Run:
     def __init__(self, scene: Scene, bounces: int, seed: int, halves: bool, kwargs: dict[str, Any]) -> None:
         self.scene, self.bounces, self.seed, self.halves, self.kwargs = scene, bounces, seed, halves, kwargs
 
-    def first(self, counts: torch.Tensor, denoiser: Any, cost: float) -> tuple[
+    def first(self, counts: torch.Tensor, denoiser: Any, cost: float, deadline: float | None = None) -> tuple[
             list[tuple[GBuffer, torch.Tensor]], tuple[GBuffer, torch.Tensor], float, float, torch.Tensor, float]:
         """Round 0: its parts, the whole, the seconds a sample of the next round is expected to
         take (round 0's, less its call's cost, times ``cost``), the seconds a render call costs
         beside its samples (module docstring), the denoised whole and the seconds the denoise
-        took."""
+        took; with a ``deadline`` (``time.perf_counter()`` seconds) the denoise is of the whole
+        as the budget's final render (module docstring), not the whole itself."""
         t0 = time.perf_counter()
         acc = self.round(counts, 0)
         t_render = time.perf_counter() - t0
@@ -174,8 +178,13 @@ class _Run:
         call_s = t_render * _CALL_SPP / (spp + len(acc) * _CALL_SPP)  # per call (two with halves)
         per_sample = (t_render - len(acc) * call_s) / float(counts.sum()) * cost
         whole = _merged(acc)
+        gb = whole[0]
+        if deadline is not None:  # time the denoise of the render the budget is planned to reach
+            final = spp + max(deadline - time.perf_counter() - call_s, 0.0) / per_sample / counts.numel()
+            if final >= spp + 1:
+                gb = gb.replace(spp=torch.full_like(gb.spp, round(final)), variance=gb.variance * (spp / final))
         t0 = time.perf_counter()
-        denoised = denoiser(whole[0])
+        denoised = denoiser(gb)
         return acc, whole, per_sample, call_s, denoised, time.perf_counter() - t0
 
     def round(self, counts: torch.Tensor, r: int) -> list[tuple[GBuffer, torch.Tensor]]:
