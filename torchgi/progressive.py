@@ -113,15 +113,13 @@ def render_to(
     start = time.perf_counter()
     _check_args(seconds, target, first_spp, max_spp)
     scene = load_scene(scene) if isinstance(scene, (str, os.PathLike)) else scene
-    run = _Run(scene, bounces, seed, target is not None, render_kwargs)
+    run = _Run(scene, bounces, seed, target is not None, render_kwargs, None if seconds is None else start + seconds)
     denoiser = Denoiser() if denoiser is None else denoiser
     show = progress if progress is not None else os.isatty(2)
     W, H = scene.camera.resolution
     pixels = H * W
     first = torch.full((1, 1, H, W), first_spp, dtype=torch.int64)
-    acc, whole, per_sample, call_s, denoised, denoise_s = run.first(first, denoiser,
-                                                                    _ADAPTIVE_COST if adaptive else 1.0,
-                                                                    None if seconds is None else seconds + start)
+    acc, whole, per_sample, call_s, denoised, denoise_s = run.first(first, denoiser, _ADAPTIVE_COST if adaptive else 1.0)
     total = int(first.sum())
     support = _support(whole[0]) if geometry else None
     r, overhead, history = 0, 0.0, []
@@ -159,18 +157,21 @@ def render_to(
 
 class _Run:
     """How a round renders: one render, or with ``halves`` two of independent seeds; after round
-    0 without the sample of what a miss shows on pixels it skips and without guide rays."""
+    0 without the sample of what a miss shows on pixels it skips and without guide rays. With a
+    ``deadline`` (``time.perf_counter()`` seconds), round 0's denoise is timed as the final one's."""
 
-    def __init__(self, scene: Scene, bounces: int, seed: int, halves: bool, kwargs: dict[str, Any]) -> None:
+    def __init__(self, scene: Scene, bounces: int, seed: int, halves: bool, kwargs: dict[str, Any],
+                 deadline: float | None = None) -> None:
         self.scene, self.bounces, self.seed, self.halves, self.kwargs = scene, bounces, seed, halves, kwargs
+        self.deadline = deadline
 
-    def first(self, counts: torch.Tensor, denoiser: Any, cost: float, deadline: float | None = None) -> tuple[
+    def first(self, counts: torch.Tensor, denoiser: Any, cost: float) -> tuple[
             list[tuple[GBuffer, torch.Tensor]], tuple[GBuffer, torch.Tensor], float, float, torch.Tensor, float]:
         """Round 0: its parts, the whole, the seconds a sample of the next round is expected to
         take (round 0's, less its call's cost, times ``cost``), the seconds a render call costs
         beside its samples (module docstring), the denoised whole and the seconds the denoise
-        took; with a ``deadline`` (``time.perf_counter()`` seconds) the denoise is of the whole
-        as the budget's final render (module docstring), not the whole itself."""
+        took; with the run's ``deadline`` the denoise is of the whole as the budget's final
+        render (module docstring), not the whole itself."""
         t0 = time.perf_counter()
         acc = self.round(counts, 0)
         t_render = time.perf_counter() - t0
@@ -179,8 +180,8 @@ class _Run:
         per_sample = (t_render - len(acc) * call_s) / float(counts.sum()) * cost
         whole = _merged(acc)
         gb = whole[0]
-        if deadline is not None:  # time the denoise of the render the budget is planned to reach
-            final = spp + max(deadline - time.perf_counter() - call_s, 0.0) / per_sample / counts.numel()
+        if self.deadline is not None:  # time the denoise of the render the budget is planned to reach
+            final = spp + max(self.deadline - time.perf_counter() - call_s, 0.0) / per_sample / counts.numel()
             if final >= spp + 1:
                 gb = gb.replace(spp=torch.full_like(gb.spp, round(final)), variance=gb.variance * (spp / final))
         t0 = time.perf_counter()
