@@ -18,11 +18,12 @@ cost beside its samples, is taken as :data:`_CALL_SPP` samples per pixel of roun
 ``per_sample`` from the round before (round 0's times :data:`_ADAPTIVE_COST` for the first
 placed round). The final denoise is timed after round 0 on round 0's buffers given the sample
 count the budget is planned to reach (and their variance scaled to it), so that a Denoiser that
-does more work at more samples is planned with that work. The samples that plan, the planning's time and the Denoiser's measured time
-leave go into one placed round, or, where 0.3 of them are worth at least two calls, 0.7 of them
-into the first placed round and the rest, timed by its measured time per sample, into a second
-(each call costs; a second round corrects the first's time per sample); a budget smaller than
-round 0 and one denoise is overrun by them. With ``target`` each round doubles the samples.
+does more work at more samples is planned with that work. The samples that plan, the
+planning's time and the Denoiser's measured time leave go into one placed round, or, where 0.3
+of them are worth at least two calls, 0.7 of them into the first placed round and the rest,
+timed by its measured time per sample, into a second (each call costs; a second round corrects
+the first's time per sample); a budget smaller than round 0 and one denoise is overrun by them.
+With ``target`` each round doubles the samples.
 
 ``target``: the estimated relMSE of the denoised image. Every round is rendered as two halves of
 independent seeds ``a`` and ``b``; each half's denoised error is estimated against the other
@@ -175,9 +176,10 @@ class _Run:
         t0 = time.perf_counter()
         acc = self.round(counts, 0)
         t_render = time.perf_counter() - t0
-        spp = float(counts.sum()) / counts.numel()
+        samples = float(counts.sum())
+        spp = samples / counts.numel()
         call_s = t_render * _CALL_SPP / (spp + len(acc) * _CALL_SPP)  # per call (two with halves)
-        per_sample = (t_render - len(acc) * call_s) / float(counts.sum()) * cost
+        per_sample = (t_render - len(acc) * call_s) / samples * cost
         whole = _merged(acc)
         gb = whole[0]
         if self.deadline is not None:  # time the denoise of the render the budget is planned to reach
