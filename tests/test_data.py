@@ -139,6 +139,9 @@ def test_dataset_crops_features_and_filter_transform(reference_run):
         ({"reference_spp": 4}, "reference_spp: expected more than"),
         ({"views": 0}, "views"),
         ({"colour": 1}, "unknown key(s) colour"),
+        ({"procedural": [0]}, "procedural: expected [first, count]"),
+        ({"procedural": [0, 0]}, "procedural: expected an int >= 1"),
+        ({"renderer": "cycles"}, "renderer: expected one of"),
     ],
 )
 def test_bad_config(change, words):
@@ -152,3 +155,22 @@ def test_unwritable_output_directory(tmp_path):
     blocker.write_text("not a folder")
     with pytest.raises(PermissionError, match="cannot write"):
         run_job(TINY, blocker / "out", log=quiet)
+
+
+PROCEDURAL = {"procedural": [40, 2], "resolution": [24, 24], "spp": [1, 4], "reference_spp": 8, "bounces": 1}
+
+
+@pytest.mark.parametrize("renderer", ["torchgi", "mitsuba"])
+def test_procedural_seeds_regenerate_bit_for_bit(tmp_path, renderer):
+    """A range of procedural seeds is a job like any other: named by seed, and the same bytes on a
+    second machine (here: a second folder); Mitsuba renders the scenes without their textures."""
+    if renderer == "mitsuba":
+        pytest.importorskip("mitsuba")
+    cfg = config_from_dict({**PROCEDURAL, "renderer": renderer})
+    assert cfg.scenes == ("procedural:40", "procedural:41")
+    run_job(cfg, tmp_path / "a", log=quiet)
+    run_job(cfg, tmp_path / "b", workers=2, log=quiet)
+    a, b = files(tmp_path / "a"), files(tmp_path / "b")
+    assert a == b and "procedural_41_v00s0_ref.exr" in a
+    shards = json.loads(a["index.json"])["shards"]
+    assert {s.get("renderer", "torchgi") for s in shards} == {renderer}

@@ -38,7 +38,9 @@ from torchgi.core.errors import ConfigError, RangeError
 
 __all__ = ["DataGenConfig", "FilterFeatures", "ShardDataset", "Task", "load_config", "plan", "run_job", "run_task"]
 
-_KEYS = ("scenes", "resolution", "views", "jitter", "spp", "reference_spp", "bounces", "seeds")
+_KEYS = ("scenes", "procedural", "renderer", "resolution", "views", "jitter", "spp", "reference_spp", "bounces",
+         "seeds")
+RENDERERS = ("torchgi", "mitsuba")  # DataGenConfig.renderer
 INDEX = "index.json"
 _TASKS = ".tasks"
 
@@ -48,7 +50,8 @@ class DataGenConfig:
     """A resolved data-generation config (see ``configs/data_gen/*.yaml``).
 
     Args:
-        scenes: built-in names or YAML paths (relative paths resolved against ``root``).
+        scenes: built-in names, YAML paths (relative paths resolved against ``root``) or
+            ``procedural:<seed>`` names (the config key ``procedural: [first, count]`` adds a range).
         resolution: ``(width, height)`` for every scene, or None for each scene's own.
         views: camera views per scene; view 0 is the scene's camera, the others jitter it.
         jitter: camera position jitter as a fraction of the scene's extent (look-at: half).
@@ -57,6 +60,9 @@ class DataGenConfig:
         bounces: indirect bounces >= 0.
         seeds: one task per seed per view (independent noise).
         root: folder of the config file.
+        renderer: "torchgi" or "mitsuba" (Mitsuba 3 renders the converted scene,
+            :func:`torchgi.render.mitsuba.render_gbuffer`; procedural scenes without their
+            textures, which Mitsuba has no counterpart for).
     """
 
     scenes: tuple[str, ...]
@@ -68,6 +74,7 @@ class DataGenConfig:
     bounces: int
     seeds: tuple[int, ...]
     root: str = "."
+    renderer: str = "torchgi"
 
     def __post_init__(self) -> None:
         """Every number checked, as :func:`config_from_dict` checks a file's (errors name the field)."""
@@ -89,6 +96,8 @@ class DataGenConfig:
         """The config as plain data (what ``index.json`` records)."""
         out = dataclasses.asdict(self)
         out.pop("root")
+        if self.renderer == "torchgi":  # the index of a job made before the key existed stays the same
+            out.pop("renderer")
         return {k: list(v) if isinstance(v, tuple) else v for k, v in out.items()}
 
 
@@ -100,12 +109,12 @@ def _int(value: Any, key: str, low: int) -> int:
 
 def _scenes(scenes: Any, root: str) -> list[str]:
     """The ``scenes`` key: a non-empty list of built-in names or YAML paths with distinct names."""
-    from torchgi.render.scenes import BUILTINS
+    from torchgi.render.scenes import BUILTINS, PROCEDURAL
 
     if not isinstance(scenes, list) or not scenes or not all(isinstance(s, str) for s in scenes):
         raise ConfigError(f"scenes: expected a non-empty list of names or YAML paths, got {scenes!r}")
     for name in scenes:
-        if name not in BUILTINS and not os.path.isfile(os.path.join(root, name)):
+        if name not in BUILTINS and not name.startswith(PROCEDURAL) and not os.path.isfile(os.path.join(root, name)):
             raise ConfigError(
                 f"scenes: unknown scene {name!r} (not a built-in: {', '.join(sorted(BUILTINS))}; "
                 f"no file {os.path.join(root, name)})"
@@ -115,6 +124,19 @@ def _scenes(scenes: Any, root: str) -> list[str]:
     return scenes
 
 
+def _procedural(value: Any) -> list[str]:
+    """The ``procedural`` key: ``[first, count]`` -> the scene names ``procedural:<seed>`` for
+    ``count`` seeds from ``first`` (:func:`torchgi.scenes.procedural`)."""
+    from torchgi.render.scenes import PROCEDURAL
+
+    if value is None:
+        return []
+    if not isinstance(value, list) or len(value) != 2:
+        raise ConfigError(f"procedural: expected [first, count] (two ints), got {value!r}")
+    first, count = _int(value[0], "procedural", 0), _int(value[1], "procedural", 1)
+    return [f"{PROCEDURAL}{seed}" for seed in range(first, first + count)]
+
+
 def config_from_dict(cfg: Mapping[str, Any], root: str = ".") -> DataGenConfig:
     """Validate a parsed config; errors name the key."""
     if not isinstance(cfg, Mapping):
@@ -122,10 +144,12 @@ def config_from_dict(cfg: Mapping[str, Any], root: str = ".") -> DataGenConfig:
     unknown = sorted(set(cfg) - set(_KEYS))
     if unknown:
         raise ConfigError(f"config: unknown key(s) {', '.join(unknown)}; known: {', '.join(_KEYS)}")
-    for key in ("scenes", "spp", "reference_spp"):
+    for key in ("spp", "reference_spp"):
         if key not in cfg:
             raise ConfigError(f"{key}: required")
-    scenes = _scenes(cfg["scenes"], root)
+    if "scenes" not in cfg and "procedural" not in cfg:
+        raise ConfigError("scenes: required (or procedural: [first, count], a range of procedural seeds)")
+    scenes = _scenes(cfg.get("scenes", []) + _procedural(cfg.get("procedural")), root)
     spp = cfg["spp"]
     if not isinstance(spp, list) or not spp:
         raise ConfigError(f"spp: expected a list of ints > 0 (the ladder), got {spp!r}")
@@ -159,7 +183,14 @@ def config_from_dict(cfg: Mapping[str, Any], root: str = ".") -> DataGenConfig:
         bounces=_int(cfg.get("bounces", 1), "bounces", 0),
         seeds=seeds,
         root=root,
+        renderer=_renderer(cfg.get("renderer", "torchgi")),
     )
+
+
+def _renderer(value: Any) -> str:
+    if value not in RENDERERS:
+        raise ConfigError(f"renderer: expected one of {', '.join(map(repr, RENDERERS))}; got {value!r}")
+    return value
 
 
 def load_config(path: str | os.PathLike[str]) -> DataGenConfig:
@@ -183,7 +214,8 @@ def load_config(path: str | os.PathLike[str]) -> DataGenConfig:
 
 
 def _scene_name(spec: str) -> str:
-    return os.path.splitext(os.path.basename(spec))[0]
+    """A scene's name in file names: the YAML file's stem; ``procedural:12`` -> ``procedural_12``."""
+    return os.path.splitext(os.path.basename(spec))[0].replace(":", "_")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -211,10 +243,13 @@ def plan(config: DataGenConfig) -> list[Task]:
 def task_scene(config: DataGenConfig, task: Task):
     """The task's scene with its view's camera (view 0: unchanged; others jittered by a
     generator keyed by the scene's name and the view, so every run sees the same views)."""
-    from torchgi.render import load_scene
+    from torchgi.render import load_scene, scenes
 
     spec = task.scene
-    scene = load_scene(spec if not spec.endswith((".yaml", ".yml")) else os.path.join(config.root, spec))
+    if config.renderer == "mitsuba" and spec.startswith(scenes.PROCEDURAL):
+        scene = scenes.procedural(int(spec[len(scenes.PROCEDURAL):]), textures=False)
+    else:
+        scene = load_scene(spec if not spec.endswith((".yaml", ".yml")) else os.path.join(config.root, spec))
     if config.resolution is not None:
         scene = scene.with_resolution(*config.resolution)
     if task.view == 0 or config.jitter == 0:
@@ -253,16 +288,18 @@ def run_task(config: DataGenConfig, task: Task, out: str | os.PathLike[str]) -> 
 
     Returns the manifest: the task, its shards' metadata and SHA-256.
     """
-    from torchgi.render import render
+    from torchgi.render import mitsuba, render
 
     out = Path(out)
     scene = task_scene(config, task)
     shards = []
     for spp in (*config.spp, None):
-        gb = render(
-            scene, spp=config.reference_spp if spp is None else spp, bounces=config.bounces,
-            seed=_render_seed(task, spp), workers=1, progress=False,
-        )
+        samples = config.reference_spp if spp is None else spp
+        if config.renderer == "mitsuba":
+            gb = mitsuba.scene_gbuffer(scene, spp=samples, bounces=config.bounces, seed=_render_seed(task, spp))
+        else:
+            gb = render(scene, spp=samples, bounces=config.bounces, seed=_render_seed(task, spp), workers=1,
+                        progress=False)
         path = out / task.shard(spp)
         gb.to_exr(path, overwrite=True)
         shards.append({
@@ -270,6 +307,7 @@ def run_task(config: DataGenConfig, task: Task, out: str | os.PathLike[str]) -> 
             "spp": config.reference_spp if spp is None else spp, "reference": spp is None,
             "reference_file": task.shard(None), "resolution": list(scene.camera.resolution),
             "bounces": config.bounces, "sha256": _sha256(path),
+            **({"renderer": config.renderer} if config.renderer != "torchgi" else {}),
         })
     manifest = {"task": dataclasses.asdict(task), "shards": shards}
     _write_atomic(out / _TASKS / f"{task.name}.json", json.dumps(manifest, indent=1, sort_keys=True) + "\n")

@@ -9,13 +9,17 @@ from __future__ import annotations
 
 import os
 import warnings
+from pathlib import Path
 
 import numpy as np
 
 from torchgi.core.check import require
 from torchgi.core.errors import ConfigError
 
-__all__ = ["read_mesh"]
+__all__ = ["PACKAGE_MESHES", "mesh_root", "read_mesh"]
+
+PACKAGE_MESHES = Path(__file__).resolve().parents[1] / "meshes"
+"""The meshes shipped as package data (pyproject.toml): the Cornell box and the Stanford models."""
 
 _PLY_TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2", "ushort": "u2",
@@ -189,3 +193,20 @@ def _checked(faces: np.ndarray, n: int) -> np.ndarray:
     if faces.size and (faces.min() < 0 or faces.max() >= n):
         raise ValueError(f"a face index outside the {n} vertices")
     return faces
+
+
+def mesh_root() -> Path:
+    """The folder that scene files' ``mesh:`` entries are relative to: ``$TORCHGI_MESHES`` when
+    set (and not empty), else the package's own ``torchgi/meshes``, which ships the Cornell
+    box and the Stanford models the scene configs use (each folder's ``SOURCE.txt`` and the
+    folder's ``README.md`` give their sources and terms). A folder named by ``TORCHGI_MESHES`` is
+    not checked here: a scene that names a mesh missing from it says where it looked.
+
+    Example:
+        >>> (mesh_root() / "stanford_bunny" / "stanford-bunny.ply").is_file()
+        True
+    """
+    env = os.environ.get("TORCHGI_MESHES")
+    if env:
+        return Path(env)
+    return PACKAGE_MESHES

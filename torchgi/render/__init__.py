@@ -12,10 +12,12 @@ import sys
 import types
 from typing import Any
 
+from torchgi.io.mesh import mesh_root
 from torchgi.render import scenes
 from torchgi.render.engine import render, render_guide_rays, render_guides, render_sequence
 from torchgi.render.scene import Camera, CameraPath, Material, Mesh, ObjectPath, PointLight, Scene, Sky
-from torchgi.render.scene_files import load_scene, mesh_root
+from torchgi.render.scene_files import load_scene
+from torchgi.render.textures import Texture
 
 __all__ = [
     "Camera",
@@ -26,6 +28,7 @@ __all__ = [
     "PointLight",
     "Scene",
     "Sky",
+    "Texture",
     "load_scene",
     "mesh_root",
     "render",

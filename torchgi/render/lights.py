@@ -16,12 +16,16 @@ from torchgi.render.scene import GLOSSY, SceneArrays
 
 __all__ = [
     "ALBEDO",
+    "ALBEDO2",
     "ALPHA",
     "EMISSION",
     "EMITTER_ROWS",
     "GLOSSY_ROW",
     "LIGHT_PDF",
     "NORMAL",
+    "TEXTURE",
+    "TEXTURE_SCALE",
+    "TRI_ROWS",
     "Tables",
     "sample_area_light",
     "sample_sky",
@@ -33,21 +37,25 @@ __all__ = [
 NORMAL, EMISSION, LIGHT_PDF = slice(0, 3), slice(3, 6), 6
 EMITTER_ROWS = 7
 ALBEDO, ALPHA, GLOSSY_ROW = slice(7, 10), 10, 11
-V0, E1, E2 = slice(12, 15), slice(15, 18), slice(18, 21)
+TEXTURE, TEXTURE_SCALE, ALBEDO2 = 12, 13, slice(14, 17)
+TRI_ROWS = 17
+V0, E1, E2 = slice(17, 20), slice(20, 23), slice(23, 26)
 
 
 @dataclasses.dataclass(frozen=True)
 class Tables:
     """The scene as torch tables laid out for one gather per lookup.
 
-    ``tri (12, T)`` packs, per triangle, the unit face normal (rows 0-2), emission (3-5), the
-    area density of light sampling (6, 0 off lights), albedo (7-9), GGX alpha (10) and 1.0 if
-    glossy (11); ``light (21, L)`` holds those rows for the emissive triangles plus
-    their first vertex and edges (12-20). ``table.index_select(1, idx)`` gives ``(rows, N)``.
+    ``tri (17, T)`` packs, per triangle, the unit face normal (rows 0-2), emission (3-5), the
+    area density of light sampling (6, 0 off lights), albedo (7-9), GGX alpha (10), 1.0 if
+    glossy (11), the texture's code (12, 0 for none), its scale (13) and second colour (14-16);
+    ``light (26, L)`` holds those rows for the emissive triangles plus their first vertex and
+    edges (17-25). ``table.index_select(1, idx)`` gives ``(rows, N)``.
     """
 
     tri: torch.Tensor
     any_glossy: bool
+    any_texture: bool
     light: torch.Tensor
     light_cdf: torch.Tensor  # (L,) float32, last = 1 (u < 1 - 2^-25 never passes it)
     light_tris: torch.Tensor  # (L,) triangle index of each light
@@ -74,6 +82,9 @@ class Tables:
                 t(a.albedo).T[:, mat],
                 t(a.roughness)[mat][None],
                 glossy[mat][None],
+                t(a.texture).to(torch.float32)[mat][None],
+                t(a.texture_scale)[mat][None],
+                t(a.albedo2).T[:, mat],
             ]
         ).contiguous()
         light_tris = t(a.light_tris)
@@ -87,6 +98,7 @@ class Tables:
         return Tables(
             tri=tri,
             any_glossy=bool(glossy.any()),
+            any_texture=bool((t(a.texture) > 0).any()),
             light=light,
             light_cdf=cdf,
             light_tris=light_tris,

@@ -121,3 +121,4 @@ def bsdf_sample(
     f_cos, pdf = bsdf_eval(glossy, albedo, alpha, n, wi, wo)
     weight = torch.where(pdf > 0, f_cos / pdf.clamp(min=1e-20), 0.0)
     return wo, weight, pdf
+

@@ -18,9 +18,10 @@ import torch
 
 from torchgi.buffers import GBuffer
 from torchgi.core.check import check_int, check_option, require
+from torchgi.core.errors import ConfigError
 from torchgi.render.scene import Material, PointLight, Scene, Sky
 
-__all__ = ["cornell_box", "load_mitsuba", "render_gbuffer", "render_mitsuba", "to_mitsuba"]
+__all__ = ["cornell_box", "load_mitsuba", "render_gbuffer", "render_mitsuba", "scene_gbuffer", "to_mitsuba"]
 
 
 def _rgb(value: Any) -> dict:
@@ -28,6 +29,10 @@ def _rgb(value: Any) -> dict:
 
 
 def _bsdf(material: Material) -> dict:
+    if material.texture is not None:
+        raise ConfigError(f"material: a {material.texture.kind!r} texture has no Mitsuba 3 counterpart here (torchgi's "
+                          f"textures are solid, Mitsuba's need UVs); convert a scene without textures "
+                          f"(torchgi.scenes.procedural(seed, textures=False))")
     if material.type == "glossy":
         inner = {
             "type": "roughconductor",
@@ -43,7 +48,8 @@ def _bsdf(material: Material) -> dict:
 
 def to_mitsuba(scene: Scene, directory: str | os.PathLike[str], *, bounces: int = 1) -> dict:
     """A Mitsuba 3 scene dict for ``scene``; its meshes are written to ``directory`` as
-    ``mesh_<i>.ply`` (an existing file is never overwritten: FileExistsError).
+    ``mesh_<i>.ply`` (an existing file is never overwritten: FileExistsError). A textured
+    material raises :class:`~torchgi.core.ConfigError` (solid textures do not map to Mitsuba's).
 
     Args:
         scene: a torchgi scene.
@@ -99,6 +105,15 @@ def to_mitsuba(scene: Scene, directory: str | os.PathLike[str], *, bounces: int 
     return out
 
 
+def _load_in_order(scene: dict) -> Any:
+    """``mi.load_dict`` with its shapes loaded one by one first: Mitsuba loads files in parallel and
+    lists the shapes (so their emitters, which its light sampling picks by index) in the order the
+    loads finish, so the same seed would render other samples from one run to the next."""
+    mi = load_mitsuba()
+    return mi.load_dict({k: mi.load_dict(v) if isinstance(v, dict) and v.get("type") in ("ply", "obj") else v
+                         for k, v in scene.items()})
+
+
 def _look_at(origin: Any, target: Any, up: Any) -> Any:
     mi = load_mitsuba()
     return mi.ScalarTransform4f().look_at(origin=list(origin), target=list(target), up=list(up))
@@ -119,7 +134,7 @@ def render_mitsuba(scene: Scene, *, spp: int, bounces: int = 1, seed: int = 0) -
     check_int(bounces, "bounces", -1)
     mi = load_mitsuba()
     with tempfile.TemporaryDirectory() as tmp:
-        loaded = mi.load_dict(to_mitsuba(scene, tmp, bounces=max(bounces, 0)))
+        loaded = _load_in_order(to_mitsuba(scene, tmp, bounces=max(bounces, 0)))
     integrator = mi.load_dict({"type": "path", "max_depth": bounces + 2})
     img = np.array(mi.render(loaded, integrator=integrator, spp=spp, seed=seed), dtype=np.float32)
     return torch.from_numpy(img[..., :3].copy()).permute(2, 0, 1)[None].contiguous()
@@ -183,13 +198,15 @@ def render_gbuffer(scene: dict, *, spp: int, bounces: int = 1, seed: int = 0) ->
     # trace other camera rays and leave light-source edges in the difference).
     # Around them, the moment integrator: each layer's mean ("nested.*") and second moment
     # ("m2_nested.*"), from which the colour's variance comes.
-    scene["integrator"] = {"type": "moment", "nested": {
+    # A fixed block size: Mitsuba derives it from its thread count otherwise, and seeds its sampler
+    # per block, so the same seed would give other samples on a machine with other cores.
+    scene["integrator"] = {"type": "moment", "block_size": 16, "nested": {
         "type": "aov",
         "aovs": _AOVS,
         "color": {"type": "path", "max_depth": bounces + 2},
         "emission": {"type": "path", "max_depth": 1},
     }}
-    loaded = mi.load_dict(scene)
+    loaded = _load_in_order(scene)
     mi.render(loaded, spp=spp, seed=seed)
     parts = {
         name: torch.from_numpy(np.array(bmp, dtype=np.float32).reshape(bmp.height(), bmp.width(), -1))
@@ -215,3 +232,16 @@ def render_gbuffer(scene: dict, *, spp: int, bounces: int = 1, seed: int = 0) ->
         variance=variance.contiguous(),
         spp=torch.full_like(depth, spp, dtype=torch.int64),
     )
+
+
+def scene_gbuffer(scene: Scene, *, spp: int, bounces: int = 1, seed: int = 0) -> GBuffer:
+    """A torchgi scene converted (:func:`to_mitsuba`) and rendered by Mitsuba 3 to a GBuffer
+    (:func:`render_gbuffer`; ``seed`` taken modulo 2^31).
+
+    Example:
+        >>> from torchgi.render import scenes
+        >>> scene_gbuffer(scenes.cornell(8), spp=2).color.shape
+        torch.Size([1, 3, 8, 8])
+    """
+    with tempfile.TemporaryDirectory() as tmp:  # the PLY files live while Mitsuba loads them
+        return render_gbuffer(to_mitsuba(scene, tmp, bounces=bounces), spp=spp, bounces=bounces, seed=seed & 0x7FFFFFFF)

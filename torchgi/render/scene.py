@@ -14,15 +14,16 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import itertools
-import math
 import warnings
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 
 from torchgi.core.errors import ConfigError, NonFiniteError, RangeError
 from torchgi.core.registry import Registry
+from torchgi.render.textures import Texture, _texture
+from torchgi.render.values import _number, _vec3
 
 __all__ = [
     "LIGHTS",
@@ -40,37 +41,6 @@ __all__ = [
 ]
 
 DIFFUSE, GLOSSY = 0, 1  # material kinds in SceneArrays.kind
-
-
-def _vec3(value: Any, key: str, *, low: float | None = None) -> tuple[float, float, float]:
-    """Three finite floats (a scalar is broadcast), else :class:`ConfigError` naming ``key``."""
-    if isinstance(value, (int, float)) and not isinstance(value, bool):
-        value = [value] * 3
-    try:
-        out = tuple(float(v) for v in value if not isinstance(v, bool))
-    except (TypeError, ValueError):
-        raise ConfigError(f"{key}: expected three numbers, got {value!r}") from None
-    if len(out) != 3 or not all(math.isfinite(v) for v in out):
-        raise ConfigError(f"{key}: expected three finite numbers, got {value!r}")
-    if low is not None and min(out) < low:
-        raise ConfigError(f"{key}: expected values >= {low}, got {value!r}")
-    return out  # type: ignore[return-value]
-
-
-def _number(value: Any, key: str, low: float | None = None, high: float | None = None) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise ConfigError(f"{key}: expected a finite number, got {value!r}")
-    if (low is not None and value <= low) or (high is not None and value >= high):
-        raise ConfigError(f"{key}: expected a number in ({low}, {high}), got {value!r}")
-    return float(value)
-
-
-def _no_unknown_keys(cfg: Mapping[str, Any], key: str, known: Sequence[str]) -> None:
-    if not isinstance(cfg, Mapping):
-        raise ConfigError(f"{key}: expected a mapping, got {type(cfg).__name__}")
-    extra = sorted(set(cfg) - set(known))
-    if extra:
-        raise ConfigError(f"{key}: unknown key(s) {', '.join(map(repr, extra))}; known: {', '.join(known)}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -230,6 +200,7 @@ class Material:
     albedo: tuple[float, float, float] = (0.8, 0.8, 0.8)
     emission: tuple[float, float, float] = (0.0, 0.0, 0.0)
     roughness: float = 0.0
+    texture: Texture | None = None
 
     def __post_init__(self) -> None:
         if self.type not in ("diffuse", "glossy"):
@@ -239,6 +210,8 @@ class Material:
         _vec3(self.emission, "material.emission", low=0.0)
         if self.type == "glossy" and _number(self.roughness, "material.roughness", 0.0, None) > 1:
             raise ConfigError(f"material.roughness: expected a GGX alpha in (0, 1], got {self.roughness!r}")
+        if self.texture is not None and not isinstance(self.texture, Texture):
+            raise ConfigError(f"material.texture: expected a Texture, got {type(self.texture).__name__}")
 
     @property
     def emissive(self) -> bool:
@@ -249,22 +222,26 @@ MATERIALS: Registry[Material] = Registry("material")
 
 
 @MATERIALS.register("diffuse")
-def diffuse(albedo: Any = (0.8, 0.8, 0.8), emission: Any = (0, 0, 0)) -> Material:
-    """A Lambertian material (``albedo`` in [0, 1], ``emission`` radiance >= 0)."""
+def diffuse(albedo: Any = (0.8, 0.8, 0.8), emission: Any = (0, 0, 0), texture: Any = None) -> Material:
+    """A Lambertian material (``albedo`` in [0, 1], ``emission`` radiance >= 0, ``texture`` a
+    :class:`Texture` or its mapping ``{type, albedo2, scale}`` that varies the albedo)."""
     albedo = _vec3(albedo, "material.albedo", low=0.0)
     if max(albedo) > 1:
         raise ConfigError(f"material.albedo: expected values in [0, 1], got {list(albedo)}")
-    return Material("diffuse", albedo, _vec3(emission, "material.emission", low=0.0))
+    return Material("diffuse", albedo, _vec3(emission, "material.emission", low=0.0), texture=_texture(texture))
 
 
 @MATERIALS.register("glossy")
-def glossy(albedo: Any = (0.8, 0.8, 0.8), roughness: float = 0.2, emission: Any = (0, 0, 0)) -> Material:
-    """A GGX reflector (``roughness`` = alpha in (0, 1], Fresnel 1 tinted by ``albedo``)."""
-    base = diffuse(albedo, emission)
+def glossy(
+    albedo: Any = (0.8, 0.8, 0.8), roughness: float = 0.2, emission: Any = (0, 0, 0), texture: Any = None
+) -> Material:
+    """A GGX reflector (``roughness`` = alpha in (0, 1], Fresnel 1 tinted by ``albedo``, which a
+    ``texture`` varies as in :func:`diffuse`)."""
+    base = diffuse(albedo, emission, texture)
     alpha = _number(roughness, "material.roughness", 0.0, None)
     if alpha > 1:
         raise ConfigError(f"material.roughness: expected a GGX alpha in (0, 1], got {roughness!r}")
-    return Material("glossy", base.albedo, base.emission, alpha)
+    return Material("glossy", base.albedo, base.emission, alpha, base.texture)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -393,7 +370,8 @@ class SceneArrays:
 
     ``triangles (T,3,3)``, unit face ``normals (T,3)``, ``material (T,)`` index into the
     per-material tables ``albedo (M,3)``, ``emission (M,3)``, ``roughness (M,)``, ``kind (M,)``
-    (0 diffuse, 1 glossy). ``light_tris (L,)`` are the emissive triangles, chosen with
+    (0 diffuse, 1 glossy), ``texture (M,)`` (0 none, else :attr:`Texture.code`), its
+    ``texture_scale (M,)`` and second colour ``albedo2 (M,3)``. ``light_tris (L,)`` are the emissive triangles, chosen with
     probability ``light_prob (L,)`` (area x emitted luminance), ``light_pdf (T,)`` is the area
     density of light sampling on each triangle (0 off lights). ``points`` ``(P,3)`` and
     ``intensities (P,3)`` are the point lights; ``sky (3,)`` is None without a sky.
@@ -408,6 +386,9 @@ class SceneArrays:
     emission: np.ndarray
     roughness: np.ndarray
     kind: np.ndarray
+    texture: np.ndarray
+    texture_scale: np.ndarray
+    albedo2: np.ndarray
     light_tris: np.ndarray
     light_prob: np.ndarray
     light_pdf: np.ndarray
@@ -552,6 +533,9 @@ def _flatten(scene: Scene) -> SceneArrays:
         "emission": emission.astype(f32),
         "roughness": np.array([m.roughness for m in materials], dtype=f32),
         "kind": np.array([GLOSSY if m.type == "glossy" else DIFFUSE for m in materials], dtype=np.int64),
+        "texture": np.array([0 if m.texture is None else m.texture.code for m in materials], dtype=np.int64),
+        "texture_scale": np.array([1.0 if m.texture is None else m.texture.scale for m in materials], dtype=f32),
+        "albedo2": np.array([m.albedo if m.texture is None else m.texture.albedo2 for m in materials], dtype=f32),
         "light_tris": light_tris,
         "light_prob": light_prob.astype(np.float64),
         "light_pdf": light_pdf.astype(f32),

@@ -11,14 +11,13 @@ from __future__ import annotations
 import dataclasses
 import os
 from collections.abc import Mapping
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from torchgi.core.errors import ConfigError
 from torchgi.core.registry import Registry
-from torchgi.io.mesh import read_mesh
+from torchgi.io.mesh import PACKAGE_MESHES, mesh_root, read_mesh
 from torchgi.render import scenes
 from torchgi.render.scene import (
     LIGHTS,
@@ -29,11 +28,11 @@ from torchgi.render.scene import (
     ObjectPath,
     PointLight,
     Scene,
-    _no_unknown_keys,
     transform_matrix,
 )
+from torchgi.render.values import _no_unknown_keys
 
-__all__ = ["load_scene", "mesh_root", "scene_from_dict"]
+__all__ = ["load_scene", "scene_from_dict"]
 
 _TOP_KEYS = ("camera", "meshes", "lights")
 _CAMERA_KEYS = ("position", "look_at", "up", "fov", "fov_axis", "resolution", "path")
@@ -41,24 +40,6 @@ _KEYFRAME_KEYS = ("time", "position", "look_at", "fov")
 _MESH_KEYS = ("file", "mesh", "material", "transform", "path", "name")
 _TRANSFORM_KEYS = ("scale", "rotate", "translate")
 _MESH_KEYFRAME_KEYS = ("time", *_TRANSFORM_KEYS)
-_PACKAGE_MESHES = Path(__file__).resolve().parents[1] / "meshes"  # package data (pyproject.toml)
-
-
-def mesh_root() -> Path:
-    """The folder that scene files' ``mesh:`` entries are relative to: ``$TORCHGI_MESHES`` when
-    set (and not empty), else the package's own ``torchgi/meshes``, which ships the Cornell
-    box and the Stanford models the scene configs use (each folder's ``SOURCE.txt`` and the
-    folder's ``README.md`` give their sources and terms). A folder named by ``TORCHGI_MESHES`` is
-    not checked here: a scene that names a mesh missing from it says where it looked.
-
-    Example:
-        >>> (mesh_root() / "stanford_bunny" / "stanford-bunny.ply").is_file()
-        True
-    """
-    env = os.environ.get("TORCHGI_MESHES")
-    if env:
-        return Path(env)
-    return _PACKAGE_MESHES
 
 
 def _mesh_path(m: Mapping[str, Any], root: str, key: str) -> str:
@@ -74,7 +55,7 @@ def _mesh_path(m: Mapping[str, Any], root: str, key: str) -> str:
     if not path.is_file():
         if os.environ.get("TORCHGI_MESHES"):
             where = (f"the mesh root {str(base)!r} named by the environment variable TORCHGI_MESHES (unset, it "
-                     f"is the package's {str(_PACKAGE_MESHES)!r})")
+                     f"is the package's {str(PACKAGE_MESHES)!r})")
         else:
             where = (f"the mesh root {str(base)!r} (the package's meshes; the environment variable "
                      f"TORCHGI_MESHES overrides it)")
@@ -109,7 +90,7 @@ def scene_from_dict(cfg: Mapping[str, Any], root: str = ".", name: str = "scene"
     Example:
         >>> cfg = {"camera": {"position": [0, 0, 3], "look_at": [0, 0, 0], "resolution": [8, 8]},
         ...        "meshes": [{"file": "configs/scenes/meshes/sphere.obj", "material": {"type": "diffuse"}}]}
-        >>> len(scene_from_dict(cfg, str(Path(__file__).resolve().parents[2])).meshes)
+        >>> len(scene_from_dict(cfg, str(PACKAGE_MESHES.parents[1])).meshes)
         1
     """
     _no_unknown_keys(cfg, "scene", _TOP_KEYS)
@@ -194,7 +175,8 @@ def load_scene(path: str | os.PathLike[str]) -> Scene:
     """Load a scene from a YAML file (docs/design.md, Scene files), or a built-in one by name.
 
     Args:
-        path: a ``.yaml`` file, or one of ``torchgi.render.scenes.BUILTINS`` ("cornell", ...).
+        path: a ``.yaml`` file, one of ``torchgi.render.scenes.BUILTINS`` ("cornell", ...) or
+            ``"procedural:<seed>"`` (:func:`torchgi.render.scenes.procedural`).
 
     Raises:
         ConfigError: malformed YAML or a bad value (the message names the key).
@@ -207,6 +189,11 @@ def load_scene(path: str | os.PathLike[str]) -> Scene:
     path = os.fspath(path)
     if path in scenes.BUILTINS:
         return scenes.BUILTINS[path]()
+    if path.startswith(scenes.PROCEDURAL):
+        seed = path[len(scenes.PROCEDURAL):]
+        if not seed.isdigit():
+            raise ConfigError(f"scene {path!r}: expected {scenes.PROCEDURAL}<seed>, the seed an int >= 0")
+        return scenes.procedural(int(seed))
     if not os.path.isfile(path):
         raise FileNotFoundError(
             f"scene {path!r} does not exist (built-in scenes: {', '.join(sorted(scenes.BUILTINS))})"

@@ -7,6 +7,8 @@
 * :func:`sky` - a box, a sphere and a slab on a ground plane under a blue sky with a point sun.
 * :func:`grass` - thousands of thin, leaning grass blades (6000 blades, 18k triangles) on a
   ground plane under sky and sun: the geometrically complex case adaptive sampling exists for.
+* :func:`procedural` - a new random scene for every seed, with textures (``render/procedural.py``);
+  ``load_scene("procedural:<seed>")`` names one.
 """
 
 from __future__ import annotations
@@ -15,9 +17,13 @@ from collections.abc import Callable
 
 import numpy as np
 
+from torchgi.render.procedural import procedural
 from torchgi.render.scene import MATERIALS, Camera, Mesh, PointLight, Scene, Sky, transform_matrix
+from torchgi.render.shapes import block, ground, quads, sphere
 
-__all__ = ["BUILTINS", "cornell", "cornell_glossy", "grass", "sky"]
+__all__ = ["BUILTINS", "PROCEDURAL", "cornell", "cornell_glossy", "grass", "procedural", "sky"]
+
+PROCEDURAL = "procedural:"  # load_scene's prefix of a procedural scene's seed
 
 # Cornell Box Data (http://www.graphics.cornell.edu/online/box/data.html), mm, as quads.
 _CORNELL = {
@@ -34,31 +40,6 @@ _WHITE = (0.885809, 0.698859, 0.666422)
 _GREEN = (0.105421, 0.37798, 0.076425)
 _RED = (0.570068, 0.0430135, 0.0443706)
 _LIGHT = (18.387, 13.9873, 6.75357)
-
-
-def _quads(quads: list[list[list[float]]]) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices and faces of quads ``[v0, v1, v2, v3]`` (two triangles each, same winding)."""
-    v = np.asarray(quads, dtype=np.float64).reshape(-1, 3)
-    base = 4 * np.arange(len(quads))[:, None]
-    f = np.concatenate([base + [0, 1, 2], base + [0, 2, 3]])
-    return v, f
-
-
-def _block(footprint: list[list[float]], height: float) -> tuple[np.ndarray, np.ndarray]:
-    """A prism over a 4-point floor ``footprint`` (x, z), faces pointing outwards."""
-    fp = np.asarray(footprint, dtype=np.float64)
-    bottom = [[x, 0.0, z] for x, z in fp]
-    top = [[x, height, z] for x, z in fp]
-    quads = [top[::-1], bottom]
-    for i in range(4):
-        j = (i + 1) % 4
-        quads.append([bottom[i], bottom[j], top[j], top[i]])
-    v, f = _quads(quads)
-    centre = np.array([fp[:, 0].mean(), height / 2, fp[:, 1].mean()])
-    tri = v[f]
-    outward = np.einsum("ij,ij->i", np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), tri.mean(1) - centre)
-    f[outward < 0] = f[outward < 0][:, ::-1]
-    return v, f
 
 
 def cornell(resolution: int = 512, glossy_blocks: bool = False) -> Scene:
@@ -78,7 +59,7 @@ def cornell(resolution: int = 512, glossy_blocks: bool = False) -> Scene:
         "red": diffuse(_RED),
         "light": diffuse(_WHITE, _LIGHT),
     }
-    meshes = [Mesh(*_quads([quad]), materials[name], name) for name, quad in _CORNELL.items()]
+    meshes = [Mesh(*quads([quad]), materials[name], name) for name, quad in _CORNELL.items()]
     # Walls face into the box; the light faces down. Cornell's data wind some quads the other way.
     centre = np.array([278.0, 274.4, 279.6])
     for i, mesh in enumerate(meshes):
@@ -91,8 +72,8 @@ def cornell(resolution: int = 512, glossy_blocks: bool = False) -> Scene:
         tall_mat = MATERIALS.get("glossy")((0.9, 0.9, 0.9), 0.1)
     else:
         short_mat = tall_mat = materials["floor"]
-    meshes.append(Mesh(*_block(*_SHORT_BLOCK), short_mat, "short_block"))
-    meshes.append(Mesh(*_block(*_TALL_BLOCK), tall_mat, "tall_block"))
+    meshes.append(Mesh(*block(*_SHORT_BLOCK), short_mat, "short_block"))
+    meshes.append(Mesh(*block(*_TALL_BLOCK), tall_mat, "tall_block"))
     camera = Camera((278, 273, -800), (278, 273, -799), (0, 1, 0), 39.3077, "x", (resolution, resolution))
     return Scene(camera, meshes, [], "cornell_glossy" if glossy_blocks else "cornell")
 
@@ -100,32 +81,6 @@ def cornell(resolution: int = 512, glossy_blocks: bool = False) -> Scene:
 def cornell_glossy(resolution: int = 512) -> Scene:
     """The Cornell box with GGX blocks (short: roughness 0.3, tall: 0.1)."""
     return cornell(resolution, glossy_blocks=True)
-
-
-def _sphere(centre: tuple[float, float, float], radius: float, rings: int = 24) -> tuple[np.ndarray, np.ndarray]:
-    """A UV sphere with outward faces."""
-    theta = np.linspace(0, np.pi, rings + 1)
-    phi = np.linspace(0, 2 * np.pi, 2 * rings, endpoint=False)
-    t, p = np.meshgrid(theta, phi, indexing="ij")
-    v = np.stack([np.sin(t) * np.cos(p), np.cos(t), np.sin(t) * np.sin(p)], -1).reshape(-1, 3)
-    cols = 2 * rings
-    faces = []
-    for i in range(rings):
-        for j in range(cols):
-            a, b = i * cols + j, i * cols + (j + 1) % cols
-            c, d = a + cols, b + cols
-            faces += [[a, b, d], [a, d, c]]
-    f = np.asarray(faces)
-    tri = v[f]
-    f = f[np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1) > 1e-12]  # poles
-    tri = v[f]
-    outward = np.einsum("ij,ij->i", np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), tri.mean(1))
-    f[outward < 0] = f[outward < 0][:, ::-1]
-    return v * radius + np.asarray(centre), f
-
-
-def _ground(size: float) -> tuple[np.ndarray, np.ndarray]:
-    return _quads([[[-size, 0, -size], [-size, 0, size], [size, 0, size], [size, 0, -size]]])
 
 
 _SUN = PointLight((8.0, 12.0, 6.0), (300.0, 280.0, 250.0))
@@ -140,14 +95,14 @@ def sky(resolution: int = 512) -> Scene:
         2
     """
     diffuse, glossy = MATERIALS.get("diffuse"), MATERIALS.get("glossy")
-    box_v, box_f = _block([[-0.4, -0.4], [0.4, -0.4], [0.4, 0.4], [-0.4, 0.4]], 0.8)
+    box_v, box_f = block([[-0.4, -0.4], [0.4, -0.4], [0.4, 0.4], [-0.4, 0.4]], 0.8)
     box_v = box_v @ transform_matrix(rotate=(0, 30, 0))[:3, :3].T + [-0.9, 0, 0.2]
-    slab_v, slab_f = _block([[-0.6, -0.25], [0.6, -0.25], [0.6, 0.25], [-0.6, 0.25]], 0.15)
+    slab_v, slab_f = block([[-0.6, -0.25], [0.6, -0.25], [0.6, 0.25], [-0.6, 0.25]], 0.15)
     slab_v = slab_v + [0.9, 0, 0.6]
     meshes = [
-        Mesh(*_ground(20.0), diffuse((0.5, 0.45, 0.4)), "ground"),
+        Mesh(*ground(20.0), diffuse((0.5, 0.45, 0.4)), "ground"),
         Mesh(box_v, box_f, diffuse((0.7, 0.3, 0.2)), "box"),
-        Mesh(*_sphere((0.5, 0.5, -0.3), 0.5), glossy((0.9, 0.9, 0.9), 0.15), "sphere"),
+        Mesh(*sphere((0.5, 0.5, -0.3), 0.5), glossy((0.9, 0.9, 0.9), 0.15), "sphere"),
         Mesh(slab_v, slab_f, diffuse((0.2, 0.5, 0.7)), "slab"),
     ]
     camera = Camera((0, 1.6, 4.5), (0, 0.4, 0), (0, 1, 0), 45.0, "x", (resolution, resolution))
@@ -178,7 +133,7 @@ def grass(resolution: int = 512, blades: int = 6000, seed: int = 7) -> Scene:
     f = np.concatenate([base + [0, 1, 2], base + [0, 2, 3], base + [3, 2, 4]])
     diffuse = MATERIALS.get("diffuse")
     meshes = [
-        Mesh(*_ground(20.0), diffuse((0.35, 0.28, 0.2)), "ground"),
+        Mesh(*ground(20.0), diffuse((0.35, 0.28, 0.2)), "ground"),
         Mesh(v, f, diffuse((0.25, 0.55, 0.15)), "blades"),
     ]
     camera = Camera((0, 0.9, 2.6), (0, 0.15, 0), (0, 1, 0), 50.0, "x", (resolution, resolution))

@@ -11,7 +11,7 @@
  */
 #include "common.h"
 
-int torchgi_native_version(void) { return 18; }
+int torchgi_native_version(void) { return 19; }
 
 float torchgi_exp_neg(float d) { return exp_neg(d); }
 

@@ -145,8 +145,8 @@ static void profile_on(const pt_render *R) {
 }
 
 /* row offsets of lights.Tables */
-enum { T_NORMAL = 0, T_EMISSION = 3, T_PDF = 6, T_ALBEDO = 7, T_ALPHA = 10, T_GLOSSY = 11, T_ROWS = 12,
-       L_V0 = 12, L_E1 = 15, L_E2 = 18, L_ROWS = 21 };
+enum { T_NORMAL = 0, T_EMISSION = 3, T_PDF = 6, T_ALBEDO = 7, T_ALPHA = 10, T_GLOSSY = 11, T_TEXTURE = 12,
+       T_TEXTURE_SCALE = 13, T_ALBEDO2 = 14, T_ROWS = 17, L_V0 = 17, L_E1 = 20, L_E2 = 23, L_ROWS = 26 };
 enum { D_LIGHT = 0, D_SKY = 3, D_BSDF = 5, D_ROULETTE = 7, D_PER_VERTEX = 8 }; /* integrators/common.py */
 
 PT_INLINE uint32_t mix32(uint32_t x) {
@@ -269,6 +269,38 @@ PT_INLINE int occluded(void *scene, const float *o, const float *d, float tmax) 
     return r.tfar < 0; /* embree sets -inf on a hit */
 }
 
+/* materials.lattice_hash: a value in [0, 1) for an integer lattice point */
+PT_INLINE float lattice_hash(int64_t i, int64_t j, int64_t k) {
+    uint32_t h = ((uint32_t)i * 0x8DA6B343u) ^ ((uint32_t)j * 0xD8163841u) ^ ((uint32_t)k * 0xCB1AB31Fu);
+    h ^= h >> 16;
+    h *= 0x7FEB352Du;
+    h ^= h >> 15;
+    h *= 0x846CA68Bu;
+    h ^= h >> 16;
+    return (float)(h >> 8) * (1.0f / 16777216.0f);
+}
+
+/* materials.texture_weight: the second colour's weight of texture code at the scaled point q */
+PT_INLINE float texture_weight(int code, const float *q) {
+    const float f[3] = {floorf(q[0]), floorf(q[1]), floorf(q[2])};
+    const int64_t c[3] = {(int64_t)f[0], (int64_t)f[1], (int64_t)f[2]};
+    if (code == 1) return (float)((c[0] + c[1] + c[2]) & 1);
+    if (code == 2) return (float)(((int64_t)floorf(q[0] + q[2])) & 1);
+    if (code != 3) return 0.0f;
+    float w[3];
+    for (int a = 0; a < 3; a++) { const float x = q[a] - f[a]; w[a] = x * x * (3.0f - 2.0f * x); }
+    float noise = 0.0f;
+    for (int corner = 0; corner < 8; corner++) {
+        const int d0 = corner & 1, d1 = (corner >> 1) & 1, d2 = (corner >> 2) & 1;
+        float weight = 1.0f;
+        weight = weight * (d0 ? w[0] : 1.0f - w[0]);
+        weight = weight * (d1 ? w[1] : 1.0f - w[1]);
+        weight = weight * (d2 ? w[2] : 1.0f - w[2]);
+        noise = noise + weight * lattice_hash(c[0] + d0, c[1] + d1, c[2] + d2);
+    }
+    return noise;
+}
+
 /* common.surface: the vertex where a ray along d met triangle prim at p */
 PT_INLINE void vertex(const pt_render *R, long long prim, const float *p, const float *d, pt_vertex *s) {
     const float *row = R->tri + prim * T_ROWS;
@@ -282,6 +314,11 @@ PT_INLINE void vertex(const pt_render *R, long long prim, const float *p, const 
     for (int k = 0; k < 3; k++) s->o[k] = p[k] + s->n[k] * R->eps;
     s->alpha = row[T_ALPHA];
     s->glossy = R->any_glossy && row[T_GLOSSY] > 0;
+    if (row[T_TEXTURE] > 0) { /* materials.textured_albedo */
+        const float q[3] = {p[0] * row[T_TEXTURE_SCALE], p[1] * row[T_TEXTURE_SCALE], p[2] * row[T_TEXTURE_SCALE]};
+        const float t = texture_weight((int)row[T_TEXTURE], q);
+        for (int k = 0; k < 3; k++) s->albedo[k] = s->albedo[k] + t * (row[T_ALBEDO2 + k] - s->albedo[k]);
+    }
 }
 
 /* lights.sample_area_light's choice: the first light whose cdf exceeds u (searchsorted right) */

@@ -9,10 +9,21 @@ import torch
 
 from torchgi.render.accel import Accel, offset
 from torchgi.render.camera import camera_rays
-from torchgi.render.lights import ALBEDO, ALPHA, EMITTER_ROWS, GLOSSY_ROW, NORMAL, Tables
+from torchgi.render.lights import (
+    ALBEDO,
+    ALBEDO2,
+    ALPHA,
+    EMITTER_ROWS,
+    GLOSSY_ROW,
+    NORMAL,
+    TEXTURE,
+    TEXTURE_SCALE,
+    Tables,
+)
 from torchgi.render.lights import EMISSION as EMISSION_ROWS
 from torchgi.render.materials import dot
 from torchgi.render.scene import Camera
+from torchgi.render.textures import textured_albedo
 
 __all__ = [
     "BSDF",
@@ -107,7 +118,8 @@ def surface(ctx: Context, position: torch.Tensor, direction: torch.Tensor, prim:
         origin=offset(position, n, ctx.tables.scale),
         normal=n,
         wi=wi,
-        albedo=rows[ALBEDO],
+        albedo=rows[ALBEDO] if not ctx.tables.any_texture else textured_albedo(
+            rows[ALBEDO], rows[ALBEDO2], rows[TEXTURE].to(torch.int64), rows[TEXTURE_SCALE], position),
         alpha=rows[ALPHA],
         glossy=rows[GLOSSY_ROW] > 0 if ctx.tables.any_glossy else None,
     )
