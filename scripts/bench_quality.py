@@ -176,6 +176,7 @@ def methods_for(scene, noisy, t_noisy, spp, args, peer_fns) -> dict:
         "noisy": (lambda gb=noisy: gb.color, t_noisy),
         "torchgi pyramid": (lambda gb=noisy, d=Denoiser("pyramid"): d(gb), t_noisy),
         "torchgi blend": (lambda gb=noisy, d=Denoiser("blend"): d(gb), t_noisy),
+        "torchgi kpn": (lambda gb=noisy, d=Denoiser("kpn"): d(gb), t_noisy),
         "torchgi guided": (lambda gb=noisy, d=Denoiser("guided"): d(gb), t_noisy),
         "torchgi atrous": (lambda gb=noisy: Denoiser("atrous")(gb), t_noisy),
         "torchgi atrous+variance": ((lambda gb=noisy: svgf_atrous(gb)) if noisy.variance is not None and spp > 1

@@ -7,7 +7,7 @@
 For each scene of ``configs/scenes/sets.yaml``'s ``--set`` (judged by default: never used for a
 default) and each spp: one noisy render (seed 1) against a ``--ref-spp`` reference (seed 999),
 denoised by the default ``Denoiser()``, the same without its back-off toward the input
-(``settings.pipeline.back_off=False``: the filter at its one radius, as it was before issue 33), ``Denoiser("atrous")``, ``Denoiser("blend")`` and Intel Open Image Denoise high
+(``settings.pipeline.back_off=False``: the filter at its one radius, as it was before issue 33), ``Denoiser("atrous")``, ``Denoiser("blend")``, ``Denoiser("kpn")`` and Intel Open Image Denoise high
 (pyoidn, both protocols of ``bench_quality.py``; the better counts) → relMSE, PSNR, SSIM, FLIP.
 Writes ``spp.csv/json/md`` and ``spp_<scene>.png`` (relMSE against spp, log-log, per method beside
 the noisy input), and checks issue 33's lines for the default Denoiser: below the noisy input's
@@ -24,7 +24,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_quality import MITSUBA, case_args, cases, rendered, scores
+from bench_quality import MITSUBA, case_args, cases, chosen, rendered, scores
 from benchmark_utils import available_scenes, markdown_table, metadata, oidn, without_back_off, write_results
 
 from torchgi.denoise import Denoiser
@@ -40,6 +40,7 @@ def methods() -> dict:
         "torchgi default, no back-off": without_back_off,
         "torchgi atrous": lambda gb: Denoiser("atrous")(gb),
         "torchgi blend": lambda gb: Denoiser("blend")(gb),
+        "torchgi kpn": lambda gb: Denoiser("kpn")(gb),
     }
     try:
         import pyoidn  # noqa: F401
@@ -63,7 +64,7 @@ def glossy_scenes(entries: list[str], size: int) -> set[str]:
 
 
 def run(args) -> list[dict]:
-    rows, fns = [], methods()
+    rows, fns = [], {k: f for k, f in methods().items() if k == "noisy" or chosen(k, args)}
     for name, ref, noisy_fn, _scene in cases(args):
         for spp in args.spp:
             gb, render_s = rendered(lambda: noisy_fn(spp))
@@ -79,6 +80,8 @@ def claims(rows: list[dict], glossy: set[str]) -> list[str]:
     """Issue 33's lines for the default Denoiser, per scene and spp."""
     lines = []
     at = {(r["scene"], r["spp"], r["method"]): r["relmse"] for r in rows}
+    if not any(r["method"] == DEFAULT for r in rows):
+        return lines
     for scene in dict.fromkeys(r["scene"] for r in rows):
         spps = sorted({r["spp"] for r in rows if r["scene"] == scene})
         for spp in spps:
@@ -94,6 +97,32 @@ def claims(rows: list[dict], glossy: set[str]) -> list[str]:
                 if spp == 8 and scene in glossy:
                     line += f" (glossy scene, bound 2x: {'met' if d <= 2 * o else 'NOT met'})"
             lines.append(line)
+    return lines
+
+
+def kpn_claims(rows: list[dict]) -> list[str]:
+    """The learned method's lines (issue 67) against OIDN high (the better protocol) per scene:
+    its ratio at each spp, at most 1.2x on every case at 1, 4 and 16 spp, at most 1.0x on half of
+    them, and its 16-spp ratio at most 1.15x its 1-spp ratio."""
+    at = {(r["scene"], r["spp"], r["method"]): r["relmse"] for r in rows}
+    if not any(r["method"] == "torchgi kpn" for r in rows):
+        return []
+    lines, ratios = [], {}
+    for scene in dict.fromkeys(r["scene"] for r in rows):
+        for spp in sorted({r["spp"] for r in rows if r["scene"] == scene}):
+            highs = [at[k] for k in ((scene, spp, m) for m in OIDN) if k in at]
+            if highs and (scene, spp, "torchgi kpn") in at:
+                ratios[scene, spp] = at[scene, spp, "torchgi kpn"] / min(highs)
+        line = f"{scene}: kpn / OIDN high " + ", ".join(f"{spp} spp {r:.2f}x" for (sc, spp), r in ratios.items()
+                                                        if sc == scene)
+        if (scene, 1) in ratios and (scene, 16) in ratios:
+            slope = ratios[scene, 16] / ratios[scene, 1]
+            line += f"; 16/1 spp {slope:.2f} ({'met' if slope <= 1.15 else 'NOT met'}: <= 1.15)"
+        lines.append(line)
+    judged = [r for (sc, spp), r in ratios.items() if spp in (1, 4, 16)]
+    if judged:
+        lines.append(f"kpn at 1, 4, 16 spp: {sum(r <= 1.2 for r in judged)}/{len(judged)} cases within 1.2x OIDN high "
+                     f"(all needed), {sum(r <= 1.0 for r in judged)}/{len(judged)} at or below 1.0x (half needed)")
     return lines
 
 
@@ -127,7 +156,7 @@ def main() -> None:
     out = Path(args.out)
     write_results(rows, metadata(torch.get_num_threads()), out, "spp")
     md = markdown_table(rows, ["scene", "size", "spp", "method", "render_s", "relmse", "psnr_db", "ssim", "flip"])
-    checks = claims(rows, glossy_scenes(args.scenes, args.size))
+    checks = claims(rows, glossy_scenes(args.scenes, args.size)) + kpn_claims(rows)
     (out / "spp.md").write_text(md + "\n\n" + "\n".join(f"- {c}" for c in checks) + "\n")
     plot(rows, out)
     print("\n".join(checks))

@@ -137,7 +137,10 @@ class DeployedDenoiser(torch.nn.Module):
     def _run(self, color: torch.Tensor, emission: torch.Tensor | None, albedo: torch.Tensor, normal: torch.Tensor,
              geometry: torch.Tensor, variance: torch.Tensor | None = None) -> torch.Tensor:
         """The pipeline on hole-filled inputs (``emission`` None: light sources from the colour;
-        ``variance`` None: no back-off)."""
+        ``variance`` None: no back-off); a method with a pipeline of its own runs its
+        :meth:`~torchgi.methods.Method.deployed_run`."""
+        if self._kind.own_pipeline:
+            return self._kind.deployed_run(self.params, self.net, color, emission, albedo, normal, geometry, variance)
         surface = light.surface_mask(None, albedo)
         scene_level = light.level(color, emission, None, albedo, surface)
 

@@ -51,13 +51,13 @@ def test_a_new_method_is_one_class_and_one_registration(gb):
 
 
 def test_the_registry_says_what_each_method_is():
-    assert methods.names() == ("pyramid", "blend", "guided", "atrous", "bilateral", "none")
-    assert methods.names(learned=True) == ("pyramid", "blend")
+    assert methods.names() == ("pyramid", "blend", "kpn", "guided", "atrous", "bilateral", "none")
+    assert methods.names(learned=True) == ("pyramid", "blend", "kpn")
     assert methods.names(temporal=True) == ("pyramid", "blend", "guided")
-    assert methods.names(tiles=True) == ("pyramid", "guided")
+    assert methods.names(tiles=True) == ("pyramid", "kpn", "guided")
     assert {n: methods.get(n).needs for n in methods.names() if methods.get(n).needs} == {
-        "pyramid": ("depth",), "blend": ("depth",), "atrous": ("position",)}
-    assert [methods.get(n).firefly() for n in methods.names()] == [4.0, 4.0, 4.0, 2.0, 2.0, 4.0]
+        "pyramid": ("depth",), "blend": ("depth",), "kpn": ("depth",), "atrous": ("position",)}
+    assert [methods.get(n).firefly() for n in methods.names()] == [4.0, 4.0, 4.0, 4.0, 2.0, 2.0, 4.0]
 
 
 def test_settings_are_per_instance(gb):

@@ -6,9 +6,9 @@ package and one :func:`register` call (docs/architecture.md).
 Example:
     >>> from torchgi import methods
     >>> methods.names()
-    ('pyramid', 'blend', 'guided', 'atrous', 'bilateral', 'none')
+    ('pyramid', 'blend', 'kpn', 'guided', 'atrous', 'bilateral', 'none')
     >>> methods.names(exportable=True)
-    ('pyramid', 'blend', 'guided', 'atrous')
+    ('pyramid', 'blend', 'kpn', 'guided', 'atrous')
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ from torchgi.methods.base import Method
 from torchgi.methods.blend import Blend
 from torchgi.methods.classical import ATrous, Bilateral, NoFilter
 from torchgi.methods.guided import Guided
+from torchgi.methods.kpn import KPNMethod
 from torchgi.methods.pyramid import Pyramid
 
 __all__ = ["Method", "get", "names", "register"]
@@ -63,10 +64,10 @@ def names(**flags: bool) -> tuple[str, ...]:
 
     Example:
         >>> names(learned=True)
-        ('pyramid', 'blend')
+        ('pyramid', 'blend', 'kpn')
     """
     return tuple(n for n, m in _REGISTRY.items() if all(getattr(m, k) == v for k, v in flags.items()))
 
 
-for _method in (Pyramid, Blend, Guided, ATrous, Bilateral, NoFilter):
+for _method in (Pyramid, Blend, KPNMethod, Guided, ATrous, Bilateral, NoFilter):
     register(_method)

@@ -48,6 +48,7 @@ class Method:
     exportable: ClassVar[bool] = False  # Denoiser.deploy() fixes it for ONNX
     geometry: ClassVar[str] = "depth"  # the deployed graph's last guide input: "depth" or "position"
     onnx_optimize: ClassVar[bool] = True  # its exported graph goes through the ONNX optimiser
+    own_pipeline: ClassVar[bool] = False  # its deployed graph is its deployed_run, not the light steps around deployed_filter
 
     def __init__(self, quality: str, settings: Settings, params: dict[str, Any], input_scale: float | None,
                  max_memory_mb: float | str | None) -> None:
@@ -103,6 +104,14 @@ class Method:
                         raw: torch.Tensor | None = None) -> torch.Tensor:
         """The exported graph's filter of ``x`` with the fixed ``params`` (``radius``: one of the
         radii the guided filter chooses among, else None)."""
+        raise NotImplementedError
+
+    @staticmethod
+    def deployed_run(params: dict[str, Any], net: torch.nn.Module | None, color: torch.Tensor,
+                     emission: torch.Tensor | None, albedo: torch.Tensor, normal: torch.Tensor, geometry: torch.Tensor,
+                     variance: torch.Tensor | None) -> torch.Tensor:
+        """The exported graph of an :attr:`own_pipeline` method on hole-filled inputs (``emission``
+        and ``variance`` None where the graph takes none)."""
         raise NotImplementedError
 
     def radius(self, spp: float, base: int) -> int:
