@@ -378,3 +378,26 @@ def test_render_command_renders_to_a_time_budget_or_a_target(tmp_path, capsys):
                          (["--target", "0.1"], "exists")):
         assert main(base + extra + ["--out", str(out)]) == 2
         assert words in capsys.readouterr().err
+
+
+def test_png_outputs_are_pictures_and_other_names_are_refused(tmp_path, capsys):
+    """``--out x.png`` writes a PNG of the colour (sRGB, exposure said), the EXR's pixels
+    tonemapped; a name that is neither .exr nor .png is refused before anything is rendered."""
+    pytest.importorskip("embreex")
+    pytest.importorskip("imageio")
+    import imageio.v3 as iio
+
+    from torchgi.io.png import to_srgb8
+
+    exr, png = tmp_path / "c.exr", tmp_path / "c.png"
+    args = ["render", "cornell", "--spp", "2", "--resolution", "16", "16", "--seed", "3"]
+    assert main([*args, "--out", str(exr)]) == 0
+    assert main([*args, "--out", str(png), "--exposure", "2"]) == 0
+    assert png.read_bytes()[:4] == b"\x89PNG" and "exposure 2" in capsys.readouterr().out
+    gb = torchgi.GBuffer.from_exr(exr)
+    assert (iio.imread(png) == to_srgb8(gb.color[0], exposure=2.0)).all()
+    assert main(["denoise", str(exr), "--out", str(tmp_path / "d.png")]) == 0
+    assert (tmp_path / "d.png").read_bytes()[:4] == b"\x89PNG"
+    assert main([*args, "--out", str(tmp_path / "c.tif")]) == 2
+    assert "--out: expected a name ending in .exr" in capsys.readouterr().err
+    assert not (tmp_path / "c.tif").exists()

@@ -111,17 +111,19 @@ def cmd_render(args: argparse.Namespace) -> int:
                          "of a still render itself)")
     if len(budget) > 1:
         raise ValueError("--seconds, --target: give one of them")
+    if args.frames is None or os.path.splitext(args.out)[1]:  # (frames without an extension are EXRs)
+        _image_format(args.out)  # (an output it cannot write refused before the render)
     if args.frames is None and not args.overwrite and os.path.exists(args.out):  # (before the render, not after)
         raise FileExistsError(f"--out: {args.out} exists; pass --overwrite")
     t0 = time.perf_counter()
     if budget:
         gb = torchgi.render_to(scene, bounces=args.bounces, seed=args.seed, workers=args.workers, progress=args.progress,
                        **budget)
-        written = gb.to_exr(args.out, overwrite=args.overwrite)
+        written = _write_render(gb, args.out, args)
     elif args.frames is None:
         gb = torchgi.render(scene, spp=args.spp or 16, bounces=args.bounces, seed=args.seed,
                             mirror_guides=args.mirror_guides, **kwargs)
-        written = gb.to_exr(args.out, overwrite=args.overwrite)
+        written = _write_render(gb, args.out, args)
     else:  # <out>_<frame:04d>.exr, each with a motion layer; every name is checked before any render
         root, ext = os.path.splitext(args.out)
         paths = [f"{root}_{k:04d}{ext or '.exr'}" for k in range(args.frames)]
@@ -130,7 +132,7 @@ def cmd_render(args: argparse.Namespace) -> int:
             raise FileExistsError(f"--out: {existing[0]} exists (and {len(existing) - 1} more); pass --overwrite")
         frames = torchgi.render_sequence(scene, args.frames, spp=args.spp or 16, bounces=args.bounces,
                                          seed=args.seed, **kwargs)
-        written = [w for gb, path in zip(frames, paths) for w in gb.to_exr(path, overwrite=args.overwrite)]
+        written = [w for gb, path in zip(frames, paths) for w in _write_render(gb, path, args)]
     seconds = time.perf_counter() - t0
     width, height = scene.camera.resolution
     samples = width * height * (args.spp or 16) * (args.frames or 1) if not budget else int(gb.spp.sum())
@@ -144,7 +146,6 @@ def cmd_denoise(args: argparse.Namespace) -> int:
     """Denoise the colour of a multi-layer EXR (torchgi, Blender/Cycles, Mitsuba or Arnold names),
     or with ``--temporal`` an animation, frame by frame (:func:`_denoise_sequence`)."""
     from torchgi.denoise import Denoiser
-    from torchgi.io import write_exr
 
     if args.temporal and args.spp is not None:
         raise ValueError("--spp: not with --temporal (the TemporalDenoiser takes each frame's spp layer, else 1)")
@@ -156,6 +157,9 @@ def cmd_denoise(args: argparse.Namespace) -> int:
         raise ValueError("--motion-convention: only with --temporal (a single frame's denoising reads no motion)")
     if not args.short_pass:
         raise ValueError("--no-short-pass: only with --temporal (the TemporalDenoiser's pass over short histories)")
+    _image_format(args.out)
+    if not args.overwrite and os.path.exists(args.out):  # (before anything is read)
+        raise FileExistsError(f"--out: {args.out} exists; pass --overwrite")
     gb, report = torchgi.GBuffer.from_exr(args.input[0], required=("color", "albedo", "normal"),
                                           sanitize=args.sanitize, return_report=True)
     if args.spp is not None and gb.spp is not None and not bool((gb.spp == args.spp).all()):
@@ -170,7 +174,7 @@ def cmd_denoise(args: argparse.Namespace) -> int:
     memory = {None: "auto", "none": None}.get(args.max_memory_mb, args.max_memory_mb)  # None: no flag
     out = Denoiser(method, quality, max_memory_mb=memory, **params)(gb, spp=args.spp)
     seconds = time.perf_counter() - t0
-    path = write_exr(args.out, {"color": out[0]}, overwrite=args.overwrite)
+    path = ", ".join(_write_image(args.out, {"color": out[0]}, args.overwrite, args.exposure))
     print(f"denoised {args.input[0]} ({gb.shape[2]}x{gb.shape[1]}, {samples}) with {method} in {seconds * 1e3:.1f} "
           f"ms; wrote {path}")
     return 0
@@ -347,6 +351,38 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+IMAGE_FORMATS = (".exr", ".png")  # what render and denoise write, by --out's extension
+
+
+def _image_format(path: str, flag: str = "--out") -> str:
+    """The format of an image output by its extension (:data:`IMAGE_FORMATS`); other names are
+    refused by ``flag``."""
+    ext = os.path.splitext(path)[1].lower()
+    if ext not in IMAGE_FORMATS:
+        raise ValueError(f"{flag}: expected a name ending in .exr (every layer, linear) or .png (the colour, "
+                         f"tonemapped to 8-bit sRGB), got {path!r}")
+    return ext
+
+
+def _write_image(path: str, layers: dict, overwrite: bool, exposure: float) -> list[str]:
+    """``layers`` (name to ``(C, H, W)``) as a multi-layer EXR, or for a ``.png`` their colour as
+    8-bit sRGB (linear x ``exposure``, clipped to [0, 1]); the files written, the PNG's tonemap said."""
+    from torchgi.io import write_exr
+    from torchgi.io.png import to_srgb8, write_png
+
+    if _image_format(path) == ".exr":
+        return [str(write_exr(path, layers, overwrite=overwrite))]
+    written = write_png(path, to_srgb8(layers["color"], exposure=exposure), overwrite=overwrite)
+    return [f"{written} (colour only: sRGB, exposure {exposure:g}, clipped to [0, 1])"]
+
+
+def _write_render(gb: torchgi.GBuffer, path: str, args: argparse.Namespace) -> list[str]:
+    """A render's GBuffer to ``path``: every layer to an EXR, the colour to a PNG."""
+    if _image_format(path) == ".exr":
+        return gb.to_exr(path, overwrite=args.overwrite)
+    return _write_image(path, {"color": gb.color[0]}, args.overwrite, args.exposure)
+
+
 def _out_flags(p: argparse.ArgumentParser, what: str) -> None:
     """``--out`` (required; ``what`` it is) and ``--overwrite`` on ``p``."""
     p.add_argument("--out", required=True, help=f"{what}; never overwritten unless --overwrite")
@@ -365,7 +401,9 @@ def _denoise_and_export_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--radius", type=_positive_int, default=None, help="filter radius (default: from spp)")
     p.add_argument("--spp", type=_sample_count, default=None, help="the render's samples per pixel (a number >= 1; "
                    "the mean of an adaptive render); default: the file's spp layer, else 1. Not with --temporal")
-    _out_flags(p, "output EXR (layer 'color'); with --temporal a folder (one EXR per frame, summary.json)")
+    _out_flags(p, "output .exr (layer 'color') or .png (tonemapped sRGB); with --temporal a folder (one EXR per "
+               "frame, summary.json)")
+    p.add_argument("--exposure", type=float, default=1.0, help="a .png output's exposure (linear scale before sRGB)")
     p.add_argument("--temporal", action="store_true", help="an animation: the TemporalDenoiser over the frames "
                    "in order (needs depth and motion layers; resumes a folder it wrote)")
     p.add_argument("--motion-convention", choices=list(MOTION_CONVENTIONS), default=None,
@@ -423,7 +461,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", type=_positive_int, help="N frames of the camera's and meshes' paths: <out>_<frame:04d>.exr, motion layer")
     p.add_argument("--mirror-guides", type=float, default=None, metavar="ROUGHNESS",
                    help="albedo and normal of what mirrors smoother than ROUGHNESS reflect (e.g. 0.05)")
-    _out_flags(p, "output EXR")
+    _out_flags(p, "output .exr (every layer) or .png (the colour, tonemapped sRGB)")
+    p.add_argument("--exposure", type=float, default=1.0, help="a .png output's exposure (linear scale before sRGB)")
     p.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
     p.set_defaults(func=cmd_render)
 
