@@ -121,3 +121,18 @@ def test_gradients_against_finite_differences():
     feats = f[:1].clone().requires_grad_(True)
     assert torch.autograd.gradcheck(lambda a, b: kpn_denoise(net, a, b), (feats, irr), eps=1e-6, atol=1e-6,
                                     fast_mode=True)
+
+
+def test_saved_weights_read_back_bit_for_bit(tmp_path):
+    """``SavedNet.save`` writes each weight as its shortest float32 decimal: :meth:`load` must
+    give the very same float32 bits (random weights, including sub-normal and huge values)."""
+    torch.manual_seed(3)
+    net = KPNet()
+    with torch.no_grad():
+        for p in net.parameters():
+            p.copy_(torch.randn_like(p) * torch.logspace(-40, 30, p.numel()).view_as(p).to(p.dtype))
+    net.save(tmp_path / "w.json", {"script": "test"})
+    back = KPNet.load(tmp_path / "w.json")
+    for (name, a), b in zip(net.state_dict().items(), back.state_dict().values()):
+        assert torch.equal(a.view(torch.int32), b.view(torch.int32)), name
+    assert back.provenance == {"script": "test"}

@@ -11,6 +11,7 @@ import math
 from pathlib import Path
 from typing import Any, TypeVar
 
+import numpy as np
 import torch
 import torch.nn.utils.parametrize
 from torch import nn
@@ -42,8 +43,9 @@ class SavedNet(nn.Module):
         raise NotImplementedError
 
     def save(self, path: str | Path, provenance: dict[str, Any]) -> None:
-        """Write config, weights (as lists) and ``provenance`` to a JSON file (no pickle)."""
-        state = {k: v.detach().double().tolist() for k, v in self.state_dict().items()}
+        """Write config, weights and ``provenance`` to a JSON file (no pickle): each weight as the
+        shortest decimal that reads back to the same float32 (:meth:`load` is bit-exact)."""
+        state = {k: _shortest(v) for k, v in self.state_dict().items()}
         Path(path).write_text(json.dumps({"config": self.config(), "provenance": provenance, "state": state}))
 
     @classmethod
@@ -55,6 +57,12 @@ class SavedNet(nn.Module):
         net.load_state_dict({k: torch.tensor(v, dtype=torch.float32) for k, v in data["state"].items()})
         net.provenance = data.get("provenance", {})
         return net.eval().requires_grad_(False)
+
+
+def _shortest(t: torch.Tensor) -> Any:
+    """``t`` as nested lists of the shortest decimals that read back to its float32 values."""
+    a = t.detach().cpu().float().numpy()
+    return np.array([float(str(x)) for x in a.ravel()], dtype=np.float64).reshape(a.shape).tolist()
 
 
 def shipped(cls: type[N], path: Path, device: torch.device | str, cache: dict[torch.device, N], what: str,
