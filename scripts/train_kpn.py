@@ -14,9 +14,10 @@ textures), 128², 2 bounces, 1-64 spp (powers of two), each against an independe
 100000) against 1024 spp references. The data hash is the SHA-256 of the three ``index.json``
 files (each lists every shard's SHA-256).
 
-Training: Adam, random 64² crops (flips, 90° turns, an exposure of 2^U(-2, 2)), batch 8; the loss
-is the mean squared difference of ``log(colour + 0.1)`` between the remodulated prediction and
-the 256 spp target (:func:`loss_fn`; the target's own noise biases its optimum by about half its
+Training: Adam (its step size from ``--lr`` to ``--lr-end`` by a cosine over the run's minutes),
+random 64² crops (flips, 90° turns, an exposure of 2^U(-2, 2)), batch 8; the loss is the mean
+squared difference of ``log(colour + 0.1)`` between the remodulated prediction and the 256 spp
+target (:func:`loss_fn`; the target's own noise biases its optimum by about half its
 relative variance, a fraction of a percent at 256 spp). Validation: mean relMSE per spp on the
 48 validation frames against their references, beside the noisy input's and OIDN 2 "high"'s
 (computed once). The checkpoint (``checkpoints/kpn/<run>.pt``: weights, Adam state, step, curves,
@@ -29,6 +30,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import math
 import platform
 import subprocess
 import sys
@@ -222,7 +224,9 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--minutes", type=float, default=140.0, help="training time of this run")
     parser.add_argument("--run", default="main", help="the chain's name (its checkpoint and curve)")
     parser.add_argument("--fraction", type=float, default=1.0, help="the share of training scenes used")
-    parser.add_argument("--lr", type=float, default=1e-3)
+    parser.add_argument("--lr", type=float, default=1e-3, help="Adam's step size at the start of this run")
+    parser.add_argument("--lr-end", type=float, default=None,
+                        help="the step size at the end of this run, reached by a cosine in time (default: --lr)")
     parser.add_argument("--val-every", type=int, default=500)
     parser.add_argument("--save-every", type=int, default=1000)
     parser.add_argument("--workers", type=int, default=2)
@@ -263,7 +267,7 @@ class Chain:
         scenes = sum(len(t["scenes"]) for t in train)
         self.record = {"command": " ".join(sys.argv), "commit": commit(), "machine": f"{cpu_model()}, "
                        f"{platform.node()}", "threads": torch.get_num_threads(), "start_step": self.state["step"],
-                       "lr": args.lr, "train_scenes": scenes, "fraction": args.fraction, "examples": scenes * len(SPP),
+                       "lr": args.lr, "lr_end": args.lr_end, "train_scenes": scenes, "fraction": args.fraction, "examples": scenes * len(SPP),
                        "data_hash": data_hash, "started": time.strftime("%Y-%m-%d %H:%M:%S")}
         self.state["runs"].append(self.record)
         self.t0 = time.time()
@@ -317,7 +321,10 @@ def main() -> None:
     chain = Chain(args, train, data_hash)
     rng = np.random.default_rng([chain.state["step"], len(chain.state["runs"])])
     losses = []
-    while time.time() - chain.t0 < args.minutes * 60:
+    lr_end = args.lr if args.lr_end is None else args.lr_end
+    while (done := (time.time() - chain.t0) / (args.minutes * 60)) < 1:
+        for group in chain.opt.param_groups:
+            group["lr"] = lr_end + (args.lr - lr_end) * 0.5 * (1 + math.cos(math.pi * done))
         losses.append(chain.step(train, rng))
         step = chain.state["step"]
         if step % 100 == 0:

@@ -1,7 +1,8 @@
 """Shared fixtures: ``device`` and ``dtype``, and ``meshes_dir`` (the package's meshes).
 
 Choose with ``--device cpu,cuda`` / ``--dtype float32,float16`` or the environment variables
-``TORCHGI_TEST_DEVICE`` / ``TORCHGI_TEST_DTYPE`` (comma-separated). Defaults: cpu, float32.
+``TORCHGI_TEST_DEVICE`` / ``TORCHGI_TEST_DTYPE`` (comma-separated). Defaults: cpu; float32,
+float16 and bfloat16 (the dtype-keeping tests are small: half precision runs in every run).
 A requested device that is absent is skipped, never silently replaced.
 """
 
@@ -20,7 +21,7 @@ _DTYPES = {"float16": torch.float16, "bfloat16": torch.bfloat16, "float32": torc
 
 def pytest_addoption(parser: pytest.Parser) -> None:
     parser.addoption("--device", default=os.environ.get("TORCHGI_TEST_DEVICE", "cpu"))
-    parser.addoption("--dtype", default=os.environ.get("TORCHGI_TEST_DTYPE", "float32"))
+    parser.addoption("--dtype", default=os.environ.get("TORCHGI_TEST_DTYPE", "float32,float16,bfloat16"))
 
 
 def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:

@@ -183,7 +183,7 @@ def onnx_parity(tmp_path, method: str, sizes: tuple[int, ...]) -> tuple[list[str
     g = torch.Generator().manual_seed(0)
     examples = [torch.rand(2, 3, 24, 32, generator=g) for _ in range(4)] + [torch.rand(2, 1, 24, 32, generator=g)]
     path = export_onnx(deployed, examples, tmp_path / f"{method}.onnx", input_names=list(deployed.input_names),
-                       optimize=False)
+                       optimize=False, metadata=deployed.metadata())
     ort = OrtDenoiser(path)
     errors = []
     for size in sizes:

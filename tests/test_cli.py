@@ -29,15 +29,75 @@ def test_info_json(capsys):
     assert info["extras"]["exr"]["OpenEXR"] is not None
 
 
-def test_metrics_command(tmp_path, capsys):
-    pytest.importorskip("OpenEXR")
-    g = torch.Generator().manual_seed(0)
-    ref = torch.rand(3, 16, 16, generator=g)
-    imgs = [ref + 0.1 * torch.rand(3, 16, 16, generator=g), ref * 1.5]
-    write_exr(tmp_path / "ref.exr", {"": ref})
+def _metrics_files(tmp_path, size, amounts, ref_layer):
+    """A random reference (written as layer ``ref_layer``) and two images of it: with added
+    noise of ``amounts[0]`` and scaled by ``amounts[1]``, as EXR files in ``tmp_path``."""
+    (noise, scale), g = amounts, torch.Generator().manual_seed(0)
+    ref = torch.rand(3, *size, generator=g)
+    imgs = [ref + noise * torch.rand(3, *size, generator=g), ref * scale]
+    write_exr(tmp_path / "ref.exr", {ref_layer: ref})
     paths = [str(tmp_path / f"img{k}.exr") for k in range(2)]
     for path, img in zip(paths, imgs, strict=True):
         write_exr(path, {"color": img})
+    return ref, imgs, paths
+
+
+def test_metrics_picture_is_each_image_beside_the_reference(tmp_path, capsys):
+    """Issue 69: no command wrote a picture of a comparison (only the demo). ``metrics --picture``
+    writes a PNG that another decoder (Pillow) reads as each image and then the reference, each
+    under its label strip, tonemapped as ``to_srgb8`` does; other names and an existing picture
+    are refused before anything is read."""
+    pytest.importorskip("OpenEXR")
+    from PIL import Image
+
+    from torchgi.io.png import to_srgb8
+
+    ref, imgs, paths = _metrics_files(tmp_path, (20, 24), [0.2, 0.5], "color")
+    pic = tmp_path / "cmp.png"
+    args = ["metrics", *paths, "--ref", str(tmp_path / "ref.exr"), "--picture", str(pic), "--exposure", "2"]
+    assert main(args) == 0
+    assert f"wrote {pic} (each image beside the reference" in capsys.readouterr().out
+    sheet = np.asarray(Image.open(pic).convert("RGB"))
+    strip = sheet.shape[0] - 20
+    assert sheet.shape[1] == 3 * 24 and strip > 0
+    for k, panel in enumerate([*imgs, ref]):
+        np.testing.assert_array_equal(sheet[strip:, 24 * k:24 * (k + 1)], to_srgb8(panel * 2))
+    assert main(args) == 2 and "--picture: " in capsys.readouterr().err
+    assert main([*args[:-4], "--picture", str(tmp_path / "cmp.exr")]) == 2
+    assert "--picture: expected a name ending in .png" in capsys.readouterr().err
+
+
+def test_info_names_the_back_end_of_each_op_family(capsys):
+    """Issue 69: the README says ``torchgi info`` tells which back end runs the kernels; it printed
+    versions only. It names each back end's state, the compiler, the kernel cache and, per op
+    family and device, the back end a call runs, as :func:`torchgi.backends.status` gives them,
+    and follows a back end switched off; and each op family runs by the back end named
+    (``status()["last"]`` after a real call)."""
+    from torchgi import backends
+    from torchgi.filters import box
+
+    assert main(["info", "--json"]) == 0
+    status = backends.status()
+    info = json.loads(capsys.readouterr().out)["backends"]
+    assert info == {k: v for k, v in status.items() if k != "last"}
+    assert set(info["ops"]["cpu"]) == set(backends.base._OPS.values())
+    assert main(["info"]) == 0
+    text = capsys.readouterr().out
+    assert f"backend c      {status['c']}\n" in text and f"cache    {status['cache']}" in text
+    want = info["ops"]["cpu"]["box"]["runs"]
+    assert f"ops on cpu run by {want}: " in text
+    box(torch.rand(1, 1, 8, 8), 1)
+    assert backends.status()["last"]["box"]["ran"] == want
+    with backends.use("torch"):
+        assert main(["info"]) == 0
+        text = capsys.readouterr().out
+    assert "backend c      switched off by torchgi.backends.use(...)" in text
+    assert "ops on cpu run by torch: accumulate, " in text and "ops on cpu run by c" not in text
+
+
+def test_metrics_command(tmp_path, capsys):
+    pytest.importorskip("OpenEXR")
+    ref, imgs, paths = _metrics_files(tmp_path, (16, 16), [0.1, 1.5], "")
     assert main(["metrics", *paths, "--ref", str(tmp_path / "ref.exr"), "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["reference"] == str(tmp_path / "ref.exr") and list(out["images"]) == paths
@@ -69,6 +129,7 @@ def test_render_command_writes_a_multilayer_exr_and_never_overwrites(tmp_path, c
     args = ["render", "cornell", "--spp", "2", "--bounces", "1", "--seed", "3", "--resolution", "16", "12",
             "--out", str(out), "--no-progress"]
     assert main(args) == 0
+    assert ", 1 bounce in " in capsys.readouterr().out  # issue 69: it said "1 bounces"
     gb = torchgi.GBuffer.from_exr(out, required=("color", "direct", "indirect", "emission", "albedo", "normal"))
     ref = torchgi.render(torchgi.scenes.cornell(16).with_resolution(16, 12), spp=2, bounces=1, seed=3)
     assert torch.equal(gb.color, ref.color) and torch.equal(gb.indirect, ref.indirect)
@@ -401,3 +462,23 @@ def test_png_outputs_are_pictures_and_other_names_are_refused(tmp_path, capsys):
     assert main([*args, "--out", str(tmp_path / "c.tif")]) == 2
     assert "--out: expected a name ending in .exr" in capsys.readouterr().err
     assert not (tmp_path / "c.tif").exists()
+
+
+def test_denoise_device_flag_says_where_and_refuses_an_absent_device(tmp_path, capsys):
+    """Issue 69: the CLI had no ``--device``, and a CUDA request on a CPU machine surfaced
+    torch's own message. ``--device cpu`` denoises there and says so; a device this machine
+    lacks, or a name that is none, is refused by the flag's name before anything is read."""
+    pytest.importorskip("embreex")
+    pytest.importorskip("OpenEXR")
+    import torchgi
+
+    noisy = tmp_path / "noisy.exr"
+    torchgi.render(torchgi.scenes.cornell(16).with_resolution(16, 12), spp=1, bounces=1, seed=1).to_exr(noisy)
+    assert main(["denoise", str(noisy), "--device", "cpu", "--out", str(tmp_path / "a.exr")]) == 0
+    assert " on cpu in " in capsys.readouterr().out
+    absent = f"cuda:{torch.cuda.device_count()}"
+    for device, words in ((absent, f"argument --device: {absent}: "), ("tpu", "expected cpu, cuda or cuda:N, got 'tpu'")):
+        with pytest.raises(SystemExit):
+            main(["denoise", str(noisy), "--device", device, "--out", str(tmp_path / "b.exr")])
+        assert words in capsys.readouterr().err
+    assert not (tmp_path / "b.exr").exists()

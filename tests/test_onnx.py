@@ -1,6 +1,7 @@
 """ONNX export: dynamic B/H/W, onnxruntime parity with torch at two resolutions."""
 
 import functools
+import re
 
 import pytest
 import torch
@@ -331,7 +332,13 @@ def test_cli_export_without_emission_with_variance(tmp_path, capsys):
 
     path = tmp_path / "n.onnx"
     assert main(["export", "--method", "guided", "--no-emission", "--spp", "4", "--variance", "--out", str(path)]) == 0
-    assert "inputs color, albedo, normal, depth, variance " in capsys.readouterr().out
+    said = capsys.readouterr()
+    assert "inputs color, albedo, normal, depth, variance " in said.out
+    # issue 69: it says what it builds before (an export takes a while) and what it built, with its time
+    assert said.err.startswith("exporting guided, fixed for 4 spp (other sample counts refused), balanced, with a "
+                               "variance input to ONNX ...")
+    assert re.search(r"\(guided, fixed for 4 spp .*\) in \d+\.\d s; inputs", said.out)
+    assert OrtDenoiser(path).spp == 4.0
     ort = OrtDenoiser(path)
     assert ort.input_names == ["color", "albedo", "normal", "depth", "variance"]
     gb = torchgi.render(torchgi.scenes.cornell(32).with_resolution(32, 39), spp=4, bounces=1)
@@ -342,3 +349,63 @@ def test_cli_export_without_emission_with_variance(tmp_path, capsys):
         ort(gb)  # a graph without one refuses one (it would be ignored)
     assert main(["export", "--variance", "--out", str(tmp_path / "w.onnx")]) == 2
     assert "--variance" in capsys.readouterr().err
+
+
+class _Layers(torch.nn.Module):
+    """A stand-in exported Denoiser: the colour scaled by the mean of the other layers times 0
+    (every input stays in the graph), so a call's refusals are tested without a minute's export."""
+
+    def forward(self, color, emission, albedo, normal, depth):
+        return color + 0 * (emission + albedo + normal + depth).mean(1, keepdim=True)
+
+
+def _layers_graph(path, spp):
+    names = ["color", "emission", "albedo", "normal", "depth"]
+    g = torch.Generator().manual_seed(0)
+    examples = [torch.rand(2, 1 if n == "depth" else 3, 24, 32, generator=g) for n in names]
+    metadata = None if spp is None else {"torchgi.spp": spp}
+    return export_onnx(_Layers(), examples, path, input_names=names, optimize=False, metadata=metadata)
+
+
+def _frame(spp, H=9, W=11):
+    from torchgi import GBuffer
+
+    g = torch.Generator().manual_seed(spp)
+    rand = lambda c: torch.rand(1, c, H, W, generator=g)
+    return GBuffer(color=rand(3), emission=rand(3) * 0, albedo=rand(3), normal=rand(3), depth=rand(1),
+                   variance=rand(3) if spp > 1 else torch.zeros(1, 3, H, W),
+                   spp=torch.full((1, 1, H, W), spp, dtype=torch.int64))
+
+
+def test_exported_graph_refuses_the_spp_and_variance_it_cannot_use(tmp_path):
+    """Issue 69: an exported Denoiser fixed for a sample count and without a variance input ran
+    a 4 spp render with its variance, or ``spp=4``, without a word (the variance and the count
+    dropped). It records the count it was built for and refuses, by name, a different one and a
+    variance it would not use, unless told to ignore them; a graph that records no count refuses
+    to check one; a 1 spp render's (unknown, zero) variance is not refused by a 1 spp graph, as
+    the eager Denoiser does not use it either."""
+    from torchgi.export import OrtDenoiser
+
+    four = OrtDenoiser(_layers_graph(tmp_path / "four.onnx", "4.0"))
+    assert four.spp == 4.0
+    gb = _frame(4)
+    with pytest.raises(ValueError, match=r"^variance: this graph was exported without a variance input"):
+        four(gb)
+    torch.testing.assert_close(OrtDenoiser(tmp_path / "four.onnx", ignore=("variance",))(gb), gb.color)
+    bare = {k: getattr(gb, k) for k in ("color", "emission", "albedo", "normal", "depth")}
+    torch.testing.assert_close(four(**bare, spp=4), gb.color)
+    with pytest.raises(ValueError, match=r"^spp: this graph is fixed for 4 samples per pixel, the input has 2"):
+        four(**bare, spp=2)
+    with pytest.raises(ValueError, match=r"^spp: this graph is fixed for 4 samples per pixel, the input has 1"):
+        four(_frame(1))
+    with pytest.raises(TypeError, match=r"^posiiton: not an input of this graph"):
+        four(**bare, posiiton=gb.depth)
+    one = OrtDenoiser(_layers_graph(tmp_path / "one.onnx", "1.0"))
+    torch.testing.assert_close(one(_frame(1)), _frame(1).color)
+    unknown = OrtDenoiser(_layers_graph(tmp_path / "none.onnx", None))
+    assert unknown.spp is None
+    with pytest.raises(ValueError, match=r"^spp: this graph records no sample count"):
+        unknown(gb.replace(variance=None))
+    torch.testing.assert_close(OrtDenoiser(tmp_path / "none.onnx", ignore=("spp", "variance"))(gb), gb.color)
+    with pytest.raises(ValueError, match=r"^ignore: expected a sequence of 'spp', 'variance'"):
+        OrtDenoiser(tmp_path / "one.onnx", ignore="spp")

@@ -132,6 +132,8 @@ class GBuffer:
         GBuffer checks them); a field the method does not read is accepted and ignored.
 
         Raises:
+            TypeError: a first argument that is not a GBuffer (a bare colour tensor: the message
+                shows the call by name).
             ValueError: both a GBuffer and named tensors, or a name that is no GBuffer field
                 (the message names it and ``by``).
 
@@ -139,6 +141,10 @@ class GBuffer:
             >>> GBuffer.from_inputs(None, {"color": torch.zeros(1, 3, 2, 2)}, by="a denoiser").shape
             (1, 2, 2)
         """
+        if gb is not None and not isinstance(gb, GBuffer):
+            what = "a tensor" if isinstance(gb, torch.Tensor) else f"a {type(gb).__name__}"
+            raise TypeError(f"{by}: its first argument is a GBuffer, got {what}; pass the layers by name, e.g. "
+                            f"{by}()(color=color, albedo=albedo, normal=normal, depth=depth), or a GBuffer")
         if gb is not None and tensors:
             raise ValueError(f"{by}: pass a GBuffer or named tensors, not both")
         if gb is not None:
@@ -387,8 +393,12 @@ def _with_samples(gb: GBuffer, spp: Any, by: str) -> GBuffer:
 
 
 def require_guides(gb: GBuffer, method: str, needs: Sequence[str]) -> None:
-    """Refuse by name an input without a guide layer that ``method`` needs (never a crash or a
-    silently worse result)."""
+    """Refuse by name an input without albedo or normal (every method filtering needs both) or
+    without a guide layer that ``method`` needs (never a crash or a silently worse result)."""
+    missing = [name for name in ("albedo", "normal") if getattr(gb, name) is None]
+    if missing:
+        raise ShapeError(f"{' and '.join(missing)}: required by every method but 'none' (this input has no "
+                         f"{' and no '.join(missing)} layer)")
     why = {"depth": "the guide its network was trained with (distance along the camera ray)",
            "position": "its edge-stopping weight between world-space positions"}
     how = {"depth": "Mitsuba 'dd.y:depth', Blender's Denoising Depth or Z pass",
@@ -398,6 +408,98 @@ def require_guides(gb: GBuffer, method: str, needs: Sequence[str]) -> None:
             raise LayerError(f"method {method!r} needs a {name} layer (GBuffer.{name}): {why[name]}; this input has "
                              f"none: render it with torchgi, write a {name} AOV ({how[name]}), or use the method "
                              "'guided' (it uses depth when given)")
+
+
+INDEPENDENT = -2 / 3  # the lag-1 correlation of second differences of independent pixel noise
+CORRELATED = -0.55  # above this, neighbouring pixels' noise is taken as correlated (a wide pixel filter)
+
+
+def pixel_noise_correlation(gb: GBuffer, *, pixels: int = 32768, min_pairs: int = 1000) -> float | None:
+    """How correlated the noise of neighbouring pixels is: the lag-1 correlation of the second
+    differences ``y[i-1] - 2 y[i] + y[i+1]`` of the demodulated colour's mean ``y`` (colour over
+    albedo) along rows and along columns spread evenly over the image (about ``pixels`` pixels
+    each way, at least 16 lines), over runs of 4 surface pixels whose guides (albedo, normal, log depth) differ by less than 0.02, from the sign of
+    each product (robust to edges and fireflies: ``-sin(π (P(<0) - 1/2))``, zero products left
+    out). Independent pixels give -2/3 (:data:`INDEPENDENT`) whatever the noise level; a pixel
+    filter wider than a pixel (Mitsuba 3's default "gaussian") raises it towards 0. None where
+    fewer than ``min_pairs`` pairs count. Unitless; reads ``(B, C, H, W)`` colour, albedo,
+    normal and, where present, depth and emission (emitters are left out).
+
+    Example:
+        >>> g = torch.Generator().manual_seed(0)
+        >>> gb = GBuffer(color=torch.rand(1, 3, 64, 64, generator=g), albedo=torch.ones(1, 3, 64, 64),
+        ...              normal=torch.tensor([0.0, 0.0, 1.0]).view(1, 3, 1, 1).expand(1, 3, 64, 64))
+        >>> round(pixel_noise_correlation(gb), 1)
+        -0.7
+    """
+    negative = counted = 0
+    for dim in (3, 2):  # runs along rows (a sample of rows), then along columns
+        across = 2 if dim == 3 else 3
+        size, length = gb.color.shape[across], gb.color.shape[dim]
+        lines = min(size, max(16, pixels // max(length, 1)))
+        pick = torch.linspace(0, size - 1, lines, device=gb.color.device).round().long().unique()
+        a = gb.albedo.index_select(across, pick).float()
+        y = (gb.color.index_select(across, pick).float() / a.clamp_min(0.02)).mean(1, keepdim=True)
+        surface = a.amax(1, keepdim=True) > 0.02
+        if gb.emission is not None:
+            surface &= gb.emission.index_select(across, pick).amax(1, keepdim=True) <= 0
+        guides = [a, gb.normal.index_select(across, pick).float()]
+        if gb.depth is not None:
+            guides.append(gb.depth.index_select(across, pick).float().clamp_min(1e-30).log())
+        g = torch.cat(guides, 1)
+        n = y.shape[dim]
+        if n < 4:
+            continue
+
+        def run(t: torch.Tensor, i: int, dim: int = dim, n: int = n) -> torch.Tensor:
+            return t.narrow(dim, i, n - 3)
+
+        keep = run(surface, 0) & run(surface, 1) & run(surface, 2) & run(surface, 3)
+        for i in range(3):
+            keep &= (run(g, i) - run(g, i + 1)).abs().amax(1, keepdim=True) < 0.02
+        h0 = run(y, 0) - 2 * run(y, 1) + run(y, 2)
+        h1 = run(y, 1) - 2 * run(y, 2) + run(y, 3)
+        product = (h0 * h1)[keep]
+        negative += int((product < 0).sum())
+        counted += int((product != 0).sum())
+    if counted < min_pairs:
+        return None
+    return -math.sin(math.pi * (negative / counted - 0.5))
+
+
+def _warn_if_correlated(gb: GBuffer) -> None:
+    """Warn where :func:`pixel_noise_correlation` says the render's pixel filter spread each
+    sample over several pixels: the Denoiser reads such noise as detail and keeps it."""
+    if is_recording() or gb.color.shape[-1] < 8 or gb.color.shape[-2] < 8:
+        return
+    rho = pixel_noise_correlation(gb)
+    if rho is not None and rho > CORRELATED:
+        warnings.warn(f"color: neighbouring pixels' noise is correlated (second-difference correlation {rho:.2f}; "
+                      f"independent pixels give {INDEPENDENT:.2f}): the renderer's pixel filter spreads each sample "
+                      "over several pixels, and the Denoiser keeps such noise as detail. Render with a box pixel "
+                      "filter: Mitsuba 3 'rfilter': {'type': 'box'} (its default is 'gaussian'); Blender Cycles "
+                      "Film > Pixel Filter: Box (width 1 px); Arnold: box_filter, width 1",
+                      stacklevel=user_stacklevel())
+
+
+def _warn_of_the_colour(gb: GBuffer) -> None:
+    """The Denoiser's warnings about a colour it filters as given: negative values, correlated noise."""
+    _warn_if_negative(gb.color)
+    _warn_if_correlated(gb)
+
+
+def _warn_if_negative(color: torch.Tensor) -> None:
+    """Warn, with their count and the least, where ``color (B, 3, H, W)`` has values below 0:
+    radiance is not negative, so they come from a renderer's negative-lobe pixel filter or an
+    earlier subtraction, and are filtered as given (never clamped here)."""
+    if is_recording() or color.numel() == 0:
+        return
+    negative = color < 0
+    if bool(negative.any()):
+        warnings.warn(f"color: {int(negative.sum())} of {color.numel()} values are negative (least "
+                      f"{float(color.min()):.4g}); radiance is >= 0: a renderer's negative-lobe pixel filter (use "
+                      "a box filter) or an earlier subtraction makes them; they are filtered as given",
+                      stacklevel=user_stacklevel())
 
 
 def _warn_if_colour_normals(normal: torch.Tensor) -> None:

@@ -45,7 +45,12 @@ def _module_version(name: str) -> str | None:
 
 
 def cmd_info(args: argparse.Namespace) -> int:
-    """Print versions, devices and which extras import."""
+    """Print versions, devices, which extras import, and the back ends: what each can do here,
+    the C compiler and kernel cache, and per op family and device which one runs an eager
+    float32 call and why the others decline (:func:`torchgi.backends.status`)."""
+    from torchgi import backends
+
+    status = backends.status()
     info = {
         "torchgi": torchgi.__version__,
         "python": platform.python_version(),
@@ -55,6 +60,7 @@ def cmd_info(args: argparse.Namespace) -> int:
         "extras": {
             extra: {m: _module_version(m) for m in mods} for extra, mods in EXTRAS.items()
         },
+        "backends": {k: v for k, v in status.items() if k != "last"},
     }
     if args.json:
         print(json.dumps(info, indent=2))
@@ -63,8 +69,24 @@ def cmd_info(args: argparse.Namespace) -> int:
         print(f"{key:8s} {info[key]}")
     print(f"devices  {', '.join(info['devices'])}")
     for extra, mods in info["extras"].items():
-        status = ", ".join(f"{m} {v}" if v else f"{m} missing" for m, v in mods.items())
-        print(f"[{extra}] {status}")
+        status_line = ", ".join(f"{m} {v}" if v else f"{m} missing" for m, v in mods.items())
+        print(f"[{extra}] {status_line}")
+    for name in backends.NAMES:
+        print(f"backend {name:6s} {status[name]}")
+    print(f"compiler {status['compiler'] or 'none found ($CC, cc, gcc): the C kernels cannot be built'}")
+    print(f"cache    {status['cache']} (compiled kernels; $TORCHGI_CACHE)")
+    for device, ops in status["ops"].items():
+        for name in backends.ORDER:
+            runs = [op for op, how in ops.items() if how["runs"] == name]
+            if not runs:
+                continue
+            print(f"ops on {device} run by {name}: {', '.join(runs)}")
+            reasons: dict[str, list[str]] = {}
+            for op in runs:
+                for other, why in ops[op]["declined"].items():
+                    reasons.setdefault(f"{other}: {why.replace(f' for {op}', '')}", []).append(op)
+            for why, which in reasons.items():
+                print(f"  declined by {why}" + ("" if which == runs else f" ({', '.join(which)})"))
     return 0
 
 
@@ -74,13 +96,27 @@ def cmd_metrics(args: argparse.Namespace) -> int:
     from torchgi import metrics
     from torchgi.io import read_aovs
 
+    if args.picture is not None:
+        if os.path.splitext(args.picture)[1].lower() != ".png":
+            raise ValueError(f"--picture: expected a name ending in .png, got {args.picture!r}")
+        if os.path.exists(args.picture) and not args.overwrite:
+            raise FileExistsError(f"--picture: {args.picture} exists; pass --overwrite")
     ref = read_aovs(args.ref)["color"].float()[None]
-    rows = {}
+    rows, images = {}, []
     for path in args.img:
         img = read_aovs(path)["color"].float()[None]
         if img.shape != ref.shape:
             raise TorchGIError(f"{path}: size {tuple(img.shape[-2:])} differs from --ref's {tuple(ref.shape[-2:])}")
         rows[path] = metrics.summary(img, ref)
+        images.append(img[0])
+    if args.picture is not None:
+        from torchgi.demo import contact_sheet
+        from torchgi.io.png import write_png
+
+        labels = [f"{Path(p).name}\nrelMSE {r['relmse']:.4g} PSNR {r['psnr_db']:.1f}" for p, r in rows.items()]
+        sheet = contact_sheet([i * args.exposure for i in images] + [ref[0] * args.exposure],
+                              labels + [f"{Path(args.ref).name}\nreference"], columns=len(images) + 1)
+        write_png(args.picture, sheet, overwrite=args.overwrite)
     if args.json:
         print(json.dumps({"reference": args.ref, "images": rows}))
         return 0
@@ -89,6 +125,9 @@ def cmd_metrics(args: argparse.Namespace) -> int:
         print(path)
         for key, value in table.items():
             print(f"  {key:8s} {value:.6g}")
+    if args.picture is not None:
+        print(f"wrote {args.picture} (each image beside the reference, labelled with its relMSE and PSNR; sRGB, "
+              f"exposure {args.exposure:g}, clipped to [0, 1])")
     return 0
 
 
@@ -137,7 +176,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     width, height = scene.camera.resolution
     samples = width * height * (args.spp or 16) * (args.frames or 1) if not budget else int(gb.spp.sum())
     print(f"rendered {scene.name} {width}x{height} at {samples / (width * height * (args.frames or 1)):.4g} spp"
-          f"{' (mean; per-pixel counts in the spp layer)' if budget else ''}, {args.bounces} bounces in "
+          f"{' (mean; per-pixel counts in the spp layer)' if budget else ''}, {args.bounces} bounce{'' if args.bounces == 1 else 's'} in "
           f"{seconds:.2f} s ({samples / seconds / 1e6:.2f} M samples/s); wrote {', '.join(written)}")
     return 0
 
@@ -172,12 +211,30 @@ def cmd_denoise(args: argparse.Namespace) -> int:
                else "1 spp: the file records none, --spp gives it")
     t0 = time.perf_counter()
     memory = {None: "auto", "none": None}.get(args.max_memory_mb, args.max_memory_mb)  # None: no flag
-    out = Denoiser(method, quality, max_memory_mb=memory, **params)(gb, spp=args.spp)
-    seconds = time.perf_counter() - t0
+    out = Denoiser(method, quality, max_memory_mb=memory, **params)(gb.to(args.device), spp=args.spp).cpu()
+    seconds = time.perf_counter() - t0  # (.cpu() waits for a CUDA device)
     path = ", ".join(_write_image(args.out, {"color": out[0]}, args.overwrite, args.exposure))
-    print(f"denoised {args.input[0]} ({gb.shape[2]}x{gb.shape[1]}, {samples}) with {method} in {seconds * 1e3:.1f} "
-          f"ms; wrote {path}")
+    print(f"denoised {args.input[0]} ({gb.shape[2]}x{gb.shape[1]}, {samples}) with {method} on {args.device} in "
+          f"{seconds * 1e3:.1f} ms; wrote {path}")
     return 0
+
+
+def _device(text: str) -> torch.device:
+    """``--device``: ``cpu``, ``cuda`` or ``cuda:N``, refused where this machine has no such device."""
+    try:
+        device = torch.device(text)
+    except (RuntimeError, ValueError):
+        device = None
+    if device is None or device.type not in ("cpu", "cuda"):
+        raise argparse.ArgumentTypeError(f"expected cpu, cuda or cuda:N, got {text!r}")
+    count = torch.cuda.device_count() if device.type == "cuda" else 0
+    if device.type == "cuda" and count == 0:
+        build = "a CPU build of torch" if torch.version.cuda is None else f"torch built for CUDA {torch.version.cuda}"
+        raise argparse.ArgumentTypeError(f"{text}: no CUDA device here ({build}, torch {torch.__version__}); "
+                                         "`torchgi info` lists the devices")
+    if device.type == "cuda" and device.index is not None and device.index >= count:
+        raise argparse.ArgumentTypeError(f"{text}: this machine has {count} CUDA device(s), cuda:0 to cuda:{count - 1}")
+    return device
 
 
 def _sample_count(text: str) -> float:
@@ -250,7 +307,7 @@ def _denoise_sequence(args: argparse.Namespace) -> int:
             gb = torchgi.GBuffer.from_exr(path, required=("color", "albedo", "normal", "depth", "motion"),
                                           sanitize=args.sanitize, motion_convention=args.motion_convention)
             t0 = time.perf_counter()
-            out = den(gb)
+            out = den(gb.to(args.device)).cpu()
             ms = (time.perf_counter() - t0) * 1e3
             kept = out_path.exists() and not args.overwrite
             if not kept:
@@ -273,7 +330,8 @@ def _write_json(path: Path, data: dict) -> None:
 
 def cmd_export(args: argparse.Namespace) -> int:
     """Export a Denoiser, fixed for an spp, or with ``--temporal`` one frame of the temporal
-    denoiser (its state as inputs and outputs), to ONNX."""
+    denoiser (its state as inputs and outputs), to ONNX; says what it builds before (an export
+    takes from seconds to minutes) and what it built, with its time, after."""
     from torchgi.export import export_denoiser, export_temporal
 
     if args.temporal:
@@ -283,20 +341,27 @@ def cmd_export(args: argparse.Namespace) -> int:
         if given or not args.emission:
             raise ValueError(f"{(given or ['--no-emission'])[0]}: not with --temporal (its graph is fixed: "
                              "emission in, per-frame guided filter for new pixels)")
-        path, what = export_temporal(args.out, overwrite=args.overwrite), "temporal step"
+        what = "temporal step"
+        export = lambda: export_temporal(args.out, overwrite=args.overwrite)
     else:
         method, spp, quality = args.method or "guided", 1.0 if args.spp is None else args.spp, args.quality or "balanced"
         if args.variance and spp < 2:
             raise ValueError(f"--variance: the back-off needs --spp 2 or more, got {spp}")
-        path = export_denoiser(method, args.out, spp=spp, quality=quality, sigma_position=args.sigma_position,
-                               emission=args.emission, variance=args.variance, overwrite=args.overwrite)
-        what = f"{method}, {spp} spp, {quality}"
+        what = (f"{method}, fixed for {spp:g} spp (other sample counts refused), {quality}, "
+                f"{'with' if args.variance else 'without'} a variance input")
+        export = lambda: export_denoiser(method, args.out, spp=spp, quality=quality, sigma_position=args.sigma_position,
+                                         emission=args.emission, variance=args.variance, overwrite=args.overwrite)
+    if os.path.exists(args.out) and not args.overwrite:
+        raise FileExistsError(f"--out: {args.out} exists; pass --overwrite to replace it")
+    print(f"exporting {what} to ONNX ...", file=sys.stderr, flush=True)
+    t0 = time.perf_counter()
+    path = export()
     import onnx
 
     graph = onnx.load(str(path)).graph  # names as written, not restated here
     outputs = "" if not args.temporal else f"; outputs {', '.join(o.name for o in graph.output)}"
-    print(f"wrote {path} ({what}); inputs {', '.join(i.name for i in graph.input)}{outputs} "
-          f"(B, C, H, W) float32, dynamic B/H/W")
+    print(f"wrote {path} ({what}) in {time.perf_counter() - t0:.1f} s; inputs {', '.join(i.name for i in graph.input)}"
+          f"{outputs} (B, C, H, W) float32, dynamic B/H/W")
     return 0
 
 
@@ -404,6 +469,8 @@ def _denoise_and_export_parsers(sub: argparse._SubParsersAction) -> None:
     _out_flags(p, "output .exr (layer 'color') or .png (tonemapped sRGB); with --temporal a folder (one EXR per "
                "frame, summary.json)")
     p.add_argument("--exposure", type=float, default=1.0, help="a .png output's exposure (linear scale before sRGB)")
+    p.add_argument("--device", type=_device, default=torch.device("cpu"), help="where to denoise: cpu (default), "
+                   "cuda or cuda:N (the result is written from the CPU)")
     p.add_argument("--temporal", action="store_true", help="an animation: the TemporalDenoiser over the frames "
                    "in order (needs depth and motion layers; resumes a folder it wrote)")
     p.add_argument("--motion-convention", choices=list(MOTION_CONVENTIONS), default=None,
@@ -445,6 +512,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("img", nargs="+", help="EXR file(s) to evaluate")
     p.add_argument("--ref", required=True, help="the reference EXR (relMSE is not symmetric: it is named, not guessed)")
     p.add_argument("--json", action="store_true", help='one JSON object: {"reference": REF, "images": {IMG: {...}}}')
+    p.add_argument("--picture", default=None, help="also write a .png: each IMG beside the reference, labelled with its "
+                   "errors; never overwritten unless --overwrite")
+    p.add_argument("--exposure", type=float, default=1.0, help="the picture's exposure (linear scale before sRGB)")
+    p.add_argument("--overwrite", action="store_true")
     p.set_defaults(func=cmd_metrics)
 
     p = sub.add_parser("render", help="path-trace a scene into a multi-layer EXR (needs the render and exr extras)")

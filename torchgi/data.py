@@ -24,7 +24,6 @@ import hashlib
 import itertools
 import json
 import os
-import tempfile
 import zlib
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -35,6 +34,7 @@ import torch
 
 from torchgi.core.check import check_int, check_nonnegative, check_option, require
 from torchgi.core.errors import ConfigError, RangeError
+from torchgi.core.files import temp_beside
 
 __all__ = ["DataGenConfig", "FilterFeatures", "ShardDataset", "Task", "load_config", "plan", "run_job", "run_task"]
 
@@ -277,9 +277,8 @@ def _sha256(path: str | os.PathLike[str]) -> str:
 
 
 def _write_atomic(path: Path, text: str) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    with os.fdopen(fd, "w", encoding="utf-8") as fh:
-        fh.write(text)
+    tmp = temp_beside(path)
+    Path(tmp).write_text(text, encoding="utf-8")
     os.replace(tmp, path)
 
 

@@ -38,7 +38,15 @@ from typing import Any
 import torch
 
 from torchgi import light, methods
-from torchgi.buffers import GBuffer, _noise_free, _warn_if_colour_normals, _with_samples, mean_spp, require_guides
+from torchgi.buffers import (
+    GBuffer,
+    _noise_free,
+    _warn_if_colour_normals,
+    _warn_of_the_colour,
+    _with_samples,
+    mean_spp,
+    require_guides,
+)
 from torchgi.core.check import check_finite, check_option, check_positive, finite_or_sanitized_all
 from torchgi.core.errors import ShapeError
 from torchgi.core.registry import Registry
@@ -169,7 +177,8 @@ class Denoiser(torch.nn.Module):
         if not self._method.exportable:
             raise ValueError(f"method: only {', '.join(EXPORTABLE)} deploy to ONNX, not {self.method!r}")
         params, net = self._method.deploy(1.0 if spp is None else float(spp), samples, frame, variance, sigma_position)
-        return deployed(self.method, params, net, emission, variance, self._method.firefly(self.settings))
+        count = samples if samples is not None or frame is not None else 1.0  # recorded in the graph
+        return deployed(self.method, params, net, emission, variance, self._method.firefly(self.settings), count)
 
     def extra_repr(self) -> str:
         params = "".join(f", {k}={v!r}" for k, v in self.filter_params.items())
@@ -193,8 +202,6 @@ class Denoiser(torch.nn.Module):
             raise ShapeError("color: required (or direct and indirect)")
         if not m.filters:
             return gb.color, None
-        if gb.albedo is None or gb.normal is None:
-            raise ShapeError("albedo and normal: required by every method but 'none'")
         require_guides(gb, self.method, m.needs)
         _warn_if_colour_normals(gb.normal)
         if self.sanitize:
@@ -206,6 +213,7 @@ class Denoiser(torch.nn.Module):
         for name in ("color", "emission", "direct", "albedo", "normal", "position", "depth", "variance"):
             if getattr(gb, name) is not None and name not in own:
                 check_finite(getattr(gb, name), name)  # named here, not as the filter's input
+        _warn_of_the_colour(gb)
         if _noise_free(gb) or gb.color.numel() == 0:  # nothing to filter (an empty batch included)
             return (gb.color if self.hdr else gb.color.clamp(0, 1)), None
         surface = light.surface_mask(gb.hit, gb.albedo)

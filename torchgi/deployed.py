@@ -77,7 +77,7 @@ class DeployedDenoiser(torch.nn.Module):
     emission = True  # the graph's inputs include an emission layer
 
     def __init__(self, method: str, params: dict[str, Any], net: torch.nn.Module | None = None,
-                 variance: bool = False, firefly: float | None = None) -> None:
+                 variance: bool = False, firefly: float | None = None, spp: float | None = 1.0) -> None:
         super().__init__()
         check_option(method, "method", methods.names(exportable=True))
         kind = methods.get(method)
@@ -88,7 +88,10 @@ class DeployedDenoiser(torch.nn.Module):
             raise ValueError(f"variance: the back-off needs a sample count of 2 or more, got {params.get('samples')}")
         if firefly is not None:
             check_positive(firefly, "firefly")
+        if spp is not None:
+            check_positive(spp, "spp")
         self.method, self.params, self.net, self.variance = method, dict(params), net, variance
+        self.spp = None if spp is None else float(spp)  # the render's sample count it is fixed for (None: unknown)
         self.firefly = kind.firefly() if firefly is None else float(firefly)  # fireflies clamped at this x local level
         self._kind = kind
 
@@ -156,6 +159,19 @@ class DeployedDenoiser(torch.nn.Module):
         out = outs[0] if len(outs) == 1 else light.choose(outs, list(radii), variance, emit, box)
         return light.back_off(out, color, variance, float(self.params["samples"]), emit, box)
 
+    def metadata(self) -> dict[str, str]:
+        """What an exported graph records of the renders it was built for (ONNX ``metadata_props``,
+        read by :class:`torchgi.export.OrtDenoiser`): the method, the render's sample count
+        (:attr:`spp`; "" where it was fixed from a frame without one) and the inputs.
+
+        Example:
+            >>> import torchgi
+            >>> torchgi.Denoiser("guided").deploy(spp=4).metadata()["torchgi.spp"]
+            '4.0'
+        """
+        return {"torchgi.method": self.method, "torchgi.spp": "" if self.spp is None else repr(self.spp),
+                "torchgi.inputs": ",".join(self.input_names)}
+
     def extra_repr(self) -> str:
         return f"method={self.method!r}, " + ", ".join(f"{k}={v!r}" for k, v in self.params.items()) + (
             "" if self.emission else ", emission=False") + (", variance=True" if self.variance else "")
@@ -176,17 +192,17 @@ class DeployedDenoiserWithoutEmission(DeployedDenoiser):
 
 
 def deployed(method: str, params: dict[str, Any], net: torch.nn.Module | None, emission: bool,
-             variance: bool = False, firefly: float | None = None) -> DeployedDenoiser:
+             variance: bool = False, firefly: float | None = None, spp: float | None = 1.0) -> DeployedDenoiser:
     """The exportable module :meth:`torchgi.Denoiser.deploy` returns for ``method`` (one of
     ``methods.names(exportable=True)``) with its fixed ``params`` and network:
     :class:`DeployedDenoiser`, or :class:`DeployedDenoiserWithoutEmission` when ``emission`` is
     False; with ``variance`` a variance input and the back-off (``params["samples"]``: the
-    render's sample count, >= 2); ``firefly`` the clamp factor (None: the method's default).
+    render's sample count, >= 2); ``firefly`` the clamp factor (None: the method's default);
+    ``spp`` the render's sample count it is fixed for (None: unknown), recorded in :meth:`~DeployedDenoiser.metadata`.
 
     Example:
         >>> deployed("guided", {"radius": 2, "eps": 1e-4}, None, emission=False)
         DeployedDenoiserWithoutEmission(method='guided', radius=2, eps=0.0001, emission=False)
     """
-    if emission:
-        return DeployedDenoiser(method, params, net, variance, firefly)
-    return DeployedDenoiserWithoutEmission(method, params, net, variance, firefly)
+    kind = DeployedDenoiser if emission else DeployedDenoiserWithoutEmission
+    return kind(method, params, net, variance, firefly, spp)

@@ -5,10 +5,10 @@ from __future__ import annotations
 import contextlib
 import inspect
 import logging
+import math
 import os
-import tempfile
 import warnings
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +17,7 @@ import torch
 from torch import nn
 
 from torchgi.core.check import check_int, check_positive, check_shape, require
+from torchgi.core.files import temp_beside
 
 __all__ = ["OrtDenoiser", "OrtSession", "export_denoiser", "export_onnx", "export_temporal"]
 
@@ -31,6 +32,7 @@ def export_onnx(
     opset: int = 18,
     optimize: bool = True,
     overwrite: bool = False,
+    metadata: Mapping[str, str] | None = None,
 ) -> Path:
     """Export ``module`` to ONNX with dynamic B, H, W on every ``(B, C, H, W)`` input.
 
@@ -43,11 +45,14 @@ def export_onnx(
         opset: ONNX opset (>= 17).
         optimize: run the ONNX graph optimizer (cleaner graph; on large unrolled filters like
             5-level À-Trous it is the slow part of the export).
+        metadata: string pairs written into the model's ``metadata_props`` (onnxruntime:
+            ``session.get_modelmeta().custom_metadata_map``; :class:`OrtSession.metadata`).
 
     Returns:
         The path written.
 
     Example:
+        >>> import tempfile
         >>> from torchgi.filters import Box
         >>> p = export_onnx(Box(2), [torch.rand(1, 3, 8, 9)],
         ...                 os.path.join(tempfile.mkdtemp(), "box.onnx"), input_names=["x"])
@@ -78,8 +83,7 @@ def export_onnx(
     shapes = tuple(dynamic)
     if any(p.kind is p.VAR_POSITIONAL for p in inspect.signature(module.forward).parameters.values()):
         shapes = (shapes,)  # forward(*inputs): the exporter sees one argument, a tuple
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
+    tmp = temp_beside(path)
     try:
         with _exporter_notes_hidden():
             torch.onnx.export(
@@ -87,6 +91,13 @@ def export_onnx(
                 output_names=list(output_names), dynamic_shapes=shapes, opset_version=opset, dynamo=True,
                 optimize=optimize, verbose=False,
             )
+        if metadata:
+            import onnx
+
+            model = onnx.load(tmp)
+            for key, value in metadata.items():
+                model.metadata_props.add(key=str(key), value=str(value))
+            onnx.save(model, tmp)
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
@@ -139,6 +150,7 @@ class OrtSession:
         ort = require("onnxruntime", "onnx")
         self.session = ort.InferenceSession(str(path), providers=list(providers or ["CPUExecutionProvider"]))
         self.input_names = [i.name for i in self.session.get_inputs()]
+        self.metadata = dict(self.session.get_modelmeta().custom_metadata_map)  # export_onnx(metadata=)
 
     def __call__(self, **inputs: torch.Tensor) -> torch.Tensor:
         return self.outputs(**inputs)[0]
@@ -178,6 +190,7 @@ def export_denoiser(
     numbers > 0.
 
     Example:
+        >>> import tempfile
         >>> p = export_denoiser("guided", os.path.join(tempfile.mkdtemp(), "d.onnx"))
         >>> OrtDenoiser(p).input_names
         ['color', 'emission', 'albedo', 'normal', 'depth']
@@ -195,7 +208,7 @@ def export_denoiser(
     channels = {"depth": 1, "variance": 3 if getattr(frame, "variance", None) is None else frame.variance.shape[1]}
     examples = [torch.rand(B, channels.get(name, 3), H, W, generator=g) for name in module.input_names]
     return export_onnx(module, examples, path, input_names=list(module.input_names), overwrite=overwrite,
-                       optimize=methods.get(method).onnx_optimize)
+                       optimize=methods.get(method).onnx_optimize, metadata=module.metadata())
 
 
 def export_temporal(path: str | os.PathLike, *, fresh: bool = True, overwrite: bool = False) -> Path:
@@ -208,6 +221,7 @@ def export_temporal(path: str | os.PathLike, *, fresh: bool = True, overwrite: b
         fresh: new pixels blended towards the per-frame Denoiser (``DeployedTemporal(fresh)``).
 
     Example (an export takes about 30 s on 2 cores; tests/test_cli.py runs it):
+        >>> import tempfile
         >>> p = export_temporal(os.path.join(tempfile.mkdtemp(), "t.onnx"))  # doctest: +SKIP
         >>> OrtSession(p).input_names[:6]  # doctest: +SKIP
         ['color', 'emission', 'albedo', 'normal', 'depth', 'motion']
@@ -226,18 +240,52 @@ def export_temporal(path: str | os.PathLike, *, fresh: bool = True, overwrite: b
 
 class OrtDenoiser:
     """An exported Denoiser in onnxruntime, called like :class:`torchgi.Denoiser`: with a
-    GBuffer or with named tensors: those of :attr:`input_names` (an emission layer the graph
-    was exported with must be given, one it was exported without is refused; nothing is
-    made up; a variance is used only by a graph exported with one, ``variance=True``)."""
+    GBuffer or with named tensors: those of :attr:`input_names`. Nothing is dropped or made up:
+    an emission layer the graph was exported with must be given, one it was exported without is
+    refused; a ``variance`` is refused by a graph exported without one (but for 2 samples per
+    pixel or more, where the eager Denoiser would use it), and a sample count
+    (``gb.spp``, or ``spp=`` a number or a ``(B, 1, H, W)`` plane) other than the one the graph
+    was fixed for (:attr:`spp`, from its metadata: :meth:`torchgi.deployed.DeployedDenoiser.metadata`)
+    is refused by name, unless ``ignore`` names it: ``ignore=("spp", "variance")`` runs the graph
+    as fixed whatever the input says.
 
-    def __init__(self, path: str | os.PathLike, providers: Sequence[str] | None = None) -> None:
+    Args:
+        path: the ``.onnx`` file (:func:`export_denoiser`, ``torchgi export``).
+        providers: onnxruntime execution providers (default CPU).
+        ignore: inputs the graph cannot use that a call may carry without being refused
+            (``"spp"``, ``"variance"``).
+
+    Example:
+        >>> import tempfile
+        >>> p = export_denoiser("guided", os.path.join(tempfile.mkdtemp(), "d.onnx"), spp=4)  # doctest: +SKIP
+        >>> OrtDenoiser(p).spp  # doctest: +SKIP
+        4.0
+    """
+
+    IGNORABLE = ("spp", "variance")
+
+    def __init__(self, path: str | os.PathLike, providers: Sequence[str] | None = None, *,
+                 ignore: Sequence[str] = ()) -> None:
+        if isinstance(ignore, str) or any(k not in self.IGNORABLE for k in ignore):
+            raise ValueError(f"ignore: expected a sequence of {', '.join(map(repr, self.IGNORABLE))}, got {ignore!r}")
         self.session = OrtSession(path, providers)
         self.input_names = self.session.input_names
+        self.ignore = tuple(ignore)
+        recorded = self.session.metadata.get("torchgi.spp")
+        #: the render's sample count the graph is fixed for; None where it records none
+        self.spp = float(recorded) if recorded else None
 
-    def __call__(self, gb=None, **tensors: torch.Tensor) -> torch.Tensor:
+    def __call__(self, gb=None, *, spp: float | torch.Tensor | None = None, **tensors: torch.Tensor) -> torch.Tensor:
         if gb is not None:
-            tensors = {k: getattr(gb, k) for k in set(self.input_names) | {"emission"}
+            if tensors:
+                raise TypeError(f"{', '.join(tensors)}: give a GBuffer or named tensors, not both")
+            tensors = {k: getattr(gb, k) for k in set(self.input_names) | {"emission", "variance"}
                        if getattr(gb, k, None) is not None}
+            if spp is None:
+                spp = gb.spp
+        unknown = [k for k in tensors if k not in self.input_names and k not in ("emission", "variance")]
+        if unknown:
+            raise TypeError(f"{', '.join(unknown)}: not an input of this graph (inputs {', '.join(self.input_names)})")
         missing = [k for k in self.input_names if k not in tensors]
         if "emission" in missing:
             raise ValueError("emission: this graph was exported with an emission input; pass it (zeros when no "
@@ -247,4 +295,26 @@ class OrtDenoiser:
                              "export with emission=True to use one")
         if missing:
             raise ValueError(f"{', '.join(missing)}: required by this graph (inputs {', '.join(self.input_names)})")
+        if spp is not None and "spp" not in self.ignore:
+            self._check_spp(spp)
+        # at 1 sample the variance is unknown (stored as 0) and the eager Denoiser does not use it either
+        used = self.spp is None or self.spp >= 2
+        if "variance" in tensors and "variance" not in self.input_names and used and "variance" not in self.ignore:
+            raise ValueError("variance: this graph was exported without a variance input and would not use it; "
+                             "export with variance=True (torchgi export --variance) or pass ignore=('variance',)")
         return self.session(**{k: v.float() for k, v in tensors.items() if k in self.input_names})
+
+    def _check_spp(self, spp: float | torch.Tensor) -> None:
+        """Refuse a sample count (a number, or a plane: its mean) other than :attr:`spp`."""
+        from torchgi.buffers import mean_spp
+
+        given = mean_spp(spp) if isinstance(spp, torch.Tensor) else spp
+        if isinstance(given, bool) or not isinstance(given, (int, float)) or not 1 <= given < math.inf:
+            raise ValueError(f"spp: expected the render's samples per pixel, a finite number >= 1, got {spp!r}")
+        if self.spp is None:
+            raise ValueError(f"spp: this graph records no sample count it was fixed for (exported from a frame "
+                             f"without one, or without torchgi's metadata), so it cannot check {given:g}; "
+                             "pass ignore=('spp',) to run it as fixed")
+        if abs(given - self.spp) > 1e-3 * self.spp:
+            raise ValueError(f"spp: this graph is fixed for {self.spp:g} samples per pixel, the input has {given:g}; "
+                             f"export one for {given:g} (torchgi export --spp {given:g}) or pass ignore=('spp',)")

@@ -24,6 +24,13 @@ def test_kernels_build_with_the_system_compiler():
     for d in (0.0, 0.5, 3.0, 20.0, 80.0):
         assert abs(lib.torchgi_exp_neg(d) - np.exp(-d)) <= 2e-7 * np.exp(-d)
     assert lib.torchgi_exp_neg(100.0) == 0.0  # below 1.2e-38: no weight
+    # issue 71: with a compiler here the C back end must run every op family's float32 CPU calls
+    # (a back end that silently declines would leave the "C kernel ran" tests on the torch code)
+    assert {op: ran for op, (ran, _) in backends.plan("cpu").items() if ran != "c"} == {}
+    from torchgi.filters import box
+
+    box(torch.rand(1, 2, 9, 7), 2)
+    assert backends.status()["last"]["box"]["ran"] == "c"
 
 
 

@@ -38,3 +38,24 @@ def test_srgb_encoding_against_the_formula():
     """0.5 linear is 0.7354 in sRGB (IEC 61966-2-1): 188 of 255; 0.002 is on the linear toe."""
     out = to_srgb8(torch.tensor([0.5, 0.002, 2.0]).view(3, 1, 1))
     assert out[0, 0].tolist() == [188, round(0.002 * 12.92 * 255), 255]
+
+
+@pytest.mark.parametrize("mask", [0o022, 0o077])
+def test_written_files_have_the_umasks_permissions(tmp_path, mask):
+    """Issue 69: EXR files were written ``-rw-------`` whatever the umask (renamed from a
+    ``mkstemp`` file); every file torchgi writes atomically has ``0o666`` less the umask, as one
+    ``open()`` creates."""
+    import os
+    import stat
+
+    from torchgi.io import write_exr
+
+    old = os.umask(mask)
+    try:
+        paths = [write_exr(tmp_path / "a.exr", {"color": torch.rand(3, 4, 5)}),
+                 write_png(tmp_path / "a.png", np.zeros((4, 5, 3), np.uint8))]
+    finally:
+        os.umask(old)
+    for path in paths:
+        assert stat.S_IMODE(os.stat(path).st_mode) == 0o666 & ~mask, path
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.exr", "a.png"]  # no temporary left

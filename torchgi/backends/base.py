@@ -80,6 +80,7 @@ __all__ = [
     "enabled",
     "float32_eager",
     "mark_embree_started",
+    "plan",
     "run",
     "select",
     "status",
@@ -494,22 +495,41 @@ def select(desc: Op) -> tuple[str, Callable[[Any], Any]]:
         'torch'
     """
     op = _OPS[type(desc)]
-    allowed = _allowed.get()
+    name, _ = _last[op] = _first(lambda name: _module(name).supports(op, desc))
+    return name, getattr(_module(name), op)
+
+
+def _first(why_not: Callable[[str], str | None]) -> tuple[str, dict[str, str]]:
+    """The first back end of :data:`ORDER` allowed here for which ``why_not`` is None, and why
+    each one before it declined."""
     skipped: dict[str, str] = {}
     for name in ORDER:
-        if name not in allowed:
-            skipped[name] = "switched off by torchgi.backends.use(...)"
-            continue
-        if name in _COMPILED and _ENV_OFF:
-            skipped[name] = "switched off by TORCHGI_NATIVE=0"
-            continue
-        mod = _module(name)
-        why = mod.supports(op, desc)
+        why = _switched_off(name) or why_not(name)
         if why is None:
-            _last[op] = (name, skipped)
-            return name, getattr(mod, op)
+            return name, skipped
         skipped[name] = why
-    raise AssertionError(f"no back end for {op}: {skipped}")  # the torch code takes every call
+    raise AssertionError(f"no back end: {skipped}")  # the torch code takes every call
+
+
+def _switched_off(name: str) -> str | None:
+    """Why back end ``name`` may not run here (:func:`use`, ``TORCHGI_NATIVE=0``), or None."""
+    if name not in _allowed.get():
+        return "switched off by torchgi.backends.use(...)"
+    if name in _COMPILED and _ENV_OFF:
+        return "switched off by TORCHGI_NATIVE=0"
+    return None
+
+
+def plan(device: str = "cpu") -> dict[str, tuple[str, dict[str, str]]]:
+    """Per op family, the back end that runs an eager float32 call on ``device`` ("cpu", "cuda")
+    tensors here and why each before it in :data:`ORDER` declines (a call's sizes, dtypes or
+    autograd can still send it further down: :func:`status`'s ``last`` says what ran).
+
+    Example:
+        >>> plan("cuda")["importance"][1]["triton"]
+        'no Triton kernel for importance'
+    """
+    return {op: _first(lambda name, op=op: _module(name).ready(op, device)) for op in sorted(set(_OPS.values()))}
 
 
 def run(desc: Op) -> Any:
@@ -555,24 +575,26 @@ def enabled(name: str) -> bool:
 
 
 def status() -> dict[str, Any]:
-    """What each back end can do here and, per op, which one ran last and why the others did
-    not (for logs and benchmark metadata); builds the C kernels if no call has yet.
+    """What each back end can do here, the C compiler and the kernel cache, per op family and
+    device the back end an eager float32 call runs (:func:`plan`) and, per op, which one ran last
+    and why the others did not (``torchgi info``, logs, benchmarks); builds the C kernels first.
 
     Returns:
-        ``{"c": str, "triton": str, "torch": str, "last": {op: {"ran": name, "skipped": {name: reason}}}}``.
+        ``{"c": str, "triton": str, "torch": str, "compiler": path | None, "cache": path,
+        "ops": {device: {op: {"runs": name, "declined": {name: reason}}}},
+        "last": {op: {"ran": name, "skipped": {name: reason}}}}``.
 
     Example:
         >>> s = status()
-        >>> sorted(s) == ["c", "last", "torch", "triton"]
+        >>> sorted(s) == ["c", "cache", "compiler", "last", "ops", "torch", "triton"]
         True
     """
-    out: dict[str, Any] = {}
-    for name in NAMES:
-        if name in _COMPILED and _ENV_OFF:
-            out[name] = "switched off by TORCHGI_NATIVE=0"
-        elif name not in _allowed.get():
-            out[name] = "switched off by torchgi.backends.use(...)"
-        else:
-            out[name] = _module(name).describe()
+    from torchgi.backends.c_kernels import build
+
+    out: dict[str, Any] = {name: _switched_off(name) or _module(name).describe() for name in NAMES}
+    out["compiler"] = build._compiler()
+    out["cache"] = str(build._cache_dir())
+    out["ops"] = {device: {op: {"runs": ran, "declined": skipped} for op, (ran, skipped) in plan(device).items()}
+                  for device in ("cpu", "cuda")}
     out["last"] = {op: {"ran": ran, "skipped": dict(skipped)} for op, (ran, skipped) in sorted(_last.items())}
     return out

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import dataclasses
 import os
-import tempfile
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 
@@ -23,6 +22,7 @@ import torch
 
 from torchgi.core.check import check_option, require
 from torchgi.core.errors import DTypeError, ExrError, LayerError, ShapeError
+from torchgi.core.files import temp_beside
 from torchgi.io.motion import motion_convention_of, to_torchgi_motion
 
 __all__ = ["AOV_ALIASES", "AOV_CHANNELS", "LayerReport", "find_aovs", "match_aovs", "read_aovs", "read_exr",
@@ -160,8 +160,7 @@ def write_exr(
         raise FileNotFoundError(f"path: folder {path.parent} does not exist")
     comp = {"zip": OpenEXR.ZIP_COMPRESSION, "piz": OpenEXR.PIZ_COMPRESSION, "none": OpenEXR.NO_COMPRESSION}
     header = {"compression": comp[compression], "type": OpenEXR.scanlineimage}
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
+    tmp = temp_beside(path)
     try:
         OpenEXR.File(header, channels).write(tmp)
         if overwrite:

@@ -10,6 +10,7 @@ import numpy as np
 import torch
 
 from torchgi.core.check import check_finite, check_positive, check_shape, require
+from torchgi.core.files import temp_beside
 
 __all__ = ["to_srgb8", "write_png"]
 
@@ -48,7 +49,11 @@ def write_png(path: str | os.PathLike, pixels: np.ndarray, *, overwrite: bool = 
     if pixels.dtype != np.uint8 or pixels.ndim not in (2, 3) or (pixels.ndim == 3 and pixels.shape[2] != 3):
         raise ValueError(f"pixels: expected uint8 (H, W) or (H, W, 3), got {pixels.dtype} {pixels.shape}")
     iio = require("imageio.v3", "image")
-    tmp = path.with_name(f".{path.name}.tmp")
-    iio.imwrite(tmp, np.ascontiguousarray(pixels), extension=".png")
-    os.replace(tmp, path)  # atomic: a reader never sees half a file
+    tmp = temp_beside(path)
+    try:
+        iio.imwrite(tmp, np.ascontiguousarray(pixels), extension=".png")
+        os.replace(tmp, path)  # atomic: a reader never sees half a file
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
     return path

@@ -78,7 +78,7 @@ from torchgi.backends.c_kernels.tracer import _path_support, guide_rays, path
 __all__ = [
     "NAME", "accumulate", "allocate", "applied_means", "apply_kernels", "apply_kernels_grad", "atrous", "atrous_level", "atrous_level_grad", "back_off", "block_means", "box", "change", "choose", "describe", "edge_share",
     "empty_planes", "fine_band", "guide_rays", "guide_stats", "guided", "guided_grad", "history", "importance", "library", "light_in", "light_out",
-    "mix_half", "model_residual", "padded", "path", "restore", "supports",
+    "mix_half", "model_residual", "padded", "path", "ready", "restore", "supports",
     "upsample_apply",
 ]
 
@@ -87,6 +87,20 @@ NAME = "c"
 _IMAGE = {"accumulate": "x", "change": "x", "history": "out", "restore": "color", "light_in": "color", "light_out": "color", "model_residual": "x",
           "fine_band": "model", "block_means": "x", "applied_means": "guide", "apply_kernels": "x", "apply_kernels_grad": "x",
           "atrous_level": "color", "atrous_level_grad": "color", "guided_grad": "src"}
+
+
+def ready(op: str, device: str) -> str | None:
+    """None when the kernels can take eager float32 calls of ``op`` on ``device`` tensors ("cpu",
+    "cuda") here, whatever their sizes (a built library, CPU tensors); else why not
+    (:func:`torchgi.backends.plan`).
+
+    Example:
+        >>> ready("box", "cuda")
+        'the C kernels take CPU tensors'
+    """
+    if device != "cpu":
+        return "the C kernels take CPU tensors"
+    return None if library() is not None else build._status
 
 
 def supports(op: str, desc: BoxOp | GuidedOp | ATrousOp | ImportanceOp | AllocateOp | GuideStatsOp | EdgeShareOp |

@@ -37,7 +37,7 @@ from torchgi.backends.torch_code.tracer import guide_rays, path
 __all__ = [
     "NAME", "PlaneBoxer", "accumulate", "allocate", "applied_means", "apply_coefficients", "apply_kernels", "apply_kernels_grad", "atrous", "atrous_level", "atrous_level_grad", "back_off", "block_mean", "block_means", "box", "box_pool",
     "change", "channel_planes", "choose", "describe", "edge_share", "fine_band", "guide_rays", "guide_stats", "guided", "guided_filter", "guided_grad",
-    "history", "importance", "in_place", "light_in", "light_out", "mix_half", "model_residual", "path", "restore", "solve", "squared_distance",
+    "history", "importance", "in_place", "light_in", "light_out", "mix_half", "model_residual", "path", "ready", "restore", "solve", "squared_distance",
     "supports", "up2", "upsample_apply",
 ]
 
@@ -49,6 +49,16 @@ def supports(op: str, desc: object) -> str | None:
 
     Example:
         >>> supports("box", object()) is None
+        True
+    """
+    return None
+
+
+def ready(op: str, device: str) -> str | None:
+    """None: the torch code takes every call of every op on every device (:func:`torchgi.backends.plan`).
+
+    Example:
+        >>> ready("box", "cuda") is None
         True
     """
     return None

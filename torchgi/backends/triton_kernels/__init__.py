@@ -32,6 +32,8 @@ Example:
 
 from __future__ import annotations
 
+import torch
+
 from torchgi.backends.base import AccumulateOp, ATrousOp, BoxOp, GuidedOp, RestoreOp, float32_eager
 from torchgi.backends.triton_kernels.accumulation import accumulate
 from torchgi.backends.triton_kernels.common import _INTERPRET, triton
@@ -41,10 +43,12 @@ from torchgi.backends.triton_kernels.filter_guided_grad import guided_grad
 from torchgi.backends.triton_kernels.filter_kernels import apply_kernels, apply_kernels_grad
 from torchgi.backends.triton_kernels.pipeline import restore
 
-__all__ = ["MAX_CHANNELS", "NAME", "accumulate", "apply_kernels", "apply_kernels_grad", "atrous", "atrous_level",
-           "atrous_level_grad", "box", "describe", "guided", "guided_grad", "restore", "supports"]
+__all__ = ["MAX_CHANNELS", "NAME", "OPS", "accumulate", "apply_kernels", "apply_kernels_grad", "atrous", "atrous_level",
+           "atrous_level_grad", "box", "describe", "guided", "guided_grad", "ready", "restore", "supports"]
 
 NAME = "triton"
+OPS = ("box", "guided", "guided_grad", "atrous", "restore", "accumulate", "apply_kernels", "apply_kernels_grad",
+       "atrous_level", "atrous_level_grad")  # the ops with a Triton kernel
 
 
 def describe() -> str:
@@ -60,6 +64,25 @@ def describe() -> str:
     return f"Triton {triton.__version__} kernels for {where}"
 
 
+def ready(op: str, device: str) -> str | None:
+    """None when the kernels can take eager float32 calls of ``op`` on ``device`` tensors ("cpu",
+    "cuda") here, whatever their sizes; else why not (:func:`torchgi.backends.plan`).
+
+    Example:
+        >>> ready("importance", "cuda")
+        'no Triton kernel for importance'
+    """
+    if op not in OPS:
+        return f"no Triton kernel for {op}"
+    if triton is None:
+        return "Triton not installed"
+    if device != "cuda" and not _INTERPRET:
+        return "the Triton kernels take CUDA tensors"
+    if device == "cuda" and not torch.cuda.is_available():
+        return "no CUDA device here"
+    return None
+
+
 def supports(op: str, desc: BoxOp | GuidedOp | ATrousOp | RestoreOp | AccumulateOp) -> str | None:
     """None when the kernels take ``desc``: an À-Trous level, the guided or box filter, the
     guided pipeline, the temporal accumulation or per-pixel kernels and their gradients of eager float32 CUDA tensors (CPU ones under the
@@ -69,14 +92,10 @@ def supports(op: str, desc: BoxOp | GuidedOp | ATrousOp | RestoreOp | Accumulate
         >>> supports("importance", None)   # no Triton kernel of the importance map
         'no Triton kernel for importance'
     """
-    if op not in ("box", "guided", "guided_grad", "atrous", "restore", "accumulate", "apply_kernels",
-                  "apply_kernels_grad", "atrous_level", "atrous_level_grad"):
-        return f"no Triton kernel for {op}"
-    if triton is None:
-        return "Triton not installed"
-    ts = [t for t in desc.tensors() if t is not None]
-    if any(t.device.type != "cuda" and not _INTERPRET for t in ts):
-        return "the Triton kernels take CUDA tensors"
+    ts = [t for t in desc.tensors() if t is not None] if op in OPS else []
+    why = ready(op, "cuda" if ts and all(t.device.type == "cuda" for t in ts) else "cpu")
+    if why is not None:
+        return why
     why = float32_eager(op, desc, "Triton")
     if why is not None:
         return why
