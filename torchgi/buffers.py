@@ -460,6 +460,7 @@ def pixel_noise_correlation(gb: GBuffer, *, pixels: int = 32768, min_pairs: int 
         h0 = run(y, 0) - 2 * run(y, 1) + run(y, 2)
         h1 = run(y, 1) - 2 * run(y, 2) + run(y, 3)
         product = (h0 * h1)[keep]
+        product = product[product.isfinite()]  # (a NaN / Inf pixel: refused or sanitized by the Denoiser)
         negative += int((product < 0).sum())
         counted += int((product != 0).sum())
     if counted < min_pairs:
@@ -483,9 +484,13 @@ def _warn_if_correlated(gb: GBuffer) -> None:
 
 
 def _warn_of_the_colour(gb: GBuffer) -> None:
-    """The Denoiser's warnings about a colour it filters as given: negative values, correlated noise."""
+    """The Denoiser's warnings about a colour it filtered as given: negative values, correlated
+    noise (with the albedo and normal it needs)."""
+    if gb.color is None:
+        return
     _warn_if_negative(gb.color)
-    _warn_if_correlated(gb)
+    if gb.albedo is not None and gb.normal is not None:
+        _warn_if_correlated(gb)
 
 
 def _warn_if_negative(color: torch.Tensor) -> None:

@@ -190,7 +190,9 @@ class Denoiser(torch.nn.Module):
     def forward(self, gb: GBuffer | None = None, **tensors: torch.Tensor | float) -> torch.Tensor:
         count = None if isinstance(tensors.get("spp"), torch.Tensor) else tensors.pop("spp", None)
         gb = GBuffer.from_inputs(gb, tensors, by="Denoiser")
-        return self._denoise(gb if count is None else _with_samples(gb, count, "Denoiser"))
+        out = self._denoise(gb if count is None else _with_samples(gb, count, "Denoiser"))
+        _warn_of_the_colour(gb)  # the caller's render (a TemporalDenoiser's own calls carry reprojected history)
+        return out
 
     def _denoise(self, gb: GBuffer) -> torch.Tensor:
         return self._run(gb)[0]
@@ -213,7 +215,6 @@ class Denoiser(torch.nn.Module):
         for name in ("color", "emission", "direct", "albedo", "normal", "position", "depth", "variance"):
             if getattr(gb, name) is not None and name not in own:
                 check_finite(getattr(gb, name), name)  # named here, not as the filter's input
-        _warn_of_the_colour(gb)
         if _noise_free(gb) or gb.color.numel() == 0:  # nothing to filter (an empty batch included)
             return (gb.color if self.hdr else gb.color.clamp(0, 1)), None
         surface = light.surface_mask(gb.hit, gb.albedo)
