@@ -14,8 +14,8 @@ from pathlib import Path
 import pytest
 from packaging.requirements import Requirement
 
+from torchgi import methods
 from torchgi.cli import build_parser
-from torchgi.denoise import METHODS
 
 pytest.importorskip("embreex")
 pytest.importorskip("OpenEXR")
@@ -66,8 +66,8 @@ def test_demo_reports_every_method_on_the_extras_it_names_and_never_overwrites(t
     header = next(line.split() for line in lines if line.startswith("method"))
     assert header[1:5] == ["relMSE", "SSIM", "FLIP", "ms"]  # not MSE: the light source's pixels carry MSE
     rows = {line.split()[0]: line.split()[1:5] for line in lines if line.split()[:1] and line.split()[0] in
-            {"noisy", *METHODS}}
-    assert set(rows) == {"noisy", *METHODS} - {"none"}  # every method ("none" is the noisy row)
+            {"noisy", *methods.names()}}
+    assert set(rows) == {"noisy", *methods.names()} - {"none"}  # every method ("none" is the noisy row)
     for method in ("guided", "atrous", "pyramid"):
         assert float(rows[method][0]) < float(rows["noisy"][0])  # relMSE: the filters help
     for method in ("guided", "pyramid"):  # at 24² À-Trous' widest taps blur past the noise in FLIP

@@ -12,6 +12,8 @@ import io
 import tokenize
 from pathlib import Path
 
+from torchgi import methods
+
 PACKAGE = Path(__file__).resolve().parents[1] / "torchgi"
 KERNELS = ("c_kernels", "triton_kernels", "_native")
 MAX_LINES = 60
@@ -215,7 +217,7 @@ def test_no_method_name_is_compared_outside_the_methods_package():
                 names = [n for n in [node.left, *node.comparators]
                          if isinstance(n, ast.Attribute) and n.attr in ("method", "spatial_method")
                          or isinstance(n, ast.Name) and n.id in ("method", "spatial")]
-                strings = [n for n in ast.walk(node) if isinstance(n, ast.Constant) and n.value in METHOD_NAMES]
+                strings = [n for n in ast.walk(node) if isinstance(n, ast.Constant) and n.value in methods.names()]
                 if names and strings:
                     found.append(f"{path.relative_to(PACKAGE)}:{node.lineno}")
     assert found == []
@@ -238,5 +240,3 @@ def test_no_test_monkeypatches_a_settings_global():
                 found.append(f"{path.name}:{node.lineno}")
     assert found == []
 
-
-METHOD_NAMES = ("pyramid", "blend", "guided", "atrous", "bilateral", "none")

@@ -16,8 +16,8 @@ from pathlib import Path
 import torch
 
 import torchgi
+from torchgi import methods
 from torchgi.core.errors import TorchGIError
-from torchgi.denoise import EXPORTABLE, METHODS
 from torchgi.io.motion import MOTION_CONVENTIONS
 
 __all__ = ["main"]
@@ -261,14 +261,15 @@ def _denoise_sequence(args: argparse.Namespace) -> int:
 
     from torchgi.io import write_exr
     from torchgi.io.sequence import frame_paths
-    from torchgi.temporal import SPATIAL, TemporalDenoiser
+    from torchgi.temporal import TemporalDenoiser
 
     for flag, value in (("--quality", args.quality), ("--radius", args.radius), ("--max-memory-mb", args.max_memory_mb)):
         if value is not None:
             raise ValueError(f"{flag}: not with --temporal (the TemporalDenoiser's parameters are fixed)")
     spatial = args.method or "guided"
-    if spatial not in SPATIAL:
-        raise ValueError(f"--method: the TemporalDenoiser's spatial filter is one of {', '.join(SPATIAL)}, "
+    if spatial not in methods.names(temporal=True):
+        raise ValueError(f"--method: the TemporalDenoiser's spatial filter is one of "
+                         f"{', '.join(methods.names(temporal=True))}, "
                          f"not {spatial!r}")
     paths = frame_paths(args.input)
     folder = Path(args.out)
@@ -460,7 +461,7 @@ def _denoise_and_export_parsers(sub: argparse._SubParsersAction) -> None:
                        "when present; pyramid and blend need depth, atrous position); prints the layers it read")
     p.add_argument("input", nargs="+", help="multi-layer EXR: torchgi, Blender/Cycles, Mitsuba 3 or Arnold layer "
                    "names (torchgi.io.AOV_ALIASES; it prints which it read and which it ignored); with --temporal the frames: a folder, a glob, name_####.exr, or the files in order")
-    p.add_argument("--method", choices=list(METHODS), default=None, help="Denoiser method (default guided); with "
+    p.add_argument("--method", choices=list(methods.names()), default=None, help="Denoiser method (default guided); with "
                    "--temporal the spatial filter of the accumulated light: guided, pyramid or blend")
     p.add_argument("--quality", choices=["fast", "balanced", "high"], default=None, help="(default balanced)")
     p.add_argument("--radius", type=_positive_int, default=None, help="filter radius (default: from spp)")
@@ -486,7 +487,7 @@ def _denoise_and_export_parsers(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_denoise)
 
     p = sub.add_parser("export", help="export a Denoiser to ONNX (needs the onnx extra)")
-    p.add_argument("--method", choices=list(EXPORTABLE), default=None, help="Denoiser method (default guided)")
+    p.add_argument("--method", choices=list(methods.names(exportable=True)), default=None, help="Denoiser method (default guided)")
     p.add_argument("--spp", type=float, default=None, help="samples per pixel the parameters are fixed for (default 1)")
     p.add_argument("--quality", choices=["fast", "balanced", "high"], default=None, help="(default balanced)")
     p.add_argument("--temporal", action="store_true", help="one frame of the TemporalDenoiser, its state as graph "

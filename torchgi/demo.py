@@ -17,7 +17,7 @@ import torch
 from torchgi import methods, metrics
 from torchgi.buffers import GBuffer
 from torchgi.core.check import require
-from torchgi.denoise import METHODS, Denoiser
+from torchgi.denoise import Denoiser
 from torchgi.io import to_srgb8, write_png
 from torchgi.render import render, scenes
 
@@ -112,7 +112,7 @@ def run_demo(out: str | os.PathLike = "out/demo", *, size: int = 128, spp: int =
     folder.mkdir(parents=True, exist_ok=True)
     noisy, ref, render_s = _render_pair(size, spp, ref_spp, bounces, folder)
     images, ms = {}, {}
-    for method in (m for m in METHODS if methods.get(m).filters):  # every method timed before any metric runs
+    for method in (m for m in methods.names() if methods.get(m).filters):  # every method timed before any metric runs
         den = Denoiser(method)
         den(noisy)  # once untimed: kernels compile and buffers are allocated on the first call
         t0 = time.perf_counter()

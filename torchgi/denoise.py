@@ -48,18 +48,15 @@ from torchgi.buffers import (
     require_guides,
 )
 from torchgi.core.check import check_finite, check_option, check_positive, finite_or_sanitized_all
-from torchgi.core.errors import ShapeError
-from torchgi.core.registry import Registry
+from torchgi.core.errors import ConfigError, ShapeError
 from torchgi.core.tiles import check_budget
-from torchgi.deployed import DeployedDenoiser, DeployedDenoiserWithoutEmission, deployed
+from torchgi.deployed import DeployedDenoiser, deployed
 from torchgi.methods.base import noise_spp
 from torchgi.settings import DEFAULTS, Settings, check_settings
 from torchgi.supersample import EyeSamples
 
-__all__ = ["DENOISERS", "EXPORTABLE", "METHODS", "QUALITIES", "Denoiser", "DeployedDenoiser", "DeployedDenoiserWithoutEmission"]
+__all__ = ["QUALITIES", "Denoiser"]
 
-METHODS = methods.names()  # the registry's names (torchgi.methods)
-EXPORTABLE = methods.names(exportable=True)  # the methods Denoiser.deploy() fixes for ONNX
 QUALITIES = ("fast", "balanced", "high")
 
 
@@ -131,13 +128,13 @@ class Denoiser(torch.nn.Module):
 
     @classmethod
     def from_config(cls, config: Mapping[str, Any] | str) -> Denoiser:
-        """Build from ``{type: method, ...}`` or a preset YAML path through :data:`DENOISERS`."""
-        if isinstance(config, str):
-            import yaml
-
-            with open(config, encoding="utf-8") as fh:
-                config = yaml.safe_load(fh)
-        return DENOISERS.build(config)
+        """Build from ``{type: method, ...}`` (any method registered in :mod:`torchgi.methods` when
+        this runs, and the constructor's other arguments) or a preset YAML path holding one."""
+        method, kwargs = _config(config)
+        try:
+            return cls(method, **kwargs)
+        except TypeError as exc:
+            raise ConfigError(f"denoiser {method!r}: {exc}") from exc
 
     def deploy(self, *, spp: float | None = None, sigma_position: float | None = None, emission: bool = True,
                frame: GBuffer | None = None, variance: bool | None = None) -> DeployedDenoiser:
@@ -175,7 +172,8 @@ class Denoiser(torch.nn.Module):
         if variance and (samples is None or samples < 2):
             raise ValueError(f"variance: the back-off needs 2 samples per pixel or more; got {samples} (spp or frame.spp)")
         if not self._method.exportable:
-            raise ValueError(f"method: only {', '.join(EXPORTABLE)} deploy to ONNX, not {self.method!r}")
+            raise ValueError(f"method: only {', '.join(methods.names(exportable=True))} deploy to ONNX, not "
+                             f"{self.method!r}")
         params, net = self._method.deploy(1.0 if spp is None else float(spp), samples, frame, variance, sigma_position)
         count = samples if samples is not None or frame is not None else 1.0  # recorded in the graph
         return deployed(self.method, params, net, emission, variance, self._method.firefly(self.settings), count)
@@ -264,6 +262,14 @@ class Denoiser(torch.nn.Module):
         return chosen
 
 
-DENOISERS: Registry[Denoiser] = Registry("denoiser")
-for _method in METHODS:
-    DENOISERS.register(_method)(lambda _m=_method, **kw: Denoiser(_m, **kw))
+def _config(config: Mapping[str, Any] | str) -> tuple[str, dict[str, Any]]:
+    """A Denoiser config (a mapping or a YAML path): its registered method and other arguments."""
+    if isinstance(config, str):
+        import yaml
+
+        with open(config, encoding="utf-8") as fh:
+            config = yaml.safe_load(fh)
+    if not isinstance(config, Mapping) or "type" not in config:
+        raise ConfigError(f"denoiser config: expected a mapping with a 'type' key, got {config!r}")
+    methods.get(config["type"])  # an unknown name: the registry's names at this call
+    return config["type"], {k: v for k, v in config.items() if k != "type"}

@@ -58,9 +58,8 @@ from torchgi.denoise import Denoiser
 from torchgi.filters import box
 from torchgi.settings import DEFAULTS, Settings, check_settings
 
-__all__ = ["SPATIAL", "DeployedTemporal", "TemporalDenoiser", "TemporalState", "temporal_step"]
+__all__ = ["DeployedTemporal", "TemporalDenoiser", "TemporalState", "temporal_step"]
 
-SPATIAL = methods.names(temporal=True)  # the TemporalDenoiser's spatial filters (the registry's)
 
 
 @dataclasses.dataclass
@@ -326,7 +325,7 @@ class TemporalDenoiser(torch.nn.Module):
                  settings: Settings = DEFAULTS) -> None:
 
         super().__init__()
-        check_option(spatial, "spatial", SPATIAL)
+        check_option(spatial, "spatial", methods.names(temporal=True))
         if not isinstance(short_pass, bool):
             raise TypeError(f"short_pass: expected True or False, got {short_pass!r}")
         self.settings = check_settings(settings)
@@ -335,9 +334,9 @@ class TemporalDenoiser(torch.nn.Module):
         self._workspace: dict = {}  # the kernels' buffers between frames (the state lives in them)
         # kept between calls (its buffers); called on inputs checked once per frame
         t = settings.temporal
-        self._learned = methods.get(spatial).learned  # told the frames' samples; else the guided filter at t.radius
-        self.spatial = (Denoiser(spatial, settings=settings) if self._learned
-                        else Denoiser(spatial, radius=t.radius, eps=t.eps, subsample=1, settings=settings))
+        kind = methods.get(spatial)
+        self._learned = kind.learned  # told the frames' samples
+        self.spatial = Denoiser(spatial, settings=settings, **kind.temporal_params(t))
         self.fresh = Denoiser("guided", settings=settings)
         self.short = (Denoiser("guided", radius=t.short_radius, eps=t.eps, subsample=1, settings=settings)
                       if short_pass else None)

@@ -107,3 +107,55 @@ def test_settings_are_frozen_and_typed():
     with pytest.raises(TypeError, match="settings.guided"):
         Settings(guided=DEFAULTS.atrous)
     assert DEFAULTS.replace(temporal={"follow": 0.0}).changes() == {"temporal.follow": 0.0}
+
+
+class _Blur(methods.Method):
+    """A toy method registered by a test: a 3x3 box blur of the light, exportable and usable by
+    the TemporalDenoiser, with a parameter of its own there."""
+
+    name = "toy-blur"
+    params = ("radius",)
+    temporal = exportable = True
+
+    @classmethod
+    def temporal_params(cls, temporal):
+        return {"radius": 2}
+
+    def filter(self, x, gb, surface, raw=None, *, workspace=None):
+        return box(x, self.params.get("radius", 1)), None
+
+    def deploy(self, spp, samples, frame, variance, sigma_position):
+        return {"radius": self.params.get("radius", 1), "samples": samples or spp}, None
+
+    @staticmethod
+    def deployed_filter(params, net, x, normal, geometry, radius=None, raw=None):
+        return box(x, params["radius"])
+
+
+@pytest.fixture
+def toy_method():
+    methods.register(_Blur)
+    yield _Blur
+    methods._REGISTRY.pop(_Blur.name)
+
+
+def test_a_method_registered_later_is_seen_by_every_consumer(toy_method, tmp_path, capsys):
+    """Issue 68: ``METHODS``, ``EXPORTABLE``, ``DENOISERS`` and ``temporal.SPATIAL`` were copies
+    made at import, so a method registered later was found by ``Denoiser(name)`` only. Every
+    consumer now asks the registry when it runs: the Denoiser, ``from_config``, the CLI's
+    choices, ``deploy`` and the TemporalDenoiser (with the method's own ``temporal_params``)."""
+    from torchgi.cli import build_parser
+    from torchgi.temporal import TemporalDenoiser
+
+    g = torch.Generator().manual_seed(0)
+    c, a, n, d = (torch.rand(1, k, 12, 10, generator=g) for k in (3, 3, 3, 1))
+    n = n * 2 - 1
+    eager = Denoiser("toy-blur")(color=c, albedo=a, normal=n, depth=d)
+    assert not torch.equal(eager, Denoiser("none")(color=c, albedo=a, normal=n, depth=d))
+    assert torch.equal(Denoiser.from_config({"type": "toy-blur"})(color=c, albedo=a, normal=n, depth=d), eager)
+    args = build_parser().parse_args(["denoise", "x.exr", "--method", "toy-blur", "--out", "y.exr"])
+    assert args.method == "toy-blur"
+    deployed = Denoiser("toy-blur").deploy(spp=1)
+    assert deployed.params["radius"] == 1 and deployed(c, torch.zeros_like(c), a, n, d).shape == c.shape
+    temporal = TemporalDenoiser(spatial="toy-blur")
+    assert temporal.spatial.method == "toy-blur" and temporal.spatial.filter_params == {"radius": 2}

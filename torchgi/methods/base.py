@@ -56,6 +56,12 @@ class Method:
         self.input_scale, self.max_memory_mb = input_scale, max_memory_mb
 
     @classmethod
+    def temporal_params(cls, temporal: Any) -> dict[str, Any]:
+        """The filter parameters of this method as the TemporalDenoiser's spatial filter
+        (``temporal``: ``Settings.temporal``); none by default (its own defaults)."""
+        return {}
+
+    @classmethod
     def firefly(cls, settings: Settings | None = None) -> float:
         """Fireflies are scaled down to this many times their local level before the filter."""
         return getattr(settings or Settings(), cls.group).firefly

@@ -40,6 +40,12 @@ class Guided(Method):
         if "eps" in params:
             check_nonnegative(params["eps"], "eps")
 
+    @classmethod
+    def temporal_params(cls, temporal: Any) -> dict[str, Any]:
+        """Inside the TemporalDenoiser: the radius and ε of ``Settings.temporal``, full resolution
+        (the accumulated history has less noise than one frame)."""
+        return {"radius": temporal.radius, "eps": temporal.eps, "subsample": 1}
+
     def checks_own(self, split: bool) -> tuple[str, ...]:
         # the fused guided pipeline checks what it reads itself (normal, depth: its guide statistics)
         return ("color", "emission", "albedo", "normal", "depth") + (("direct",) if split else ())
