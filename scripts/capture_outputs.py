@@ -38,11 +38,11 @@ from torchgi.sampling import adaptive_counts, allocate, importance_map, pixel_fo
 
 
 def torch_only():
-    """The torch code paths only, through the switch both trees have (``native.disabled``; an
-    editable install resolves new subpackages from its own tree even with another on the path)."""
-    from torchgi.filters import native
+    """The torch code paths only (``torchgi.backends.use("torch")``, in every tree since the
+    back ends moved there)."""
+    from torchgi import backends
 
-    return native.disabled()
+    return backends.use("torch")
 
 
 def cases(gb, size: int):
