@@ -1,4 +1,3 @@
-import math
 
 import pytest
 import torch
@@ -244,10 +243,20 @@ def test_module_holds_eps_and_learns():
     torch.testing.assert_close(m(p, I), guided(p, I, radius=3, eps=m.eps))
     torch.testing.assert_close(m(p, I), guided(p, I, radius=3, eps=m.eps))  # reused workspace
     m.release()
-    learn = Guided(radius=2, eps=0.05, learnable=True)
-    learn(p, I).sum().backward()
+    # issue 71: the learnable eps's gradient against central differences (float64), not only finite
+    learn = Guided(radius=2, eps=0.05, learnable=True).double()
+    p, I = p.double(), I.double()
+    w = torch.rand(p.shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    loss = lambda: (learn(p, I) * w).sum()
+    loss().backward()
     raw = learn.parametrizations.eps.original
-    assert raw.grad is not None and math.isfinite(float(raw.grad))
+    h, fd = 1e-6, []
+    with torch.no_grad():
+        for sign in (1, -1):
+            raw += sign * h
+            fd.append(float(loss()))
+            raw -= sign * h
+    assert abs(float(raw.grad) - (fd[0] - fd[1]) / (2 * h)) <= 1e-5 * abs(float(raw.grad)) + 1e-9
 
 
 def test_a_learnable_eps_stays_in_range_under_any_step():

@@ -40,6 +40,7 @@ class KPNMethod(Method):
     name = "kpn"
     needs = ("depth",)
     learned = tiles = exportable = own_pipeline = True
+    onnx_optimize = False  # the optimiser is the slow part of its export; onnxruntime runs the graph as exported
 
     def run(self, gb: GBuffer, kept: torch.Tensor | None, surface: torch.Tensor, workspace: dict,
             weights: bool = False) -> tuple[torch.Tensor, torch.Tensor | None]:
