@@ -5,6 +5,7 @@ from the last checkpoint for ``--minutes`` and validates every ``--val-every`` s
     python scripts/train_kpn.py --minutes 140                 # one run of the chain (resumes)
     python scripts/train_kpn.py --data-only                   # render / check the data and pack it
     python scripts/train_kpn.py --minutes 140 --fraction 0.25 --run quarter   # a data-size curve point
+    python scripts/train_kpn.py --minutes 140 --widths 32 48 64 --run wide    # a capacity curve point
 
 Data (``configs/data_gen/procedural*.yaml``, rendered by :func:`torchgi.data.run_job` into
 ``out/data-procedural*``; a job resumes and skips what its manifest says is complete):
@@ -229,6 +230,9 @@ def parse_args() -> argparse.Namespace:
                         help="the step size at the end of this run, reached by a cosine in time (default: --lr)")
     parser.add_argument("--val-every", type=int, default=500)
     parser.add_argument("--save-every", type=int, default=1000)
+    parser.add_argument("--widths", type=int, nargs=3, default=None, metavar=("W2", "W4", "W8"),
+                        help="a new chain's network widths at 1/2, 1/4, 1/8 resolution (default KPNet's); a "
+                             "resumed chain keeps its checkpoint's")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--data-only", action="store_true")
     parser.add_argument("--train-jobs", nargs="+", default=["train", "mitsuba"], choices=["train", "mitsuba"],
@@ -253,11 +257,14 @@ class Chain:
         self.dir = ROOT / "out" / "kpn" / args.run
         self.dir.mkdir(parents=True, exist_ok=True)
         torch.manual_seed(0)
-        self.net = KPNet()
+        saved = torch.load(self.path) if self.path.is_file() else None
+        widths = saved["config"]["widths"] if saved is not None else args.widths
+        if saved is not None and args.widths is not None and list(args.widths) != list(widths):
+            raise SystemExit(f"--widths: the chain {args.run!r} has widths {widths}; start another --run for others")
+        self.net = KPNet() if widths is None else KPNet(widths)
         self.opt = torch.optim.Adam(self.net.parameters(), lr=args.lr)
         self.state = {"step": 0, "curve": [], "runs": []}
-        if self.path.is_file():
-            saved = torch.load(self.path)
+        if saved is not None:
             self.net.load_state_dict(saved["net"])
             self.opt.load_state_dict(saved["opt"])
             self.state = {k: saved[k] for k in ("step", "curve", "runs")}
