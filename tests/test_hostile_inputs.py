@@ -36,8 +36,11 @@ X16 = _t(1, 3, 16, 16)
 
 
 def _index(tmp_path):
-    (tmp_path / "index.json").write_text(json.dumps({"shards": [{"reference": False, "spp": 1}]}))
-    return tmp_path
+    """A data folder's index (an input the case reads), in ``tmp_path / "input"``."""
+    folder = tmp_path / "input"
+    folder.mkdir(exist_ok=True)
+    (folder / "index.json").write_text(json.dumps({"shards": [{"reference": False, "spp": 1}]}))
+    return folder
 
 
 def _config(**changed):
@@ -135,7 +138,8 @@ def test_numbers_are_refused_by_name(case, value, tmp_path):
     with pytest.raises(error) as caught:
         call(VALUES[value], tmp_path)
     assert re.search(rf"\b{re.escape(arg)}\b", str(caught.value)), str(caught.value)
-    assert not list(tmp_path.iterdir())  # nothing at all: no output, no temporary, no stray file
+    written = [p for p in tmp_path.rglob("*") if p.parent != tmp_path / "input" and p != tmp_path / "input"]
+    assert written == []  # nothing at all beside a case's input: no output, no temporary, no stray file
 
 
 def test_atrous_levels_have_an_upper_bound():
