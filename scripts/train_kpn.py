@@ -210,7 +210,8 @@ def plot(curve: list[dict], base: dict, path: Path) -> None:
         ratio = [c["val"][str(spp)] / base["oidn_high"][str(spp)] for c in curve if "val" in c]
         axes[0].plot(steps, ratio, label=f"{spp} spp")
     axes[0].axhline(1.0, color="k", lw=0.5)
-    axes[0].set(xlabel="step", ylabel="validation relMSE / OIDN high's", title="validation (48 procedural scenes)")
+    axes[0].set(xlabel="step", ylabel="validation relMSE / OIDN high's", title="validation (48 procedural scenes)",
+                yscale="log", ylim=(0.8, 10))
     axes[0].legend(fontsize=7)
     train = [c for c in curve if "loss" in c]
     axes[1].plot([c["step"] for c in train], [c["loss"] for c in train])
