@@ -21,6 +21,19 @@ def rel_error(out: torch.Tensor, ref: torch.Tensor | np.ndarray, scale: str = "m
     return diff / float(ref.abs().max() if scale == "max" else ref.max() - ref.min())
 
 
+def check_parameter_gradient(loss, raw: torch.Tensor, h: float = 1e-6) -> None:
+    """The autograd gradient of ``loss()`` with respect to the scalar parameter ``raw`` (float64)
+    against the central difference ``(loss(raw + h) - loss(raw - h)) / 2h``, to 1e-5 relative."""
+    loss().backward()
+    fd = []
+    with torch.no_grad():
+        for sign in (1, -1):
+            raw += sign * h
+            fd.append(float(loss()))
+            raw -= sign * h
+    assert abs(float(raw.grad) - (fd[0] - fd[1]) / (2 * h)) <= 1e-5 * abs(float(raw.grad)) + 1e-9
+
+
 def last_backend(op: str) -> str:
     """The back end that computed the last ``op`` ("box", "guided", "atrous", "importance", "allocate")."""
     return backends.status()["last"][op]["ran"]
